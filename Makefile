@@ -1,0 +1,42 @@
+# Two commands do everything on a fresh machine:  make demo  and  make test.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+TORCH_VERSION := 2.13.0
+export MUJOCO_GL ?= egl
+
+.PHONY: setup demo test test-slow lint bench clean
+
+setup: .sysdeps-stamp $(VENV)/.setup-stamp
+
+.sysdeps-stamp: scripts/install_system_deps.sh
+	bash scripts/install_system_deps.sh
+	touch $@
+
+$(VENV)/.setup-stamp: pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==$(TORCH_VERSION)
+	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	touch $@
+
+demo: setup
+	mkdir -p results
+	$(BIN)/saferace raceline technical --out results/technical_raceline.csv --plot results/technical_raceline.png
+
+test: setup
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -m slow
+
+lint: setup
+	$(BIN)/ruff check .
+
+bench: setup
+	$(BIN)/python benchmarks/raceline_speed.py
+	$(BIN)/python benchmarks/frenet_speed.py
+
+clean:
+	rm -rf $(VENV) .sysdeps-stamp results

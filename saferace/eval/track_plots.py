@@ -1,0 +1,64 @@
+"""Plots of tracks and reference lines (like the paper's Fig. 2-3)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.collections import LineCollection
+
+from saferace.track import Track
+from saferace.track.raceline import ReferenceLine
+
+
+def plot_track(ax: plt.Axes, track: Track) -> None:
+    """Asphalt, boundaries and start line of ``track`` on ``ax``."""
+    left, right = track.boundaries()
+    outline = np.vstack([left, left[:1], right[:1], right[::-1]])
+    ax.fill(outline[:, 0], outline[:, 1], color="0.85", zorder=0)
+    for boundary in (left, right):
+        closed = np.vstack([boundary, boundary[:1]])
+        ax.plot(closed[:, 0], closed[:, 1], color="k", lw=1.0)
+    start = np.vstack([left[0], right[0]])
+    ax.plot(start[:, 0], start[:, 1], color="tab:red", lw=2.0, label="start/finish")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def plot_reference_lines(
+    track: Track, center: ReferenceLine, racing: ReferenceLine, out_path: str | Path
+) -> None:
+    """Track with both lines, the racing line coloured by speed, and speed against ``s``."""
+    fig, (ax_map, ax_speed) = plt.subplots(
+        1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.4, 1.0]}
+    )
+    plot_track(ax_map, track)
+    center_xy = center.path.position(center.s_m)
+    ax_map.plot(center_xy[:, 0], center_xy[:, 1], "--", color="0.4", lw=1.0, label="center line")
+    racing_xy = racing.path.position(racing.s_m)
+    closed = np.vstack([racing_xy, racing_xy[:1]])
+    segments = np.stack([closed[:-1], closed[1:]], axis=1)
+    lines = LineCollection(segments, cmap="plasma", linewidths=2.5)
+    lines.set_array(racing.vx_mps)
+    ax_map.add_collection(lines)
+    fig.colorbar(lines, ax=ax_map, label="racing-line speed [m/s]", shrink=0.8)
+    ax_map.legend(loc="upper right", fontsize=8)
+    ax_map.set_title(f"{track.name}: minimum-curvature racing line")
+
+    ax_speed.plot(center.center_s_m, center.center_vx_mps, color="0.4", label="center line")
+    ax_speed.plot(racing.center_s_m, racing.center_vx_mps, color="tab:purple", label="racing line")
+    ax_speed.set_xlabel("centerline arc length s [m]")
+    ax_speed.set_ylabel("speed [m/s]")
+    ax_speed.set_title(
+        f"lap time: center {center.lap_time_s:.2f} s, racing {racing.lap_time_s:.2f} s"
+    )
+    ax_speed.grid(alpha=0.3)
+    ax_speed.legend()
+    fig.tight_layout()
+    fig.savefig(out_path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,189 @@
+"""A racing track: a closed centerline with left and right lane widths.
+
+Load one by name (``Track.load("lab")``), from a CSV file (``Track.load("my.csv")``)
+or from arrays (``Track.from_arrays(...)``). Every constructor validates the lane
+and raises :class:`~saferace.errors.TrackError` with the offending row.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from saferace.errors import TrackError
+from saferace.track import validation
+from saferace.track.frenet import FrenetProjector
+from saferace.track.path import ClosedPath
+from saferace.track.track_io import read_track_csv
+from saferace.track.vehicle_envelope import VehicleEnvelope
+
+TRACKS_PACKAGE = "saferace.assets.tracks"
+#: Samples used to check the boundaries for crossings, at most.
+_MAX_CHECK_SAMPLES = 2000
+_CHECK_STEP_M = 0.1
+
+
+def builtin_track_names() -> list[str]:
+    """Names of the tracks shipped in ``saferace/assets/tracks``."""
+    folder = resources.files(TRACKS_PACKAGE)
+    return sorted(p.name[:-4] for p in folder.iterdir() if p.name.endswith(".csv"))
+
+
+def builtin_track_path(name: str) -> Path:
+    """Path of a built-in track's CSV file."""
+    return Path(str(resources.files(TRACKS_PACKAGE).joinpath(f"{name}.csv")))
+
+
+class Track:
+    """A validated closed lane: centerline :class:`ClosedPath` plus widths along it.
+
+    ``s`` is the centerline arc length in metres, starting at the first point of the
+    file and increasing in the order of the points. ``e_y`` is positive to the left.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        centerline: ClosedPath,
+        w_right_m: np.ndarray,
+        w_left_m: np.ndarray,
+    ) -> None:
+        self.name = name
+        self.centerline = centerline
+        self._point_s = centerline.point_s_m
+        self._w_right = np.asarray(w_right_m, dtype=float)
+        self._w_left = np.asarray(w_left_m, dtype=float)
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def load(cls, name_or_path: str | Path, car_width_m: float = VehicleEnvelope.width_m) -> Track:
+        """A built-in track by name, or a track CSV by path."""
+        text = str(name_or_path)
+        if text in builtin_track_names():
+            return cls.from_csv(builtin_track_path(text), car_width_m=car_width_m, name=text)
+        path = Path(text)
+        if path.suffix.lower() == ".csv" or path.exists():
+            return cls.from_csv(path, car_width_m=car_width_m)
+        raise TrackError(
+            f"unknown track {text!r}: give a CSV path or one of {', '.join(builtin_track_names())}"
+        )
+
+    @classmethod
+    def from_csv(
+        cls, path: str | Path, car_width_m: float = VehicleEnvelope.width_m, name: str | None = None
+    ) -> Track:
+        """Read and validate a track file (see :mod:`saferace.track.track_io`)."""
+        table = read_track_csv(path)
+        lines = table.line_numbers
+
+        def row(i: int) -> str:
+            return f"{path}: line {lines[i]}"
+
+        try:
+            return cls.from_arrays(
+                table.x_m,
+                table.y_m,
+                table.w_right_m,
+                table.w_left_m,
+                name=name or Path(path).stem,
+                car_width_m=car_width_m,
+                row_name=row,
+            )
+        except TrackError as exc:
+            message = str(exc)
+            if not message.startswith(str(path)):
+                message = f"{path}: {message}"
+            raise TrackError(message) from None
+
+    @classmethod
+    def from_arrays(
+        cls,
+        x_m: np.ndarray,
+        y_m: np.ndarray,
+        w_right_m: np.ndarray | float,
+        w_left_m: np.ndarray | float,
+        name: str = "custom",
+        car_width_m: float = VehicleEnvelope.width_m,
+        row_name: validation.RowName = validation.default_row_name,
+    ) -> Track:
+        """Build and validate a track from centerline points and widths (scalars broadcast)."""
+        x_m = np.asarray(x_m, dtype=float).ravel()
+        y_m = np.asarray(y_m, dtype=float).ravel()
+        w_right_m = np.broadcast_to(np.asarray(w_right_m, dtype=float), x_m.shape).copy()
+        w_left_m = np.broadcast_to(np.asarray(w_left_m, dtype=float), x_m.shape).copy()
+        if len(x_m) > 1 and np.hypot(x_m[-1] - x_m[0], y_m[-1] - y_m[0]) < 1e-6:
+            x_m, y_m, w_right_m, w_left_m = x_m[:-1], y_m[:-1], w_right_m[:-1], w_left_m[:-1]
+        validation.check_points(x_m, y_m, w_right_m, w_left_m, row_name)
+        validation.check_lane_width(w_right_m, w_left_m, car_width_m, row_name)
+        track = cls(name, ClosedPath(np.column_stack([x_m, y_m])), w_right_m, w_left_m)
+        track._validate_geometry(row_name)
+        return track
+
+    def _validate_geometry(self, row_name: validation.RowName) -> None:
+        step = max(_CHECK_STEP_M, self.length_m / _MAX_CHECK_SAMPLES)
+        s = self.centerline.sample(step)
+        rows = self.row_of(s)
+
+        def row_of_sample(i: int) -> str:
+            return row_name(int(rows[i]))
+
+        w_right, w_left = self.widths(s)
+        dense_s = self.centerline.knot_s_m[:-1]
+        dense_right, dense_left = self.widths(dense_s)
+        validation.check_turn_radius(
+            self.centerline.curvature(dense_s),
+            dense_right,
+            dense_left,
+            lambda i: row_name(int(self.row_of(dense_s[i]))),
+        )
+        center = self.centerline.position(s)
+        normal = self.centerline.normal(s)
+        validation.check_no_self_intersection("center line", center, row_of_sample)
+        left = center + w_left[:, None] * normal
+        right = center - w_right[:, None] * normal
+        validation.check_no_self_intersection("left boundary", left, row_of_sample)
+        validation.check_no_self_intersection("right boundary", right, row_of_sample)
+
+    # ---------------------------------------------------------------- geometry
+    @property
+    def length_m(self) -> float:
+        """Centerline length of one lap."""
+        return self.centerline.length_m
+
+    @property
+    def point_count(self) -> int:
+        """Number of centerline points the track was given with."""
+        return len(self._point_s)
+
+    def row_of(self, s_m: np.ndarray) -> np.ndarray:
+        """Index of the input point at or before each arc length (for error messages)."""
+        return np.searchsorted(self._point_s, self.centerline.wrap(s_m), side="right") - 1
+
+    def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """Right and left lane half widths at ``s`` (linear between the input points)."""
+        s = self.centerline.wrap(s_m)
+        period = self.length_m
+        right = np.interp(s, self._point_s, self._w_right, period=period)
+        left = np.interp(s, self._point_s, self._w_left, period=period)
+        return right, left
+
+    def boundaries(self, step_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+        """Left and right boundary polylines ``(n, 2)`` sampled every ``step_m``."""
+        s = self.centerline.sample(step_m)
+        center, normal = self.centerline.position(s), self.centerline.normal(s)
+        w_right, w_left = self.widths(s)
+        return center + w_left[:, None] * normal, center - w_right[:, None] * normal
+
+    def min_turn_radius_m(self) -> float:
+        """Smallest centerline turn radius."""
+        kappa = self.centerline.curvature(self.centerline.knot_s_m[:-1])
+        return float(1.0 / np.max(np.abs(kappa)))
+
+    def projector(self) -> FrenetProjector:
+        """A new stateful Frenet projector onto the centerline."""
+        return FrenetProjector(self.centerline)
+
+    def __repr__(self) -> str:
+        return f"Track({self.name!r}, length_m={self.length_m:.2f}, points={self.point_count})"
