@@ -1,7 +1,18 @@
-"""SafeRace: safety-assured, end-to-end, vision-based autonomous racing in MuJoCo."""
+"""SafeRace: safety-assured, end-to-end, vision-based autonomous racing in MuJoCo.
+
+Importing ``saferace`` registers the gymnasium tasks ``saferace/CenterLine-v0`` and
+``saferace/RacingLine-v0``; ``gymnasium.make("saferace:saferace/RacingLine-v0")``
+imports it for you.
+"""
 
 __version__ = "0.1.0"
 
 
 def register_envs() -> None:
-    """Register the gymnasium task ids (called through the ``gymnasium.envs`` entry point)."""
+    """Register the gymnasium task ids (also the ``gymnasium.envs`` entry point)."""
+    from saferace.envs.registry import register_tasks
+
+    register_tasks()
+
+
+register_envs()

@@ -125,6 +125,11 @@ class ClosedPath:
             6.0 * ay * t + 2.0 * by,
         )
 
+    def curvature_scalar(self, s: float) -> float:
+        """Signed curvature at one arc length, without numpy overhead (per-step use)."""
+        _, _, dx, dy, ddx, ddy = self.eval_scalar(s)
+        return (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5
+
 
 def _chord_spline(points: np.ndarray) -> tuple[CubicSpline, np.ndarray]:
     """Periodic spline through ``points`` parameterised by cumulative chord length."""

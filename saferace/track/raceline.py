@@ -24,7 +24,9 @@ import osqp
 import scipy.sparse as sp
 
 from saferace.errors import RacingLineError
+from saferace.track.frenet import FrenetProjector
 from saferace.track.path import ClosedPath
+from saferace.track.periodic import PeriodicInterpolator
 from saferace.track.speed_profile import speed_profile
 from saferace.track.track import Track
 from saferace.track.vehicle_envelope import VehicleEnvelope
@@ -77,6 +79,9 @@ class ReferenceLine:
     offset_m: np.ndarray
     center_vx_mps: np.ndarray
     track_length_m: float
+    _centerline: ClosedPath
+    _offset: PeriodicInterpolator
+    _speed: PeriodicInterpolator
 
     @property
     def length_m(self) -> float:
@@ -97,6 +102,13 @@ class ReferenceLine:
         return np.interp(
             center_s_m, self.center_s_m, self.center_vx_mps, period=self.track_length_m
         )
+
+    def pose_at(self, center_s_m: float) -> tuple[float, float, float]:
+        """``(x, y, yaw)`` of the line at centerline arc length, heading along the line."""
+        center = self._centerline
+        xy = center.position(center_s_m) + self.offset_at(center_s_m) * center.normal(center_s_m)
+        line_s, _ = FrenetProjector(self.path).project(float(xy[0]), float(xy[1]))
+        return float(xy[0]), float(xy[1]), float(self.path.heading(line_s))
 
     def to_csv(self, path: str | Path) -> None:
         """Write ``s_m,x_m,y_m,psi_rad,kappa_radpm,vx_mps,ax_mps2``, one row per sample."""
@@ -271,4 +283,7 @@ def _reference(
         offset_m=offsets,
         center_vx_mps=center_vx,
         track_length_m=track.length_m,
+        _centerline=track.centerline,
+        _offset=PeriodicInterpolator(center_s, offsets, track.length_m),
+        _speed=PeriodicInterpolator(center_s, center_vx, track.length_m),
     )

@@ -16,6 +16,7 @@ from saferace.errors import TrackError
 from saferace.track import validation
 from saferace.track.frenet import FrenetProjector
 from saferace.track.path import ClosedPath
+from saferace.track.periodic import PeriodicInterpolator
 from saferace.track.track_io import read_track_csv
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
@@ -53,8 +54,8 @@ class Track:
         self.name = name
         self.centerline = centerline
         self._point_s = centerline.point_s_m
-        self._w_right = np.asarray(w_right_m, dtype=float)
-        self._w_left = np.asarray(w_left_m, dtype=float)
+        self._w_right = PeriodicInterpolator(self._point_s, w_right_m, centerline.length_m)
+        self._w_left = PeriodicInterpolator(self._point_s, w_left_m, centerline.length_m)
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -161,17 +162,16 @@ class Track:
         """Index of the input point at or before each arc length (for error messages)."""
         return np.searchsorted(self._point_s, self.centerline.wrap(s_m), side="right") - 1
 
-    def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]:
         """Right and left lane half widths at ``s`` (linear between the input points)."""
-        s = self.centerline.wrap(s_m)
-        period = self.length_m
-        right = np.interp(s, self._point_s, self._w_right, period=period)
-        left = np.interp(s, self._point_s, self._w_left, period=period)
-        return right, left
+        return self._w_right(s_m), self._w_left(s_m)
 
     def boundaries(self, step_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
         """Left and right boundary polylines ``(n, 2)`` sampled every ``step_m``."""
-        s = self.centerline.sample(step_m)
+        return self.boundaries_at(self.centerline.sample(step_m))
+
+    def boundaries_at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Left and right boundary points ``(n, 2)`` at centerline arc lengths ``s``."""
         center, normal = self.centerline.position(s), self.centerline.normal(s)
         w_right, w_left = self.widths(s)
         return center + w_left[:, None] * normal, center - w_right[:, None] * normal

@@ -17,7 +17,7 @@ class VehicleEnvelope:
     v_max_mps: float = 7.0
     a_lat_max_mps2: float = 5.0
     a_accel_max_mps2: float = 4.0
-    a_brake_max_mps2: float = 6.0
+    a_brake_max_mps2: float = 4.0
 
     def __post_init__(self) -> None:
         for name in (

@@ -1,0 +1,90 @@
+"""Choose MuJoCo's offscreen OpenGL backend before ``mujoco`` is first imported.
+
+MuJoCo reads ``MUJOCO_GL`` once, when it is imported. When the user has not set it,
+SafeRace tries Mesa's EGL (works without a GPU), then OSMesa, each in a short-lived
+subprocess so that a failing backend cannot poison this process, and exports the
+first that renders (child processes, such as vector-env workers, inherit it). When
+neither works, rendering raises :class:`RenderingUnavailableError` saying what to
+install.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+
+from saferace.errors import SafeRaceError
+
+logger = logging.getLogger(__name__)
+
+BACKENDS = ("egl", "osmesa")
+INSTALL_HINT = (
+    "install Mesa's offscreen rendering libraries (Debian/Ubuntu: "
+    "apt-get install libegl1 libgl1-mesa-dri libosmesa6; `make setup` does it as root), "
+    "or set MUJOCO_GL to a backend that works on this machine"
+)
+_PROBE = (
+    "import mujoco\n"
+    "model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"1\"/></worldbody></mujoco>')\n"
+    "renderer = mujoco.Renderer(model, 8, 8)\n"
+    "renderer.update_scene(mujoco.MjData(model))\n"
+    "renderer.render()\n"
+)
+
+
+class RenderingUnavailableError(SafeRaceError, RuntimeError):
+    """No offscreen OpenGL backend could be started."""
+
+
+def probe_backend(backend: str) -> bool:
+    """Whether MuJoCo can render offscreen with ``MUJOCO_GL=backend`` (checked in a subprocess)."""
+    env = {**os.environ, "MUJOCO_GL": backend}
+    env.pop("PYOPENGL_PLATFORM", None)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-c", _PROBE], env=env, capture_output=True, timeout=60, check=False
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return result.returncode == 0
+
+
+def choose_backend(
+    candidates: Sequence[str] = BACKENDS, probe: Callable[[str], bool] = probe_backend
+) -> str | None:
+    """The first backend of ``candidates`` that ``probe`` accepts, or None."""
+    for backend in candidates:
+        if probe(backend):
+            return backend
+        logger.info("MuJoCo offscreen backend %s is not available", backend)
+    return None
+
+
+def configure_gl_backend() -> None:
+    """Set ``MUJOCO_GL`` (and PyOpenGL's platform) unless the user already chose a backend."""
+    if os.environ.get("MUJOCO_GL"):
+        return
+    if "mujoco" in sys.modules:
+        logger.warning(
+            "mujoco was imported before saferace.envs with MUJOCO_GL unset; offscreen rendering "
+            "may fail. Set MUJOCO_GL=egl (or osmesa) before importing mujoco."
+        )
+        return
+    backend = choose_backend()
+    if backend is None:
+        os.environ["MUJOCO_GL"] = "disable"
+        logger.warning("no offscreen rendering backend works: %s", INSTALL_HINT)
+        return
+    os.environ["MUJOCO_GL"] = backend
+    os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+
+
+def renderer_error(exc: BaseException) -> RenderingUnavailableError:
+    """The error to raise when a MuJoCo renderer cannot be created."""
+    backend = os.environ.get("MUJOCO_GL", "unset")
+    return RenderingUnavailableError(
+        f"cannot create an offscreen renderer with MUJOCO_GL={backend} ({exc}); {INSTALL_HINT}"
+    )

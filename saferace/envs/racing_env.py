@@ -1,0 +1,461 @@
+"""The SafeRace racing tasks: drive the rc10 around a track from its onboard camera."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from saferace.envs.drivetrain import (
+    DrivetrainParams,
+    ackermann_angles,
+    rate_limited,
+    rear_wheel_torque,
+)
+from saferace.envs.gl_backend import renderer_error
+from saferace.envs.scene import SceneOptions, build_model
+from saferace.errors import SafeRaceError
+from saferace.track import Track, VehicleEnvelope
+from saferace.track.frenet import wrap_arc
+from saferace.track.raceline import ReferenceLine, center_line, racing_line
+
+CAR_GEOM_GROUP = 2  # the car's own visual geoms: hidden from the onboard cameras
+_STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
+_SENSORS_OFF = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+
+
+class RacingEnv(gym.Env):
+    """Drive the rc10 1/10 car around a track along a reference line, from camera images.
+
+    ## Description
+    A MuJoCo scene of a track (asphalt, white boundary lines, roadside objects) and the
+    rc10 car (3.5 kg, wheelbase 0.33 m, Ackermann steering, rear-wheel drive). The
+    reference line is the track's center line (``CenterLine-v0``) or its
+    minimum-curvature racing line (``RacingLine-v0``), each with a speed profile.
+
+    ## Action space
+    ``Box(2,)`` float32 in physical units: ``[steer_rad, accel_mps2]``, the front-wheel
+    (bicycle) angle in ``[-0.36, 0.36]`` rad, positive left, rate-limited to 6 rad/s,
+    and the longitudinal acceleration command in ``[-4, 4]`` m/s^2, which the motor turns
+    into rear-wheel torque (saturating with wheel speed, top speed about 7 m/s).
+
+    ## Observation space
+    ``Dict``:
+    - ``image``: uint8 ``(H, W, 3)`` from ``front_camera``, or ``(H, W, 6)`` with
+      ``stereo=True`` (``stereo_left`` then ``stereo_right``, 0.12 m apart).
+    - ``velocity``: float32 ``[v_x, v_y, r]``: body-frame forward and leftward speed
+      (m/s) and yaw rate (rad/s), as an IMU and wheel encoders would measure them.
+
+    Ground truth never enters the observation; it is in ``info`` (below).
+
+    ## Rewards
+    ``reward = progress_m - deviation_weight * deviation_m ** 2`` per step:
+    ``progress_m`` is the centerline distance gained this step (m), ``deviation_m`` the
+    lateral distance from the reference line (m). Both terms are in ``info`` as
+    ``reward_progress`` and ``reward_deviation``.
+
+    ## Cost
+    ``info["cost"]`` is 1.0 while any part of the car (its 0.30 m width) is outside the
+    lane, else 0.0.
+
+    ## Starting state
+    On the reference line at centerline arc length ``start_s_m`` (default 0, the
+    start/finish line; uniformly random with ``random_start=True``, or
+    ``reset(options={"start_s_m": s})``), with the reference heading and speed.
+
+    ## Episode end
+    Terminated when the whole car is outside the lane or it flips. Truncated after
+    ``max_laps`` laps (``info["lap_completed"]`` is True on the step a lap ends) or after
+    ``max_steps`` steps (default: time for ``max_laps`` laps at 0.5 m/s).
+
+    ## Info
+    ``s_m, e_y_m, e_psi_rad, kappa_radpm`` (Frenet state on the centerline),
+    ``ref_offset_m, ref_speed_mps, deviation_m`` (the reference at ``s``),
+    ``w_left_m, w_right_m`` (lane half widths at ``s``), ``x_m, y_m, yaw_rad`` (pose),
+    ``v_x_mps, v_y_mps, yaw_rate_radps``, ``steer_rad`` (applied steering target),
+    ``accel_mps2`` (command), ``time_s``, ``progress_m`` (since reset), ``lap`` (laps
+    completed), ``lap_time_s`` (last completed lap, NaN before), ``lap_times_s``,
+    ``lap_completed``, ``outside_lane``, ``cost``, ``reward_progress``, ``reward_deviation``.
+
+    ## Arguments
+    ``track``: built-in name or CSV path or :class:`~saferace.track.Track` (default
+    ``"technical"``); ``image_size=(64, 64)`` (H, W); ``stereo=False``; ``control_hz=20``;
+    ``physics_dt_s=0.005``; ``max_laps=1``; ``max_steps=None``; ``render_mode=None`` or
+    ``"rgb_array"`` (chase view of ``render_size=(240, 320)``); ``start_s_m=0.0``;
+    ``random_start=False``; ``deviation_weight=1.0``; ``scene_options``.
+
+    ## Version history
+    - v0: first release.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+    reference_kind = "center"
+
+    def __init__(
+        self,
+        track: str | Track = "technical",
+        image_size: tuple[int, int] = (64, 64),
+        stereo: bool = False,
+        control_hz: float = 20.0,
+        physics_dt_s: float = 0.005,
+        max_laps: int = 1,
+        max_steps: int | None = None,
+        render_mode: str | None = None,
+        render_size: tuple[int, int] = (240, 320),
+        start_s_m: float = 0.0,
+        random_start: bool = False,
+        deviation_weight: float = 1.0,
+        scene_options: SceneOptions | None = None,
+    ) -> None:
+        _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode, self.metadata)
+        self._init_kwargs = dict(
+            track=track,
+            image_size=tuple(image_size),
+            stereo=stereo,
+            control_hz=control_hz,
+            physics_dt_s=physics_dt_s,
+            max_laps=max_laps,
+            max_steps=max_steps,
+            render_mode=render_mode,
+            render_size=tuple(render_size),
+            start_s_m=start_s_m,
+            random_start=random_start,
+            deviation_weight=deviation_weight,
+            scene_options=scene_options,
+        )
+        self.track = track if isinstance(track, Track) else Track.load(track)
+        self.reference = reference_line(self.track, self.reference_kind)
+        self.params = DrivetrainParams()
+        self.car_half_width_m = 0.5 * VehicleEnvelope().width_m
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.stereo = stereo
+        self.control_dt_s = 1.0 / control_hz
+        self.substeps = max(1, round(self.control_dt_s / physics_dt_s))
+        self.max_laps = max_laps
+        self.max_steps = max_steps or math.ceil(max_laps * self.track.length_m / 0.5 * control_hz)
+        self.render_mode = render_mode
+        self.render_size = (int(render_size[0]), int(render_size[1]))
+        self.start_s_m = start_s_m
+        self.random_start = random_start
+        self.deviation_weight = deviation_weight
+        self.metadata = {**self.metadata, "render_fps": control_hz}
+
+        options = scene_options or SceneOptions()
+        self.model = build_model(self.track, options)
+        self.model.opt.timestep = physics_dt_s
+        self.data = mujoco.MjData(self.model)
+        self._ids = _ModelIds(self.model)
+        self._projector = self.track.projector()
+        self._cameras = ("stereo_left", "stereo_right") if stereo else ("front_camera",)
+        self._onboard_option = mujoco.MjvOption()
+        self._onboard_option.geomgroup[CAR_GEOM_GROUP] = 0
+        self._onboard_renderer: mujoco.Renderer | None = None
+        self._chase_renderer: mujoco.Renderer | None = None
+
+        channels = 3 * len(self._cameras)
+        self.observation_space = spaces.Dict(
+            image=spaces.Box(0, 255, (*self.image_size, channels), np.uint8),
+            velocity=spaces.Box(-np.inf, np.inf, (3,), np.float32),
+        )
+        p = self.params
+        self.action_space = spaces.Box(
+            low=np.array([-p.max_steer_rad, -p.max_brake_mps2], np.float32),
+            high=np.array([p.max_steer_rad, p.max_accel_mps2], np.float32),
+        )
+        self._steer_target = 0.0
+        self._episode: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        options = options or {}
+        if "start_s_m" in options:
+            start_s = float(options["start_s_m"])
+        elif self.random_start:
+            start_s = float(self.np_random.uniform(0.0, self.track.length_m))
+        else:
+            start_s = self.start_s_m
+        self._place_car(start_s % self.track.length_m)
+        self._steer_target = 0.0
+        frenet = self._frenet()
+        self._episode = dict(
+            steps=0,
+            progress_m=0.0,
+            last_s=frenet[0],
+            lap=0,
+            lap_start_s=0.0,
+            lap_times_s=[],
+            accel_mps2=0.0,
+        )
+        info = self._info(frenet, progress_m=0.0, lap_completed=False)
+        return self._observation(), info
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (2,) or not np.all(np.isfinite(action)):
+            raise SafeRaceError(
+                f"action must be 2 finite numbers [steer_rad, accel_mps2], got {action!r}"
+            )
+        low, high = self.action_space.low, self.action_space.high
+        steer_cmd, accel_cmd = np.clip(action, low, high).tolist()
+        self._apply_controls(steer_cmd, accel_cmd)
+        time_before = self.data.time
+        self._step_physics()
+
+        episode = self._episode
+        frenet = self._frenet()
+        progress = wrap_arc(frenet[0] - episode["last_s"], self.track.length_m)
+        episode["last_s"] = frenet[0]
+        episode["steps"] += 1
+        episode["accel_mps2"] = accel_cmd
+        before = episode["progress_m"]
+        episode["progress_m"] = before + progress
+        lap_completed = self._count_lap(before, episode["progress_m"], time_before)
+
+        info = self._info(frenet, progress_m=progress, lap_completed=lap_completed)
+        reward = info["reward_progress"] + info["reward_deviation"]
+        terminated = bool(info["fully_outside_lane"] or self._flipped())
+        truncated = bool(episode["lap"] >= self.max_laps or episode["steps"] >= self.max_steps)
+        return self._observation(), reward, terminated, truncated, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._chase_renderer is None:
+            self._chase_renderer = self._make_renderer(*self.render_size)
+        self._chase_renderer.update_scene(self.data, camera="chase_camera")
+        return self._chase_renderer.render()
+
+    def close(self) -> None:
+        for renderer in (self._onboard_renderer, self._chase_renderer):
+            if renderer is not None:
+                renderer.close()
+        self._onboard_renderer = self._chase_renderer = None
+
+    # ------------------------------------------------------------- pickling
+    def __getstate__(self) -> dict[str, Any]:
+        state = np.empty(mujoco.mj_stateSize(self.model, _STATE_SPEC))
+        mujoco.mj_getState(self.model, self.data, state, _STATE_SPEC)
+        return dict(
+            kwargs=self._init_kwargs,
+            physics=state,
+            steer_target=self._steer_target,
+            episode=self._episode,
+            last_s=self._projector._last_s,
+            np_random=self._np_random,
+        )
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(**state["kwargs"])
+        mujoco.mj_setState(self.model, self.data, state["physics"], _STATE_SPEC)
+        mujoco.mj_forward(self.model, self.data)
+        self._steer_target = state["steer_target"]
+        self._episode = state["episode"]
+        self._projector.reset(state["last_s"])
+        self._np_random = state["np_random"]
+
+    # ------------------------------------------------------------- internals
+    def _place_car(self, s_m: float) -> None:
+        model, data = self.model, self.data
+        mujoco.mj_resetData(model, data)
+        x, y, yaw = self.reference.pose_at(s_m)
+        speed = float(self.reference.speed_at(s_m))
+        ids = self._ids
+        data.qpos[ids.root_qpos : ids.root_qpos + 7] = [
+            x,
+            y,
+            self.params.wheel_radius_m,
+            math.cos(yaw / 2),
+            0.0,
+            0.0,
+            math.sin(yaw / 2),
+        ]
+        data.qvel[ids.root_qvel : ids.root_qvel + 3] = [
+            speed * math.cos(yaw),
+            speed * math.sin(yaw),
+            0.0,
+        ]
+        for address in ids.wheel_qvel:
+            data.qvel[address] = speed / self.params.wheel_radius_m
+        mujoco.mj_forward(model, data)
+        self._projector.reset(s_m)
+
+    def _apply_controls(self, steer_cmd: float, accel_cmd: float) -> None:
+        params, data, ids = self.params, self.data, self._ids
+        self._steer_target = rate_limited(
+            steer_cmd, self._steer_target, params.max_steer_rate_radps, self.control_dt_s
+        )
+        left, right = ackermann_angles(self._steer_target, params)
+        data.ctrl[ids.steer_left] = left
+        data.ctrl[ids.steer_right] = right
+        v_x = float(data.sensordata[ids.velocimeter])
+        for actuator, wheel in zip(ids.motors, ids.rear_wheel_speed, strict=True):
+            data.ctrl[actuator] = rear_wheel_torque(
+                accel_cmd, v_x, float(data.sensordata[wheel]), params
+            )
+
+    def _step_physics(self) -> None:
+        """One control step of physics; sensors are read once, so computed only at its end."""
+        model, data, opt = self.model, self.data, self.model.opt
+        if self.substeps > 1:
+            opt.disableflags |= _SENSORS_OFF
+            mujoco.mj_step(model, data, nstep=self.substeps - 1)
+            opt.disableflags &= ~_SENSORS_OFF
+        mujoco.mj_step(model, data)
+
+    def _pose(self) -> tuple[float, float, float]:
+        data, ids = self.data, self._ids
+        x, y = data.xpos[ids.chassis, :2]
+        rot = data.xmat[ids.chassis]
+        return float(x), float(y), math.atan2(rot[3], rot[0])
+
+    def _frenet(self) -> tuple[float, float, float]:
+        return self._projector.to_frenet(*self._pose())
+
+    def _flipped(self) -> bool:
+        return bool(self.data.xmat[self._ids.chassis, 8] < 0.3)
+
+    def _count_lap(self, progress_before: float, progress_after: float, time_before: float) -> bool:
+        episode = self._episode
+        goal = (episode["lap"] + 1) * self.track.length_m
+        if progress_after < goal:
+            return False
+        fraction = (goal - progress_before) / max(progress_after - progress_before, 1e-12)
+        crossing_time = time_before + fraction * (self.data.time - time_before)
+        episode["lap_times_s"].append(crossing_time - episode["lap_start_s"])
+        episode["lap_start_s"] = crossing_time
+        episode["lap"] += 1
+        return True
+
+    def _velocity(self) -> np.ndarray:
+        data, ids = self.data, self._ids
+        v = data.sensordata[ids.velocimeter : ids.velocimeter + 2]
+        return np.array([v[0], v[1], data.sensordata[ids.gyro + 2]], dtype=np.float32)
+
+    def _observation(self) -> dict[str, np.ndarray]:
+        if self._onboard_renderer is None:
+            self._onboard_renderer = self._make_renderer(*self.image_size)
+        renderer = self._onboard_renderer
+        images = []
+        for camera in self._cameras:
+            renderer.update_scene(self.data, camera=camera, scene_option=self._onboard_option)
+            images.append(renderer.render())
+        image = images[0] if len(images) == 1 else np.concatenate(images, axis=2)
+        return {"image": image, "velocity": self._velocity()}
+
+    def _make_renderer(self, height: int, width: int) -> mujoco.Renderer:
+        try:
+            return mujoco.Renderer(self.model, height, width)
+        except Exception as exc:
+            raise renderer_error(exc) from exc
+
+    def _info(
+        self, frenet: tuple[float, float, float], progress_m: float, lap_completed: bool
+    ) -> dict[str, Any]:
+        s, e_y, e_psi = (float(v) for v in frenet)
+        w_right, w_left = (float(w) for w in self.track.widths(s))
+        ref_offset = float(self.reference.offset_at(s))
+        deviation = e_y - ref_offset
+        half = self.car_half_width_m
+        outside = e_y + half > w_left or e_y - half < -w_right
+        fully_outside = e_y - half > w_left or e_y + half < -w_right
+        x, y, yaw = self._pose()
+        v_x, v_y, r = (float(v) for v in self._velocity())
+        episode = self._episode
+        lap_times = list(episode["lap_times_s"])
+        return {
+            "s_m": s,
+            "e_y_m": e_y,
+            "e_psi_rad": e_psi,
+            "kappa_radpm": self.track.centerline.curvature_scalar(s),
+            "ref_offset_m": ref_offset,
+            "ref_speed_mps": float(self.reference.speed_at(s)),
+            "deviation_m": deviation,
+            "w_left_m": w_left,
+            "w_right_m": w_right,
+            "x_m": x,
+            "y_m": y,
+            "yaw_rad": yaw,
+            "v_x_mps": v_x,
+            "v_y_mps": v_y,
+            "yaw_rate_radps": r,
+            "steer_rad": self._steer_target,
+            "accel_mps2": episode["accel_mps2"],
+            "time_s": float(self.data.time),
+            "progress_m": episode["progress_m"],
+            "lap": episode["lap"],
+            "lap_time_s": lap_times[-1] if lap_times else math.nan,
+            "lap_times_s": lap_times,
+            "lap_completed": lap_completed,
+            "outside_lane": outside,
+            "fully_outside_lane": fully_outside,
+            "cost": 1.0 if outside else 0.0,
+            "reward_progress": progress_m,
+            "reward_deviation": -self.deviation_weight * deviation * deviation,
+        }
+
+
+class CenterLineEnv(RacingEnv):
+    """``saferace/CenterLine-v0``: follow the track's center line (see :class:`RacingEnv`)."""
+
+    reference_kind = "center"
+
+
+class RacingLineEnv(RacingEnv):
+    """``saferace/RacingLine-v0``: follow the minimum-curvature racing line (see :class:`RacingEnv`)."""
+
+    reference_kind = "racing"
+
+
+def reference_line(track: Track, kind: str) -> ReferenceLine:
+    """The task's reference line: ``"center"`` or ``"racing"``."""
+    if kind == "center":
+        return center_line(track)
+    if kind == "racing":
+        return racing_line(track)
+    raise SafeRaceError(f"unknown reference line {kind!r}: use 'center' or 'racing'")
+
+
+class _ModelIds:
+    """Addresses of the named model elements the env reads and writes every step."""
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        self.chassis = model.body("chassis").id
+        root = model.joint("root")
+        self.root_qpos, self.root_qvel = int(root.qposadr[0]), int(root.dofadr[0])
+        self.wheel_qvel = [
+            int(model.joint(f"{wheel}_spin").dofadr[0])
+            for wheel in ("front_left", "front_right", "rear_left", "rear_right")
+        ]
+        self.steer_left = model.actuator("front_left_steering_servo").id
+        self.steer_right = model.actuator("front_right_steering_servo").id
+        self.motors = [model.actuator("rear_left_motor").id, model.actuator("rear_right_motor").id]
+        self.velocimeter = int(model.sensor("imu_velocimeter").adr[0])
+        self.gyro = int(model.sensor("imu_gyro").adr[0])
+        self.rear_wheel_speed = [
+            int(model.sensor("rear_left_wheel_speed").adr[0]),
+            int(model.sensor("rear_right_wheel_speed").adr[0]),
+        ]
+
+
+def _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode, metadata) -> None:
+    if len(image_size) != 2 or min(image_size) < 8 or max(image_size) > 480:
+        raise SafeRaceError(
+            f"image_size must be (height, width) between 8 and 480, got {image_size}"
+        )
+    if not 1.0 <= control_hz <= 1.0 / physics_dt_s:
+        raise SafeRaceError(
+            f"control_hz must be between 1 and the physics rate {1.0 / physics_dt_s:g}, got {control_hz}"
+        )
+    if not 1e-4 <= physics_dt_s <= 0.01:
+        raise SafeRaceError(f"physics_dt_s must be between 1e-4 and 0.01 s, got {physics_dt_s}")
+    if max_laps < 1:
+        raise SafeRaceError(f"max_laps must be at least 1, got {max_laps}")
+    if render_mode is not None and render_mode not in metadata["render_modes"]:
+        raise SafeRaceError(
+            f"render_mode must be None or one of {metadata['render_modes']}, got {render_mode!r}"
+        )

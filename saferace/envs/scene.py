@@ -1,0 +1,271 @@
+"""MuJoCo scene of a track with the rc10 car, built with ``mujoco.MjSpec``.
+
+The scene has what the cameras need and nothing that costs render time on a CPU:
+one asphalt ribbon mesh, two white boundary-line meshes (what the networks look at,
+so they are emissive and crisp even at 64x64), a start/finish line, a grass ground
+plane with a coarse grid, and some roadside cones and boxes for visual structure.
+Shadows and multisampling are off. Only the car's tyres and chassis collide, with
+the ground plane; every other scene element is visual.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from saferace.track import Track
+
+CAR_XML = Path(str(resources.files("saferace.assets.vehicles.rc10").joinpath("rc10.xml")))
+
+ASPHALT_RGBA = (0.32, 0.32, 0.34, 1.0)
+LINE_RGBA = (1.0, 1.0, 1.0, 1.0)
+GRASS_RGBA = (0.30, 0.50, 0.22, 1.0)
+START_RGBA = (0.85, 0.10, 0.10, 1.0)
+ROADSIDE_RGBA = ((1.0, 0.45, 0.0, 1.0), (0.15, 0.35, 0.85, 1.0), (0.95, 0.85, 0.10, 1.0))
+
+_SURFACE_Z_M = {"asphalt": 0.002, "lines": 0.004, "start": 0.005}
+
+
+@dataclass(frozen=True)
+class SceneOptions:
+    """What the scene contains and how finely it is meshed."""
+
+    line_width_m: float = 0.07
+    mesh_chord_error_m: float = 0.005
+    mesh_max_step_m: float = 1.0
+    roadside_spacing_m: float = 2.5
+    roadside_objects: bool = True
+    max_image_width: int = 640
+    max_image_height: int = 480
+
+
+def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjSpec:
+    """The MjSpec of ``track`` with the rc10 car at the origin."""
+    options = options or SceneOptions()
+    spec = mujoco.MjSpec.from_file(str(CAR_XML))
+    spec.modelname = f"saferace_{track.name}"
+    _configure_visual(spec, track, options)
+    _add_ground_and_light(spec, track)
+    s = mesh_samples(track, options.mesh_chord_error_m, options.mesh_max_step_m)
+    left, right = track.boundaries_at(s)
+    normals = track.centerline.normal(s)
+    _add_ribbon(spec, "asphalt", left, right, ASPHALT_RGBA, _SURFACE_Z_M["asphalt"], emission=0.0)
+    width = options.line_width_m
+    _add_ribbon(spec, "left_line", left, left - width * normals, LINE_RGBA, _SURFACE_Z_M["lines"])
+    _add_ribbon(
+        spec, "right_line", right + width * normals, right, LINE_RGBA, _SURFACE_Z_M["lines"]
+    )
+    _add_start_line(spec, track)
+    if options.roadside_objects:
+        _add_roadside_objects(spec, track, options.roadside_spacing_m)
+    return spec
+
+
+def build_model(track: Track, options: SceneOptions | None = None) -> mujoco.MjModel:
+    """The compiled scene of ``track``."""
+    return build_scene(track, options).compile()
+
+
+def _configure_visual(spec: mujoco.MjSpec, track: Track, options: SceneOptions) -> None:
+    left, right = track.boundaries(0.5)
+    span = np.ptp(np.vstack([left, right]), axis=0)
+    extent = float(np.hypot(*span)) + 4.0
+    spec.stat.extent = extent
+    spec.visual.map.znear = 0.03 / extent  # the onboard camera sees asphalt 0.3 m ahead
+    spec.visual.map.zfar = 1.5
+    spec.visual.quality.shadowsize = 0
+    spec.visual.quality.offsamples = 0
+    spec.visual.quality.numslices = 8  # tessellation of round geoms and the skybox
+    spec.visual.quality.numstacks = 4
+    spec.visual.quality.numquads = 1
+    spec.visual.global_.offwidth = options.max_image_width
+    spec.visual.global_.offheight = options.max_image_height
+    spec.visual.headlight.ambient = [0.45, 0.45, 0.45]
+    spec.visual.headlight.diffuse = [0.35, 0.35, 0.35]
+    spec.visual.headlight.specular = [0.0, 0.0, 0.0]
+
+
+def _add_ground_and_light(spec: mujoco.MjSpec, track: Track) -> None:
+    left, right = track.boundaries(0.5)
+    points = np.vstack([left, right])
+    center = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    half = 0.5 * np.ptp(points, axis=0) + 6.0
+    sky = spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX)
+    sky.builtin = mujoco.mjtBuiltin.mjBUILTIN_GRADIENT
+    sky.rgb1 = [0.55, 0.75, 0.95]
+    sky.rgb2 = [0.95, 0.97, 1.0]
+    sky.width = sky.height = 64
+    spec.worldbody.add_geom(
+        name="ground",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        pos=[center[0], center[1], 0.0],
+        size=[half[0], half[1], 10.0],
+        rgba=GRASS_RGBA,
+        contype=1,
+        conaffinity=1,
+        condim=3,
+    )
+    spec.worldbody.add_light(
+        name="sun",
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        pos=[center[0], center[1], 10.0],
+        dir=[0.3, 0.2, -1.0],
+        diffuse=[0.55, 0.55, 0.55],
+        specular=[0.1, 0.1, 0.1],
+        castshadow=False,
+    )
+
+
+def mesh_samples(track: Track, chord_error_m: float, max_step_m: float) -> np.ndarray:
+    """Arc lengths where the lane meshes have vertices: dense in turns, sparse on straights.
+
+    The spacing keeps the chord error of the tighter boundary (radius ``1/|kappa| - w``)
+    under ``chord_error_m``: ``step = sqrt(8 * chord_error * radius)``. Fewer vertices
+    render faster in a software rasteriser.
+    """
+    knots = track.centerline.knot_s_m[:-1]
+    kappa = np.abs(track.centerline.curvature(knots))
+    w_right, w_left = track.widths(knots)
+    inner = np.where(track.centerline.curvature(knots) > 0, w_left, w_right)
+    with np.errstate(divide="ignore"):
+        radius = np.maximum(1.0 / kappa - inner, 0.05)
+    allowed = np.clip(np.sqrt(8.0 * chord_error_m * radius), 0.02, max_step_m)
+    spacing = track.centerline.knot_spacing_m
+    samples = [0]
+    while True:
+        here = samples[-1]
+        reach = here + np.arange(int(allowed[here] / spacing) + 1)
+        step = float(np.take(allowed, reach, mode="wrap").min())  # the tightest spot it spans
+        following = here + max(1, int(step / spacing))
+        if following >= len(knots):
+            return knots[samples]
+        samples.append(following)
+
+
+def _add_ribbon(
+    spec: mujoco.MjSpec,
+    name: str,
+    left: np.ndarray,
+    right: np.ndarray,
+    rgba: tuple[float, ...],
+    z_m: float,
+    emission: float = 0.6,
+) -> None:
+    """A closed flat strip between two polylines, faces up, as one visual mesh geom."""
+    count = len(left)
+    vertices = np.empty((2 * count, 3))
+    vertices[0::2, :2], vertices[1::2, :2] = left, right
+    vertices[:, 2] = z_m
+    i = np.arange(count)
+    left_i, right_i = 2 * i, 2 * i + 1
+    left_j, right_j = 2 * ((i + 1) % count), 2 * ((i + 1) % count) + 1
+    faces = np.concatenate(
+        [np.stack([right_i, right_j, left_i], 1), np.stack([left_i, right_j, left_j], 1)]
+    )
+    mesh = spec.add_mesh(name=f"{name}_mesh")
+    mesh.uservert = vertices.ravel().tolist()
+    mesh.userface = faces.ravel().astype(int).tolist()
+    mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
+    material = spec.add_material(name=f"{name}_material", rgba=list(rgba))
+    material.emission = emission
+    material.specular = 0.0
+    spec.worldbody.add_geom(
+        name=name,
+        type=mujoco.mjtGeom.mjGEOM_MESH,
+        meshname=mesh.name,
+        material=material.name,
+        contype=0,
+        conaffinity=0,
+        group=0,
+    )
+
+
+def _add_start_line(spec: mujoco.MjSpec, track: Track) -> None:
+    w_right, w_left = (float(w) for w in track.widths(0.0))
+    center = track.centerline.position(0.0) + 0.5 * (w_left - w_right) * track.centerline.normal(
+        0.0
+    )
+    yaw = float(track.centerline.heading(0.0))
+    spec.worldbody.add_geom(
+        name="start_line",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        pos=[center[0], center[1], _SURFACE_Z_M["start"]],
+        quat=[np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)],
+        size=[0.04, 0.5 * (w_left + w_right), 0.001],
+        rgba=START_RGBA,
+        contype=0,
+        conaffinity=0,
+    )
+
+
+def _add_roadside_objects(spec: mujoco.MjSpec, track: Track, spacing_m: float) -> None:
+    """Cones, boxes and posts beside the lane, never on any part of it (fixed layout per track).
+
+    Each kind is merged into one mesh: a draw call costs more than its triangles in a
+    software renderer.
+    """
+    rng = np.random.default_rng(0)
+    projector = track.projector()
+    placed: list[list[np.ndarray]] = [[] for _ in ROADSIDE_SHAPES]
+    for s in np.arange(0.5 * spacing_m, track.length_m, spacing_m):
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        w_right, w_left = track.widths(s)
+        offset = side * ((w_left if side > 0 else w_right) + rng.uniform(0.3, 1.0))
+        xy = track.centerline.position(s) + offset * track.centerline.normal(s)
+        projector.reset()
+        s_near, e_y = projector.project(*xy)
+        near_right, near_left = track.widths(s_near)
+        if e_y > near_left + 0.25 or e_y < -near_right - 0.25:
+            placed[sum(len(p) for p in placed) % len(ROADSIDE_SHAPES)].append(xy)
+    for kind, (positions, shape, rgba) in enumerate(
+        zip(placed, ROADSIDE_SHAPES, ROADSIDE_RGBA, strict=True)
+    ):
+        if not positions:
+            continue
+        vertices, faces = shape
+        all_vertices = np.concatenate([vertices + [*xy, 0.0] for xy in positions])
+        all_faces = np.concatenate([faces + i * len(vertices) for i in range(len(positions))])
+        mesh = spec.add_mesh(name=f"roadside_{kind}_mesh")
+        mesh.uservert = all_vertices.ravel().tolist()
+        mesh.userface = all_faces.ravel().astype(int).tolist()
+        spec.worldbody.add_geom(
+            name=f"roadside_{kind}",
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=mesh.name,
+            rgba=list(rgba),
+            contype=0,
+            conaffinity=0,
+        )
+
+
+def _prism(
+    radius_m: float, height_m: float, sides: int, top_scale: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and outward faces of a closed prism (``top_scale`` 0 gives a pyramid)."""
+    angles = np.linspace(0.0, 2.0 * np.pi, sides, endpoint=False) + np.pi / sides
+    ring = np.column_stack([np.cos(angles), np.sin(angles)]) * radius_m
+    bottom = np.column_stack([ring, np.zeros(sides)])
+    top = np.column_stack([ring * max(top_scale, 1e-3), np.full(sides, height_m)])
+    vertices = np.vstack([bottom, top])
+    i = np.arange(sides)
+    j = (i + 1) % sides
+    walls = np.concatenate([np.stack([i, j, sides + j], 1), np.stack([i, sides + j, sides + i], 1)])
+    caps = np.concatenate(
+        [
+            np.stack([np.zeros(sides - 2, int), i[2:], i[1:-1]], 1),
+            np.stack([np.full(sides - 2, sides), sides + i[1:-1], sides + i[2:]], 1),
+        ]
+    )
+    return vertices, np.concatenate([walls, caps])
+
+
+#: Cone, box and post, in the order of ROADSIDE_RGBA.
+ROADSIDE_SHAPES = (
+    _prism(0.06, 0.16, 8, 0.15),
+    _prism(0.14, 0.2, 4, 1.0),
+    _prism(0.035, 0.45, 6, 1.0),
+)
