@@ -23,6 +23,9 @@ $(VENV)/.setup-stamp: pyproject.toml
 demo: setup
 	mkdir -p results
 	$(BIN)/saferace raceline technical --out results/technical_raceline.csv --plot results/technical_raceline.png
+	$(BIN)/saferace drive --task RacingLine --track technical \
+		--video results/technical_racingline.mp4 --rerun results/technical_racingline.rrd
+	$(BIN)/saferace snapshots --out results/snapshots
 
 test: setup
 	$(BIN)/ruff check .
@@ -37,6 +40,7 @@ lint: setup
 bench: setup
 	$(BIN)/python benchmarks/raceline_speed.py
 	$(BIN)/python benchmarks/frenet_speed.py
+	$(BIN)/python benchmarks/env_speed.py
 
 clean:
 	rm -rf $(VENV) .sysdeps-stamp results

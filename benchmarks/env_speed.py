@@ -31,7 +31,7 @@ def saferace_steps_per_second(steps: int, physics_only: bool = False, **kwargs) 
     obs, info = env.reset(seed=0)
     agent = PurePursuit.for_env(env)
     if physics_only:
-        base._observation = lambda: obs  # skip rendering: the physics and bookkeeping remain
+        base._observation = lambda velocity: obs  # skip rendering; physics and bookkeeping remain
     elapsed = 0.0
     for _ in range(steps):
         action = agent.act(obs, info)

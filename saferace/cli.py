@@ -38,12 +38,29 @@ def _parser() -> argparse.ArgumentParser:
         "--car-width-m", type=float, default=None, help="car width (default 0.30)"
     )
     raceline.add_argument(
-        "--margin-m", type=float, default=None, help="extra clearance (default 0.05)"
+        "--margin-m", type=float, default=None, help="extra clearance (default 0.10)"
     )
     raceline.add_argument(
         "--plot", type=Path, help="draw the track, both lines and speeds to a PNG"
     )
     raceline.set_defaults(command=_raceline)
+
+    drive = commands.add_parser("drive", help="pure pursuit drives laps; video and Rerun recording")
+    drive.add_argument("--task", default="RacingLine", choices=["CenterLine", "RacingLine"])
+    drive.add_argument("--track", default="technical", help="built-in track name or track CSV path")
+    drive.add_argument("--laps", type=int, default=1)
+    drive.add_argument("--seed", type=int, default=0)
+    drive.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
+    drive.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
+    drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
+    drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
+    drive.set_defaults(command=_drive)
+
+    shots = commands.add_parser("snapshots", help="PNGs of the onboard and chase views of tracks")
+    shots.add_argument("--out", type=Path, default=Path("results/snapshots"))
+    shots.add_argument("--tracks", nargs="*", help="track names or CSVs (default: all built-in)")
+    shots.add_argument("--image-size", type=int, default=64)
+    shots.set_defaults(command=_snapshots)
     return parser
 
 
@@ -92,4 +109,59 @@ def _raceline(args: argparse.Namespace) -> int:
 
         plot_reference_lines(track, center, racing, args.plot)
         print(f"plot written to {args.plot}")
+    return 0
+
+
+def _drive(args: argparse.Namespace) -> int:
+    from saferace.eval.drive import drive, format_lap_times
+    from saferace.eval.tables import markdown_table
+
+    if args.laps < 1:
+        raise SafeRaceError(f"--laps must be at least 1, got {args.laps}")
+    summary = drive(
+        args.task,
+        args.track,
+        laps=args.laps,
+        video=args.video,
+        rerun=args.rerun,
+        seed=args.seed,
+        image_size=(args.image_size, args.image_size),
+        stereo=args.stereo,
+    )
+    print(
+        markdown_table(
+            [
+                "task",
+                "track",
+                "laps",
+                "lap times [s]",
+                "sim time [s]",
+                "outside lane [s]",
+                "max |dev| [m]",
+            ],
+            [
+                [
+                    summary.task,
+                    summary.track,
+                    summary.laps,
+                    format_lap_times(summary.lap_times_s),
+                    summary.sim_time_s,
+                    summary.time_outside_lane_s,
+                    summary.max_abs_deviation_m,
+                ]
+            ],
+        )
+    )
+    for label, path in (("video", args.video), ("rerun recording", args.rerun)):
+        if path:
+            print(f"{label} written to {path}")
+    return 0 if summary.laps == args.laps else 1
+
+
+def _snapshots(args: argparse.Namespace) -> int:
+    from saferace.eval.drive import snapshots
+    from saferace.track import builtin_track_names
+
+    for path in snapshots(args.out, args.tracks or builtin_track_names(), args.image_size):
+        print(path)
     return 0

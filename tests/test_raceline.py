@@ -59,8 +59,9 @@ def test_oval_racing_line_is_symmetric():
         assert gaps.max() < 5e-3
     # It hugs the inside of the semicircles and the outside of the straights.
     w_right, w_left = track.widths(racing.center_s_m)
-    assert racing.offset_m.max() == pytest.approx(w_left.max() - 0.2, abs=1e-3)
-    assert racing.offset_m.min() == pytest.approx(-w_right.max() + 0.2, abs=1e-3)
+    clearance = 0.5 * VehicleEnvelope().width_m + RacingLineSettings().margin_m
+    assert racing.offset_m.max() == pytest.approx(w_left.max() - clearance, abs=1e-3)
+    assert racing.offset_m.min() == pytest.approx(-w_right.max() + clearance, abs=1e-3)
 
 
 def test_lane_too_narrow_for_margin_is_an_error():

@@ -2,7 +2,8 @@
 
 A baseline driver and the simulator's smoke test: it steers toward the point of the
 reference line ``lookahead_m`` ahead along the track, and tracks a fraction of the
-reference speed with a proportional speed loop.
+reference speed with a proportional speed loop, braking early enough for slower
+reference speeds ahead.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ class PurePursuitSettings:
     speed_scale: float = 0.7
     max_speed_mps: float = 4.0
     speed_gain_per_s: float = 2.0
+    planning_decel_mps2: float = 2.5
     wheelbase_m: float = 0.33
 
 
@@ -60,6 +62,15 @@ class PurePursuit:
         local_y = -math.sin(yaw) * dx + math.cos(yaw) * dy
         distance_sq = local_x * local_x + local_y * local_y
         steer = math.atan(2.0 * settings.wheelbase_m * local_y / max(distance_sq, 1e-6))
-        target_speed = min(settings.max_speed_mps, settings.speed_scale * info["ref_speed_mps"])
-        accel = settings.speed_gain_per_s * (target_speed - speed)
+        accel = settings.speed_gain_per_s * (self.target_speed(info["s_m"], speed) - speed)
         return np.array([steer, accel], dtype=np.float32)
+
+    def target_speed(self, s_m: float, speed_mps: float) -> float:
+        """The fastest speed now from which every scaled reference speed ahead can be reached."""
+        settings = self.settings
+        decel = settings.planning_decel_mps2
+        horizon = max(speed_mps, 0.0) ** 2 / (2.0 * decel) + 0.5
+        ahead = np.linspace(0.0, horizon, 12)
+        allowed = settings.speed_scale * self.reference.speed_at(s_m + ahead)
+        now = np.sqrt(allowed**2 + 2.0 * decel * ahead)
+        return float(min(settings.max_speed_mps, now.min()))

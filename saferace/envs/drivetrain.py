@@ -3,8 +3,9 @@
 The task's action is physical: a front-wheel (bicycle) steering angle and a
 longitudinal acceleration command. This module turns them into the MuJoCo
 actuators' controls: a rate-limited steering target split into left/right wheel
-angles by Ackermann geometry, and rear-wheel torques from a feed-forward of the
-car's mass and rolling losses, saturated by a DC motor's torque-speed line.
+angles by Ackermann geometry, and wheel torques from a feed-forward of the car's
+mass and rolling losses: rear-wheel drive saturated by a DC motor's torque-speed
+line, and braking on all four wheels.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ class DrivetrainParams:
     max_steer_rate_radps: float = 6.0
     motor_stall_torque_nm: float = 0.5  # per rear wheel
     motor_free_speed_radps: float = 150.0  # wheel speed at which the motor's torque reaches zero
+    brake_torque_nm: float = 0.5  # per wheel
+    front_brake_share: float = 0.6
     max_accel_mps2: float = 4.0
     max_brake_mps2: float = 4.0
 
@@ -53,19 +56,32 @@ def rate_limited(target: float, current: float, max_rate: float, dt_s: float) ->
     return current + max(-step, min(step, target - current))
 
 
-def rear_wheel_torque(
-    accel_mps2: float, speed_mps: float, wheel_speed_radps: float, params: DrivetrainParams
-) -> float:
-    """Torque per rear wheel for an acceleration command, within the motor's limits.
+@dataclass(frozen=True)
+class WheelTorques:
+    """Torque per wheel, N m: the rear motors drive and brake, the front wheels only brake."""
 
-    Feed-forward ``(m_eff a + rolling losses) r / 2``; driving torque is capped by the
-    torque-speed line ``T_stall (1 - omega / omega_free)``, braking torque by ``T_stall``.
+    front_nm: float
+    rear_nm: float
+
+
+def wheel_torques(
+    accel_mps2: float, speed_mps: float, rear_wheel_speed_radps: float, params: DrivetrainParams
+) -> WheelTorques:
+    """Wheel torques for an acceleration command, within the motor's and brakes' limits.
+
+    Feed-forward ``(m_eff a + rolling losses) r``. Driving torque goes to the rear wheels,
+    capped by the motor's torque-speed line ``T_stall (1 - omega / omega_free)``. Braking
+    while rolling forward is shared by all four wheels (``front_brake_share`` on the front
+    axle), as the rear axle alone cannot brake at 4 m/s^2 and still hold the road.
     """
     losses_n = 4.0 * params.wheel_damping_nms * speed_mps / params.wheel_radius_m**2
-    torque = (params.effective_mass_kg * accel_mps2 + losses_n) * params.wheel_radius_m / 2.0
+    total = (params.effective_mass_kg * accel_mps2 + losses_n) * params.wheel_radius_m
+    if total < 0.0 and speed_mps > 0.05:
+        limit = params.brake_torque_nm
+        front = max(-limit, 0.5 * params.front_brake_share * total)
+        rear = max(-limit, 0.5 * (1.0 - params.front_brake_share) * total)
+        return WheelTorques(front_nm=front, rear_nm=rear)
     drive_limit = params.motor_stall_torque_nm * max(
-        0.0, 1.0 - abs(wheel_speed_radps) / params.motor_free_speed_radps
+        0.0, 1.0 - abs(rear_wheel_speed_radps) / params.motor_free_speed_radps
     )
-    if torque * (wheel_speed_radps if abs(wheel_speed_radps) > 1e-6 else 1.0) >= 0.0:
-        return max(-drive_limit, min(drive_limit, torque))
-    return max(-params.motor_stall_torque_nm, min(params.motor_stall_torque_nm, torque))
+    return WheelTorques(front_nm=0.0, rear_nm=max(-drive_limit, min(drive_limit, 0.5 * total)))

@@ -28,7 +28,8 @@ INSTALL_HINT = (
 )
 _PROBE = (
     "import mujoco\n"
-    "model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"1\"/></worldbody></mujoco>')\n"
+    "xml = '<mujoco><worldbody><geom size=\"1\"/></worldbody></mujoco>'\n"
+    "model = mujoco.MjModel.from_xml_string(xml)\n"
     "renderer = mujoco.Renderer(model, 8, 8)\n"
     "renderer.update_scene(mujoco.MjData(model))\n"
     "renderer.render()\n"
@@ -76,7 +77,7 @@ def configure_gl_backend() -> None:
     backend = choose_backend()
     if backend is None:
         os.environ["MUJOCO_GL"] = "disable"
-        logger.warning("no offscreen rendering backend works: %s", INSTALL_HINT)
+        logger.warning("no offscreen rendering backend works (tried %s)", ", ".join(BACKENDS))
         return
     os.environ["MUJOCO_GL"] = backend
     os.environ.setdefault("PYOPENGL_PLATFORM", backend)
@@ -84,7 +85,14 @@ def configure_gl_backend() -> None:
 
 def renderer_error(exc: BaseException) -> RenderingUnavailableError:
     """The error to raise when a MuJoCo renderer cannot be created."""
-    backend = os.environ.get("MUJOCO_GL", "unset")
-    return RenderingUnavailableError(
-        f"cannot create an offscreen renderer with MUJOCO_GL={backend} ({exc}); {INSTALL_HINT}"
-    )
+    backend = os.environ.get("MUJOCO_GL")
+    if backend == "disable":
+        tried = f"none of the offscreen OpenGL backends works here (tried {', '.join(BACKENDS)})"
+    elif backend:
+        tried = f"cannot create an offscreen renderer with MUJOCO_GL={backend} ({exc})"
+    else:
+        tried = (
+            f"cannot create an offscreen renderer ({exc}): mujoco was imported before "
+            "saferace.envs with MUJOCO_GL unset; set MUJOCO_GL=egl"
+        )
+    return RenderingUnavailableError(f"{tried}; {INSTALL_HINT}")

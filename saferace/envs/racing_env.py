@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import atexit
+import functools
 import math
-from typing import Any
+import weakref
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import mujoco
@@ -14,7 +17,7 @@ from saferace.envs.drivetrain import (
     DrivetrainParams,
     ackermann_angles,
     rate_limited,
-    rear_wheel_torque,
+    wheel_torques,
 )
 from saferace.envs.gl_backend import renderer_error
 from saferace.envs.scene import SceneOptions, build_model
@@ -23,9 +26,26 @@ from saferace.track import Track, VehicleEnvelope
 from saferace.track.frenet import wrap_arc
 from saferace.track.raceline import ReferenceLine, center_line, racing_line
 
+#: Bounds of ``[v_x, v_y, r]`` (m/s, m/s, rad/s): far beyond the car's 7 m/s, but finite.
+VELOCITY_BOUND = np.array([30.0, 30.0, 100.0], np.float32)
 CAR_GEOM_GROUP = 2  # the car's own visual geoms: hidden from the onboard cameras
 _STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
 _SENSORS_OFF = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+
+#: Envs whose renderers must be closed at exit if their owner never called close().
+_LIVE_ENVS: weakref.WeakSet[RacingEnv] = weakref.WeakSet()
+
+
+def _close_live_envs() -> None:
+    for env in list(_LIVE_ENVS):
+        env.close()
+
+
+@functools.cache
+def _close_renderers_at_exit() -> None:
+    """Register the exit hook once, after the first GL context exists: mujoco's EGL backend
+    registers the display's teardown then, and exit hooks run last-registered first."""
+    atexit.register(_close_live_envs)
 
 
 class RacingEnv(gym.Env):
@@ -78,7 +98,7 @@ class RacingEnv(gym.Env):
     ``w_left_m, w_right_m`` (lane half widths at ``s``), ``x_m, y_m, yaw_rad`` (pose),
     ``v_x_mps, v_y_mps, yaw_rate_radps``, ``steer_rad`` (applied steering target),
     ``accel_mps2`` (command), ``time_s``, ``progress_m`` (since reset), ``lap`` (laps
-    completed), ``lap_time_s`` (last completed lap, NaN before), ``lap_times_s``,
+    completed), ``lap_time_s`` (last completed lap, None before), ``lap_times_s``,
     ``lap_completed``, ``outside_lane``, ``cost``, ``reward_progress``, ``reward_deviation``.
 
     ## Arguments
@@ -92,7 +112,7 @@ class RacingEnv(gym.Env):
     - v0: first release.
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 20}
     reference_kind = "center"
 
     def __init__(
@@ -153,13 +173,13 @@ class RacingEnv(gym.Env):
         self._cameras = ("stereo_left", "stereo_right") if stereo else ("front_camera",)
         self._onboard_option = mujoco.MjvOption()
         self._onboard_option.geomgroup[CAR_GEOM_GROUP] = 0
-        self._onboard_renderer: mujoco.Renderer | None = None
-        self._chase_renderer: mujoco.Renderer | None = None
+        self._renderers: dict[str, mujoco.Renderer] = {}  # by purpose, created on first use
+        _LIVE_ENVS.add(self)
 
         channels = 3 * len(self._cameras)
         self.observation_space = spaces.Dict(
             image=spaces.Box(0, 255, (*self.image_size, channels), np.uint8),
-            velocity=spaces.Box(-np.inf, np.inf, (3,), np.float32),
+            velocity=spaces.Box(-VELOCITY_BOUND, VELOCITY_BOUND, (3,), np.float32),
         )
         p = self.params
         self.action_space = spaces.Box(
@@ -181,7 +201,8 @@ class RacingEnv(gym.Env):
             start_s = self.start_s_m
         self._place_car(start_s % self.track.length_m)
         self._steer_target = 0.0
-        frenet = self._frenet()
+        pose = self._pose()
+        frenet = self._projector.to_frenet(*pose)
         self._episode = dict(
             steps=0,
             progress_m=0.0,
@@ -191,23 +212,19 @@ class RacingEnv(gym.Env):
             lap_times_s=[],
             accel_mps2=0.0,
         )
-        info = self._info(frenet, progress_m=0.0, lap_completed=False)
-        return self._observation(), info
+        velocity = self._velocity()
+        info = self._info(pose, frenet, velocity, progress_m=0.0, lap_completed=False)
+        return self._observation(velocity), info
 
     def step(self, action):
-        action = np.asarray(action, dtype=np.float64)
-        if action.shape != (2,) or not np.all(np.isfinite(action)):
-            raise SafeRaceError(
-                f"action must be 2 finite numbers [steer_rad, accel_mps2], got {action!r}"
-            )
-        low, high = self.action_space.low, self.action_space.high
-        steer_cmd, accel_cmd = np.clip(action, low, high).tolist()
+        steer_cmd, accel_cmd = self._clipped(action)
         self._apply_controls(steer_cmd, accel_cmd)
         time_before = self.data.time
         self._step_physics()
 
         episode = self._episode
-        frenet = self._frenet()
+        pose = self._pose()
+        frenet = self._projector.to_frenet(*pose)
         progress = wrap_arc(frenet[0] - episode["last_s"], self.track.length_m)
         episode["last_s"] = frenet[0]
         episode["steps"] += 1
@@ -216,25 +233,24 @@ class RacingEnv(gym.Env):
         episode["progress_m"] = before + progress
         lap_completed = self._count_lap(before, episode["progress_m"], time_before)
 
-        info = self._info(frenet, progress_m=progress, lap_completed=lap_completed)
+        velocity = self._velocity()
+        info = self._info(pose, frenet, velocity, progress_m=progress, lap_completed=lap_completed)
         reward = info["reward_progress"] + info["reward_deviation"]
         terminated = bool(info["fully_outside_lane"] or self._flipped())
         truncated = bool(episode["lap"] >= self.max_laps or episode["steps"] >= self.max_steps)
-        return self._observation(), reward, terminated, truncated, info
+        return self._observation(velocity), reward, terminated, truncated, info
 
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        if self._chase_renderer is None:
-            self._chase_renderer = self._make_renderer(*self.render_size)
-        self._chase_renderer.update_scene(self.data, camera="chase_camera")
-        return self._chase_renderer.render()
+        renderer = self._renderer("chase", self.render_size)
+        renderer.update_scene(self.data, camera="chase_camera")
+        return renderer.render()
 
     def close(self) -> None:
-        for renderer in (self._onboard_renderer, self._chase_renderer):
-            if renderer is not None:
-                renderer.close()
-        self._onboard_renderer = self._chase_renderer = None
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
 
     # ------------------------------------------------------------- pickling
     def __getstate__(self) -> dict[str, Any]:
@@ -245,17 +261,18 @@ class RacingEnv(gym.Env):
             physics=state,
             steer_target=self._steer_target,
             episode=self._episode,
-            last_s=self._projector._last_s,
+            projector=self._projector.get_state(),
             np_random=self._np_random,
         )
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(**state["kwargs"])
         mujoco.mj_setState(self.model, self.data, state["physics"], _STATE_SPEC)
-        mujoco.mj_forward(self.model, self.data)
+        mujoco.mj_forward(self.model, self.data)  # positions and sensors for the next step
+        mujoco.mj_setState(self.model, self.data, state["physics"], _STATE_SPEC)  # warm start
         self._steer_target = state["steer_target"]
         self._episode = state["episode"]
-        self._projector.reset(state["last_s"])
+        self._projector.set_state(state["projector"])
         self._np_random = state["np_random"]
 
     # ------------------------------------------------------------- internals
@@ -293,28 +310,35 @@ class RacingEnv(gym.Env):
         data.ctrl[ids.steer_left] = left
         data.ctrl[ids.steer_right] = right
         v_x = float(data.sensordata[ids.velocimeter])
-        for actuator, wheel in zip(ids.motors, ids.rear_wheel_speed, strict=True):
-            data.ctrl[actuator] = rear_wheel_torque(
-                accel_cmd, v_x, float(data.sensordata[wheel]), params
-            )
+        rear_speed = 0.5 * sum(float(data.sensordata[a]) for a in ids.rear_wheel_speed)
+        torques = wheel_torques(accel_cmd, v_x, rear_speed, params)
+        for actuator in ids.motors:
+            data.ctrl[actuator] = torques.rear_nm
+        for actuator in ids.brakes:
+            data.ctrl[actuator] = torques.front_nm
 
     def _step_physics(self) -> None:
-        """One control step of physics; sensors are read once, so computed only at its end."""
+        """One control step of physics, leaving positions, velocities and sensors current.
+
+        ``mj_step`` computes positions and sensors *before* it integrates, so after it they
+        lag the state by a substep. As dm_control does, each control step finishes the
+        pending step (``mj_step2``, which applies the new controls), runs the other
+        substeps, and ends with ``mj_step1`` for the new state. Sensors are only read
+        then, so they are computed only then.
+        """
         model, data, opt = self.model, self.data, self.model.opt
+        opt.disableflags |= _SENSORS_OFF
+        mujoco.mj_step2(model, data)
         if self.substeps > 1:
-            opt.disableflags |= _SENSORS_OFF
             mujoco.mj_step(model, data, nstep=self.substeps - 1)
-            opt.disableflags &= ~_SENSORS_OFF
-        mujoco.mj_step(model, data)
+        opt.disableflags &= ~_SENSORS_OFF
+        mujoco.mj_step1(model, data)
 
     def _pose(self) -> tuple[float, float, float]:
         data, ids = self.data, self._ids
         x, y = data.xpos[ids.chassis, :2]
         rot = data.xmat[ids.chassis]
         return float(x), float(y), math.atan2(rot[3], rot[0])
-
-    def _frenet(self) -> tuple[float, float, float]:
-        return self._projector.to_frenet(*self._pose())
 
     def _flipped(self) -> bool:
         return bool(self.data.xmat[self._ids.chassis, 8] < 0.3)
@@ -336,25 +360,48 @@ class RacingEnv(gym.Env):
         v = data.sensordata[ids.velocimeter : ids.velocimeter + 2]
         return np.array([v[0], v[1], data.sensordata[ids.gyro + 2]], dtype=np.float32)
 
-    def _observation(self) -> dict[str, np.ndarray]:
-        if self._onboard_renderer is None:
-            self._onboard_renderer = self._make_renderer(*self.image_size)
-        renderer = self._onboard_renderer
+    def _clipped(self, action) -> tuple[float, float]:
+        """``(steer_rad, accel_mps2)`` within the action space; malformed actions raise."""
+        try:
+            steer, accel = (float(a) for a in np.ravel(action))
+        except (TypeError, ValueError):
+            raise SafeRaceError(f"action must be [steer_rad, accel_mps2], got {action!r}") from None
+        if not (math.isfinite(steer) and math.isfinite(accel)):
+            raise SafeRaceError(f"action must be finite, got {action!r}")
+        p = self.params
+        return (
+            max(-p.max_steer_rad, min(p.max_steer_rad, steer)),
+            max(-p.max_brake_mps2, min(p.max_accel_mps2, accel)),
+        )
+
+    def _observation(self, velocity: np.ndarray) -> dict[str, np.ndarray]:
+        renderer = self._renderer("onboard", self.image_size)
         images = []
         for camera in self._cameras:
             renderer.update_scene(self.data, camera=camera, scene_option=self._onboard_option)
             images.append(renderer.render())
         image = images[0] if len(images) == 1 else np.concatenate(images, axis=2)
-        return {"image": image, "velocity": self._velocity()}
+        return {"image": image, "velocity": velocity}
 
-    def _make_renderer(self, height: int, width: int) -> mujoco.Renderer:
-        try:
-            return mujoco.Renderer(self.model, height, width)
-        except Exception as exc:
-            raise renderer_error(exc) from exc
+    def _renderer(self, purpose: str, size: tuple[int, int]) -> mujoco.Renderer:
+        """The renderer for ``purpose`` (onboard or chase), created on first use."""
+        renderer = self._renderers.get(purpose)
+        if renderer is None:
+            try:
+                renderer = mujoco.Renderer(self.model, *size)
+            except Exception as exc:  # any GL failure gets the same advice
+                raise renderer_error(exc) from exc
+            self._renderers[purpose] = renderer
+            _close_renderers_at_exit()
+        return renderer
 
     def _info(
-        self, frenet: tuple[float, float, float], progress_m: float, lap_completed: bool
+        self,
+        pose: tuple[float, float, float],
+        frenet: tuple[float, float, float],
+        velocity: np.ndarray,
+        progress_m: float,
+        lap_completed: bool,
     ) -> dict[str, Any]:
         s, e_y, e_psi = (float(v) for v in frenet)
         w_right, w_left = (float(w) for w in self.track.widths(s))
@@ -363,8 +410,8 @@ class RacingEnv(gym.Env):
         half = self.car_half_width_m
         outside = e_y + half > w_left or e_y - half < -w_right
         fully_outside = e_y - half > w_left or e_y + half < -w_right
-        x, y, yaw = self._pose()
-        v_x, v_y, r = (float(v) for v in self._velocity())
+        x, y, yaw = pose
+        v_x, v_y, r = velocity.tolist()
         episode = self._episode
         lap_times = list(episode["lap_times_s"])
         return {
@@ -388,7 +435,7 @@ class RacingEnv(gym.Env):
             "time_s": float(self.data.time),
             "progress_m": episode["progress_m"],
             "lap": episode["lap"],
-            "lap_time_s": lap_times[-1] if lap_times else math.nan,
+            "lap_time_s": lap_times[-1] if lap_times else None,
             "lap_times_s": lap_times,
             "lap_completed": lap_completed,
             "outside_lane": outside,
@@ -406,7 +453,7 @@ class CenterLineEnv(RacingEnv):
 
 
 class RacingLineEnv(RacingEnv):
-    """``saferace/RacingLine-v0``: follow the minimum-curvature racing line (see :class:`RacingEnv`)."""
+    """``saferace/RacingLine-v0``: follow the minimum-curvature racing line (:class:`RacingEnv`)."""
 
     reference_kind = "racing"
 
@@ -434,6 +481,10 @@ class _ModelIds:
         self.steer_left = model.actuator("front_left_steering_servo").id
         self.steer_right = model.actuator("front_right_steering_servo").id
         self.motors = [model.actuator("rear_left_motor").id, model.actuator("rear_right_motor").id]
+        self.brakes = [
+            model.actuator("front_left_brake").id,
+            model.actuator("front_right_brake").id,
+        ]
         self.velocimeter = int(model.sensor("imu_velocimeter").adr[0])
         self.gyro = int(model.sensor("imu_gyro").adr[0])
         self.rear_wheel_speed = [
@@ -449,7 +500,8 @@ def _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode
         )
     if not 1.0 <= control_hz <= 1.0 / physics_dt_s:
         raise SafeRaceError(
-            f"control_hz must be between 1 and the physics rate {1.0 / physics_dt_s:g}, got {control_hz}"
+            f"control_hz must be between 1 and the physics rate {1.0 / physics_dt_s:g}, "
+            f"got {control_hz}"
         )
     if not 1e-4 <= physics_dt_s <= 0.01:
         raise SafeRaceError(f"physics_dt_s must be between 1e-4 and 0.01 s, got {physics_dt_s}")

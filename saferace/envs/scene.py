@@ -131,7 +131,7 @@ def mesh_samples(track: Track, chord_error_m: float, max_step_m: float) -> np.nd
     kappa = np.abs(track.centerline.curvature(knots))
     w_right, w_left = track.widths(knots)
     inner = np.where(track.centerline.curvature(knots) > 0, w_left, w_right)
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):
         radius = np.maximum(1.0 / kappa - inner, 0.05)
     allowed = np.clip(np.sqrt(8.0 * chord_error_m * radius), 0.02, max_step_m)
     spacing = track.centerline.knot_spacing_m
@@ -227,7 +227,7 @@ def _add_roadside_objects(spec: mujoco.MjSpec, track: Track, spacing_m: float) -
         if not positions:
             continue
         vertices, faces = shape
-        all_vertices = np.concatenate([vertices + [*xy, 0.0] for xy in positions])
+        all_vertices = np.concatenate([vertices + np.array([*xy, 0.0]) for xy in positions])
         all_faces = np.concatenate([faces + i * len(vertices) for i in range(len(positions))])
         mesh = spec.add_mesh(name=f"roadside_{kind}_mesh")
         mesh.uservert = all_vertices.ravel().tolist()

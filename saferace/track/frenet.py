@@ -51,6 +51,14 @@ class FrenetProjector:
         self._last_s = s_m % self.path.length_m
         self._last_foot = (px, py, dx / norm, dy / norm)
 
+    def get_state(self) -> tuple[float | None, tuple[float, float, float, float]]:
+        """The search state (last ``s`` and foot point), for saving and restoring an episode."""
+        return self._last_s, self._last_foot
+
+    def set_state(self, state: tuple[float | None, tuple[float, float, float, float]]) -> None:
+        """Restore what :meth:`get_state` returned."""
+        self._last_s, self._last_foot = state
+
     def project(self, x_m: float, y_m: float) -> tuple[float, float]:
         """Arc length ``s`` and signed lateral offset ``e_y`` (positive left) of a point."""
         s, e_y, _ = self._project(x_m, y_m)

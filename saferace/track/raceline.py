@@ -52,7 +52,7 @@ CSV_COLUMNS = ("s_m", "x_m", "y_m", "psi_rad", "kappa_radpm", "vx_mps", "ax_mps2
 class RacingLineSettings:
     """Discretisation and stopping rule of the minimum-curvature optimisation."""
 
-    margin_m: float = 0.05
+    margin_m: float = 0.10
     step_m: float = 0.1
     max_iterations: int = 10
     tolerance_m: float = 1e-4

@@ -32,7 +32,7 @@ def speed_profile(
     """Fastest speed profile along samples ``step_m`` apart with curvature ``kappa_radpm``."""
     kappa = np.abs(np.asarray(kappa_radpm, dtype=float))
     count = len(kappa)
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):
         v_corner = np.sqrt(envelope.a_lat_max_mps2 / kappa)
     v_limit = np.minimum(v_corner, envelope.v_max_mps)
     start = int(np.argmin(v_limit))

@@ -1,0 +1,192 @@
+"""Invariants over every registered task: API conformance, determinism, pickling, scenes."""
+
+from __future__ import annotations
+
+import pickle
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import saferace  # noqa: F401  - registers the tasks
+from saferace.envs.registry import TASKS
+from saferace.errors import SafeRaceError
+from saferace.track import builtin_track_names
+
+TASK_IDS = sorted(TASKS)
+
+
+def assert_same(a, b) -> None:
+    """Observations and infos equal to the bit."""
+    if isinstance(a, tuple | list):
+        assert len(a) == len(b)
+        for item_a, item_b in zip(a, b, strict=True):
+            assert_same(item_a, item_b)
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys()
+        for key in a:
+            assert_same(a[key], b[key])
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b)
+    else:
+        assert a == b
+
+
+@pytest.mark.parametrize("task_id", TASK_IDS)
+def test_env_checker(task_id: str):
+    env = gym.make(task_id, track="lab", render_mode="rgb_array")
+    check_env(env.unwrapped, skip_render_check=False)
+    env.close()
+
+
+@pytest.mark.parametrize("task_id", TASK_IDS)
+def test_same_seed_same_episode(task_id: str):
+    envs = [gym.make(task_id, track="technical", random_start=True) for _ in range(2)]
+    actions = gym.spaces.Box(envs[0].action_space.low, envs[0].action_space.high, seed=3)
+    resets = [env.reset(seed=7) for env in envs]
+    assert_same(resets[0], resets[1])
+    for _ in range(200):
+        action = actions.sample() * np.array([0.3, 1.0], np.float32)
+        results = [env.step(action) for env in envs]
+        assert_same(results[0], results[1])
+        if results[0][2] or results[0][3]:
+            assert_same(envs[0].reset(), envs[1].reset())
+    for env in envs:
+        env.close()
+
+
+def test_different_seeds_differ_with_random_start():
+    env = gym.make("saferace/CenterLine-v0", track="lab", random_start=True)
+    starts = {round(env.reset(seed=seed)[1]["s_m"], 6) for seed in range(5)}
+    assert len(starts) == 5
+    env.close()
+
+
+@pytest.mark.parametrize("task_id", TASK_IDS)
+def test_pickle_round_trip_continues_identically(task_id: str):
+    env = gym.make(task_id, track="varying").unwrapped
+    env.reset(seed=1)
+    for _ in range(20):
+        env.step(np.array([0.05, 1.0]))
+    clone = pickle.loads(pickle.dumps(env))
+    for step in range(30):
+        action = np.array([0.1 * np.sin(step / 5.0), 0.5])
+        assert_same(env.step(action), clone.step(action))
+    env.close()
+    clone.close()
+
+
+@pytest.mark.parametrize("track", [*builtin_track_names(), "unseen"])
+def test_scene_runs_ten_seconds_of_random_actions_without_warnings(track: str, unseen_track_csv):
+    env = gym.make(
+        "saferace/CenterLine-v0", track=str(unseen_track_csv) if track == "unseen" else track
+    )
+    base = env.unwrapped
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    steps = round(10.0 / base.control_dt_s)
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        if terminated or truncated:
+            env.reset()
+    assert sum(w.number for w in base.data.warning) == 0
+    env.close()
+
+
+@pytest.mark.parametrize("track", builtin_track_names())
+def test_boundary_lines_visible_left_and_right_at_the_start(track: str):
+    env = gym.make("saferace/CenterLine-v0", track=track)
+    observation, _ = env.reset(seed=0)
+    image = observation["image"]
+    white = np.all(image > 200, axis=2)
+    white[: image.shape[0] // 3] = False  # sky and far field
+    columns = np.flatnonzero(white.any(axis=0))
+    center = image.shape[1] / 2
+    assert (columns < center).any() and (columns > center).any()
+    env.close()
+
+
+def test_stereo_gives_two_different_views_with_lines():
+    env = gym.make("saferace/CenterLine-v0", track="oval", stereo=True)
+    observation, _ = env.reset(seed=0)
+    image = observation["image"]
+    assert image.shape == (64, 64, 6)
+    left, right = image[..., :3], image[..., 3:]
+    assert np.mean(np.abs(left.astype(int) - right.astype(int))) > 1.0
+    for view in (left, right):
+        assert np.all(view > 200, axis=2)[20:].sum() > 20
+    env.close()
+
+
+def test_observation_and_info_are_consistent():
+    env = gym.make("saferace/RacingLine-v0", track="technical", image_size=(48, 80))
+    observation, info = env.reset(seed=0)
+    assert observation["image"].shape == (48, 80, 3)
+    assert info["v_x_mps"] == pytest.approx(info["ref_speed_mps"], rel=1e-3)
+    assert info["deviation_m"] == pytest.approx(0.0, abs=1e-6)
+    _, reward, _, _, info = env.step(np.array([0.0, 0.0]))
+    assert reward == pytest.approx(info["reward_progress"] + info["reward_deviation"])
+    assert info["reward_progress"] == pytest.approx(info["progress_m"])
+    assert observation["velocity"].dtype == np.float32
+    env.close()
+
+
+def test_car_leaving_the_lane_costs_then_terminates():
+    env = gym.make("saferace/CenterLine-v0", track="oval")
+    env.reset(seed=0)
+    costs, terminated, info = [], False, {}
+    while not terminated:
+        _, _, terminated, truncated, info = env.step(np.array([0.36, 0.0]))
+        costs.append(info["cost"])
+        assert not truncated
+    half = 0.15
+    assert info["e_y_m"] - half > info["w_left_m"]  # the whole car is out on the left
+    assert costs[0] == 0.0 and costs[-1] == 1.0
+    env.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(image_size=(4, 64)), "image_size"),
+        (dict(control_hz=0.5), "control_hz"),
+        (dict(max_laps=0), "max_laps"),
+        (dict(track="nowhere"), "unknown track"),
+    ],
+)
+def test_bad_arguments_raise_clear_errors(kwargs, message):
+    with pytest.raises(SafeRaceError, match=message):
+        gym.make("saferace/CenterLine-v0", **kwargs)
+
+
+def test_unsupported_render_mode_is_rejected():
+    from saferace.envs.racing_env import CenterLineEnv
+
+    with pytest.raises(SafeRaceError, match="render_mode"):
+        CenterLineEnv(track="oval", render_mode="human")
+
+
+def test_bad_actions_raise():
+    env = gym.make("saferace/CenterLine-v0", track="lab")
+    env.reset(seed=0)
+    with pytest.raises(SafeRaceError, match="finite"):
+        env.step(np.array([np.nan, 0.0]))
+    with pytest.raises(SafeRaceError, match="steer_rad, accel_mps2"):
+        env.step(np.array([0.1, 0.2, 0.3]))
+    env.close()
+
+
+def test_gym_make_with_module_prefix_imports_saferace():
+    import subprocess
+    import sys
+
+    code = (
+        "import gymnasium as gym\n"
+        "env = gym.make('saferace:saferace/CenterLine-v0', track='oval')\n"
+        "print(env.spec.id)\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    )
+    assert result.stdout.strip() == "saferace/CenterLine-v0"
