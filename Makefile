@@ -38,6 +38,7 @@ lint: setup
 	$(BIN)/ruff check .
 
 bench: setup
+	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
 	$(BIN)/python benchmarks/raceline_speed.py
 	$(BIN)/python benchmarks/frenet_speed.py
 	$(BIN)/python benchmarks/env_speed.py

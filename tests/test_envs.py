@@ -190,3 +190,37 @@ def test_gym_make_with_module_prefix_imports_saferace():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     )
     assert result.stdout.strip() == "saferace/CenterLine-v0"
+
+
+@pytest.mark.parametrize("track", builtin_track_names())
+def test_every_model_element_is_named(track: str):
+    import mujoco
+
+    from saferace.envs.scene import build_model
+    from saferace.track import Track
+
+    model = build_model(Track.load(track))
+    kinds = {
+        mujoco.mjtObj.mjOBJ_BODY: model.nbody,
+        mujoco.mjtObj.mjOBJ_JOINT: model.njnt,
+        mujoco.mjtObj.mjOBJ_GEOM: model.ngeom,
+        mujoco.mjtObj.mjOBJ_CAMERA: model.ncam,
+        mujoco.mjtObj.mjOBJ_ACTUATOR: model.nu,
+        mujoco.mjtObj.mjOBJ_SENSOR: model.nsensor,
+        mujoco.mjtObj.mjOBJ_LIGHT: model.nlight,
+        mujoco.mjtObj.mjOBJ_SITE: model.nsite,
+    }
+    for kind, count in kinds.items():
+        names = [mujoco.mj_id2name(model, kind, i) for i in range(count)]
+        unnamed = [
+            i
+            for i, name in enumerate(names)
+            if not name and not (kind == mujoco.mjtObj.mjOBJ_BODY and i == 0)
+        ]
+        assert not unnamed, f"unnamed {kind.name}: {unnamed}"
+    assert {model.camera(i).name for i in range(model.ncam)} == {
+        "front_camera",
+        "stereo_left",
+        "stereo_right",
+        "chase_camera",
+    }
