@@ -224,3 +224,16 @@ def test_every_model_element_is_named(track: str):
         "stereo_right",
         "chase_camera",
     }
+
+
+def test_only_the_four_tyres_touch_the_ground():
+    env = gym.make("saferace/CenterLine-v0", track="oval")
+    env.reset(seed=0)
+    for _ in range(10):
+        env.step(np.array([0.2, 0.5]))
+    model, data = env.unwrapped.model, env.unwrapped.data
+    touching = sorted(model.geom(data.contact[i].geom2).name for i in range(data.ncon))
+    assert touching == sorted(
+        f"{wheel}_tyre" for wheel in ("front_left", "front_right", "rear_left", "rear_right")
+    )
+    env.close()

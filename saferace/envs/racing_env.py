@@ -85,7 +85,8 @@ class RacingEnv(gym.Env):
     ## Starting state
     On the reference line at centerline arc length ``start_s_m`` (default 0, the
     start/finish line; uniformly random with ``random_start=True``, or
-    ``reset(options={"start_s_m": s})``), with the reference heading and speed.
+    ``reset(options={"start_s_m": s})``), with the reference heading and the reference
+    speed (or ``reset(options={"start_speed_mps": v})``).
 
     ## Episode end
     Terminated when the whole car is outside the lane or it flips. Truncated after
@@ -199,7 +200,10 @@ class RacingEnv(gym.Env):
             start_s = float(self.np_random.uniform(0.0, self.track.length_m))
         else:
             start_s = self.start_s_m
-        self._place_car(start_s % self.track.length_m)
+        start_speed = options.get("start_speed_mps")
+        if start_speed is not None and not 0.0 <= float(start_speed) <= 20.0:
+            raise SafeRaceError(f"start_speed_mps must be between 0 and 20 m/s, got {start_speed}")
+        self._place_car(start_s % self.track.length_m, start_speed)
         self._steer_target = 0.0
         pose = self._pose()
         frenet = self._projector.to_frenet(*pose)
@@ -276,11 +280,11 @@ class RacingEnv(gym.Env):
         self._np_random = state["np_random"]
 
     # ------------------------------------------------------------- internals
-    def _place_car(self, s_m: float) -> None:
+    def _place_car(self, s_m: float, speed_mps: float | None = None) -> None:
         model, data = self.model, self.data
         mujoco.mj_resetData(model, data)
         x, y, yaw = self.reference.pose_at(s_m)
-        speed = float(self.reference.speed_at(s_m))
+        speed = float(self.reference.speed_at(s_m) if speed_mps is None else speed_mps)
         ids = self._ids
         data.qpos[ids.root_qpos : ids.root_qpos + 7] = [
             x,

@@ -1,0 +1,221 @@
+"""Vehicle models in Frenet coordinates, shared by the expert MPC and the safety filter.
+
+Each model is written once in sympy; code derives its Jacobians (and, in the safety
+filter, its Lie derivatives), and ``lambdify`` turns them into fast numeric functions.
+The state excludes the arc length ``s``: the dynamics depend on ``s`` only through the
+reference curvature ``kappa``, a parameter here; :meth:`FrenetModel.s_dot` gives its rate.
+
+- ``kinematic`` (paper Sec. 3.3, with ``tan`` where the paper writes ``sin``):
+  state ``[e_y, e_psi, v]``.
+- ``dynamic``: the linear-tyre single-track model with all coupling terms,
+  state ``[e_y, e_psi, v_x, v_y, r]``. Cornering stiffness per axle is
+  ``C = C_0 + D v_x`` (see :class:`~saferace.safety.vehicle_params.VehicleParams`).
+- ``dynamic-paper``: the paper's simplified dynamic model, which drops the coupling
+  of ``v_y`` and ``r`` and the steering input on ``v_y`` (steering then reaches the lateral
+  offset only through ``r``, so the lane barrier has relative degree 3).
+
+Controls are ``[steer_rad, accel_mps2]``: the front-wheel angle and the longitudinal
+acceleration. ``s_dot = (v_x cos e_psi - v_y sin e_psi) / (1 - kappa e_y)`` is exact.
+Speeds below ``MIN_SPEED_MPS`` are raised to it where a model divides by speed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+import sympy as sp
+
+from saferace.safety.vehicle_params import VehicleParams
+
+MIN_SPEED_MPS = 0.5
+CONTROL_NAMES = ("steer_rad", "accel_mps2")
+PARAM_NAMES = (
+    "mass_kg",
+    "yaw_inertia_kgm2",
+    "lf_m",
+    "lr_m",
+    "cf0_npr",
+    "df_nspmr",
+    "cr0_npr",
+    "dr_nspmr",
+)
+
+
+@dataclass(frozen=True)
+class SymbolicModel:
+    """A model's sympy form: state, control, curvature and parameter symbols and ``x_dot``."""
+
+    name: str
+    state: tuple[sp.Symbol, ...]
+    control: tuple[sp.Symbol, ...]
+    kappa: sp.Symbol
+    params: tuple[sp.Symbol, ...]
+    x_dot: sp.Matrix
+    s_dot: sp.Expr
+    speed_index: int
+
+
+def _symbols() -> dict[str, sp.Symbol]:
+    names = "e_y e_psi v v_x v_y r steer accel kappa m I_z l_f l_r C_f0 D_f C_r0 D_r"
+    return dict(zip(names.split(), sp.symbols(names, real=True), strict=True))
+
+
+def _kinematic() -> SymbolicModel:
+    S = _symbols()
+    e_y, e_psi, v, delta, a, kappa = (
+        S["e_y"],
+        S["e_psi"],
+        S["v"],
+        S["steer"],
+        S["accel"],
+        S["kappa"],
+    )
+    params = tuple(S[k] for k in ("m", "I_z", "l_f", "l_r", "C_f0", "D_f", "C_r0", "D_r"))
+    s_dot = v * sp.cos(e_psi) / (1 - kappa * e_y)
+    x_dot = sp.Matrix(
+        [
+            v * sp.sin(e_psi),
+            v * sp.tan(delta) / (S["l_f"] + S["l_r"]) - kappa * s_dot,
+            a,
+        ]
+    )
+    return SymbolicModel("kinematic", (e_y, e_psi, v), (delta, a), kappa, params, x_dot, s_dot, 2)
+
+
+def _dynamic(paper: bool) -> SymbolicModel:
+    S = _symbols()
+    e_y, e_psi, v_x, v_y, r = S["e_y"], S["e_psi"], S["v_x"], S["v_y"], S["r"]
+    delta, a, kappa = S["steer"], S["accel"], S["kappa"]
+    m, I_z, l_f, l_r = (S[k] for k in ("m", "I_z", "l_f", "l_r"))
+    C_f = S["C_f0"] + S["D_f"] * v_x  # cornering stiffness per axle, growing with speed
+    C_r = S["C_r0"] + S["D_r"] * v_x
+    s_dot = (v_x * sp.cos(e_psi) - v_y * sp.sin(e_psi)) / (1 - kappa * e_y)
+    if paper:
+        v_y_dot = -(C_f + C_r) / (m * v_x) * v_y
+        r_dot = -(l_f**2 * C_f + l_r**2 * C_r) / (I_z * v_x) * r + l_f * C_f / I_z * delta
+        v_x_dot = a
+    else:
+        v_y_dot = (
+            -(C_f + C_r) / (m * v_x) * v_y
+            + ((l_r * C_r - l_f * C_f) / (m * v_x) - v_x) * r
+            + C_f / m * delta
+        )
+        r_dot = (
+            (l_r * C_r - l_f * C_f) / (I_z * v_x) * v_y
+            - (l_f**2 * C_f + l_r**2 * C_r) / (I_z * v_x) * r
+            + l_f * C_f / I_z * delta
+        )
+        v_x_dot = a + v_y * r
+    x_dot = sp.Matrix(
+        [
+            v_x * sp.sin(e_psi) + v_y * sp.cos(e_psi),
+            r - kappa * s_dot,
+            v_x_dot,
+            v_y_dot,
+            r_dot,
+        ]
+    )
+    params = tuple(S[k] for k in ("m", "I_z", "l_f", "l_r", "C_f0", "D_f", "C_r0", "D_r"))
+    name = "dynamic-paper" if paper else "dynamic"
+    return SymbolicModel(
+        name, (e_y, e_psi, v_x, v_y, r), (delta, a), kappa, params, x_dot, s_dot, 2
+    )
+
+
+SYMBOLIC_MODELS: dict[str, Callable[[], SymbolicModel]] = {
+    "kinematic": _kinematic,
+    "dynamic": lambda: _dynamic(paper=False),
+    "dynamic-paper": lambda: _dynamic(paper=True),
+}
+
+
+class FrenetModel:
+    """Numeric ``f(x, u, kappa)``, its Jacobians and discretisation for one model and parameter set."""
+
+    def __init__(self, name: str, params: VehicleParams) -> None:
+        if name not in SYMBOLIC_MODELS:
+            raise ValueError(
+                f"unknown vehicle model {name!r}: use one of {', '.join(SYMBOLIC_MODELS)}"
+            )
+        self.name = name
+        self.params = params
+        self.symbolic = symbolic_model(name)
+        self.state_names = tuple(str(x) for x in self.symbolic.state)
+        self.n_state = len(self.symbolic.state)
+        self.n_control = len(self.symbolic.control)
+        self.speed_index = self.symbolic.speed_index
+        self._param_values = tuple(float(getattr(params, p)) for p in PARAM_NAMES)
+        self._f, self._a, self._b, self._s_dot = _lambdified(name)
+
+    def _args(self, x: np.ndarray, u: np.ndarray, kappa: float) -> tuple[float, ...]:
+        x = [float(v) for v in x]
+        x[self.speed_index] = max(x[self.speed_index], MIN_SPEED_MPS)
+        return (*x, float(u[0]), float(u[1]), float(kappa), *self._param_values)
+
+    def f(self, x: np.ndarray, u: np.ndarray, kappa: float) -> np.ndarray:
+        """State derivative."""
+        return np.asarray(self._f(*self._args(x, u, kappa)), dtype=float).ravel()
+
+    def jacobians(
+        self, x: np.ndarray, u: np.ndarray, kappa: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(df/dx, df/du)`` at ``(x, u)``."""
+        args = self._args(x, u, kappa)
+        return np.asarray(self._a(*args), dtype=float), np.asarray(self._b(*args), dtype=float)
+
+    def s_dot(self, x: np.ndarray, kappa: float) -> float:
+        """Rate of the centerline arc length."""
+        return float(self._s_dot(*self._args(x, np.zeros(2), kappa)))
+
+    def step(self, x: np.ndarray, u: np.ndarray, kappa: float, dt_s: float) -> np.ndarray:
+        """One RK4 step of the nonlinear model with ``u`` and ``kappa`` held."""
+        k1 = self.f(x, u, kappa)
+        k2 = self.f(x + 0.5 * dt_s * k1, u, kappa)
+        k3 = self.f(x + 0.5 * dt_s * k2, u, kappa)
+        k4 = self.f(x + dt_s * k3, u, kappa)
+        return x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    def discretize(
+        self, x: np.ndarray, u: np.ndarray, kappa: float, dt_s: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(A_d, B_d, c_d)`` with ``x+ ~ A_d x + B_d u + c_d`` near ``(x, u)`` (zero-order hold).
+
+        The model is linearised at ``(x, u)`` and the affine system discretised exactly
+        by one matrix exponential.
+        """
+        a, b = self.jacobians(x, u, kappa)
+        c = self.f(x, u, kappa) - a @ x - b @ u
+        n, m = self.n_state, self.n_control
+        block = np.zeros((n + m + 1, n + m + 1))
+        block[:n, :n], block[:n, n : n + m], block[:n, -1] = a, b, c
+        exp = _expm(block * dt_s)
+        return exp[:n, :n], exp[:n, n : n + m], exp[:n, -1]
+
+
+def _expm(matrix: np.ndarray) -> np.ndarray:
+    from scipy.linalg import expm
+
+    return expm(matrix)
+
+
+@cache
+def symbolic_model(name: str) -> SymbolicModel:
+    """The sympy form of a model (built once per process)."""
+    return SYMBOLIC_MODELS[name]()
+
+
+@cache
+def _lambdified(name: str) -> tuple[Callable, Callable, Callable, Callable]:
+    model = symbolic_model(name)
+    args = (*model.state, *model.control, model.kappa, *model.params)
+    state, control = sp.Matrix(model.state), sp.Matrix(model.control)
+    # Plain (nested) lists lambdify to pure-Python ``math`` code: microseconds per call.
+    return (
+        sp.lambdify(args, list(model.x_dot), "math"),
+        sp.lambdify(args, model.x_dot.jacobian(state).tolist(), "math"),
+        sp.lambdify(args, model.x_dot.jacobian(control).tolist(), "math"),
+        sp.lambdify(args, model.s_dot, "math"),
+    )

@@ -1,0 +1,1 @@
+"""System identification of the MuJoCo car: manoeuvres, fits and prediction errors."""
