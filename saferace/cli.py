@@ -45,9 +45,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     raceline.set_defaults(command=_raceline)
 
-    drive = commands.add_parser("drive", help="pure pursuit drives laps; video and Rerun recording")
+    drive = commands.add_parser("drive", help="a driver laps a track; video and Rerun recording")
     drive.add_argument("--task", default="RacingLine", choices=["CenterLine", "RacingLine"])
     drive.add_argument("--track", default="technical", help="built-in track name or track CSV path")
+    drive.add_argument(
+        "--agent", default="pure-pursuit", help="pure-pursuit, expert or MODULE:FACTORY"
+    )
     drive.add_argument("--laps", type=int, default=1)
     drive.add_argument("--seed", type=int, default=0)
     drive.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
@@ -55,6 +58,35 @@ def _parser() -> argparse.ArgumentParser:
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
     drive.set_defaults(command=_drive)
+
+    evaluate = commands.add_parser(
+        "eval", help="evaluate an agent; one JSON row per (agent, task, track, seed)"
+    )
+    evaluate.add_argument(
+        "--agent", default="expert", help="expert, pure-pursuit or MODULE:FACTORY"
+    )
+    evaluate.add_argument("--task", default="RacingLine", choices=["CenterLine", "RacingLine"])
+    evaluate.add_argument(
+        "--track", default="technical", help="built-in track name or track CSV path"
+    )
+    evaluate.add_argument("--laps", type=int, default=1)
+    evaluate.add_argument("--seeds", type=int, nargs="+", default=[0])
+    evaluate.add_argument(
+        "--model",
+        default="dynamic",
+        choices=["kinematic", "dynamic", "dynamic-paper"],
+        help="vehicle model of the expert MPC",
+    )
+    evaluate.add_argument(
+        "--out", type=Path, required=True, help="JSONL file to append the rows to"
+    )
+    evaluate.set_defaults(command=_eval)
+
+    board = commands.add_parser("leaderboard", help="markdown table (and plots) from eval results")
+    board.add_argument("results", type=Path, nargs="+", help="JSONL files written by saferace eval")
+    board.add_argument("--csv", type=Path, help="also write the table as CSV")
+    board.add_argument("--plot", type=Path, help="driven trajectories and speeds to a PNG")
+    board.set_defaults(command=_leaderboard)
 
     sysid = commands.add_parser(
         "sysid", help="identify the vehicle-model parameters from MuJoCo runs"
@@ -121,14 +153,15 @@ def _raceline(args: argparse.Namespace) -> int:
 
 
 def _drive(args: argparse.Namespace) -> int:
-    from saferace.eval.drive import drive, format_lap_times
-    from saferace.eval.tables import markdown_table
+    from saferace.eval.drive import drive
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.eval.runner import result_row
 
-    if args.laps < 1:
-        raise SafeRaceError(f"--laps must be at least 1, got {args.laps}")
-    summary = drive(
+    _check_laps(args.laps)
+    result = drive(
         args.task,
         args.track,
+        agent=args.agent,
         laps=args.laps,
         video=args.video,
         rerun=args.rerun,
@@ -136,34 +169,65 @@ def _drive(args: argparse.Namespace) -> int:
         image_size=(args.image_size, args.image_size),
         stereo=args.stereo,
     )
-    print(
-        markdown_table(
-            [
-                "task",
-                "track",
-                "laps",
-                "lap times [s]",
-                "sim time [s]",
-                "outside lane [s]",
-                "max |dev| [m]",
-            ],
-            [
-                [
-                    summary.task,
-                    summary.track,
-                    summary.laps,
-                    format_lap_times(summary.lap_times_s),
-                    summary.sim_time_s,
-                    summary.time_outside_lane_s,
-                    summary.max_abs_deviation_m,
-                ]
-            ],
-        )
+    row = result_row(
+        args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-", result
     )
+    print(leaderboard_markdown([row]))
     for label, path in (("video", args.video), ("rerun recording", args.rerun)):
         if path:
             print(f"{label} written to {path}")
-    return 0 if summary.laps == args.laps else 1
+    return 0 if result.summary["laps_completed"] == args.laps else 1
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.eval.runner import evaluate
+
+    _check_laps(args.laps)
+    rows = evaluate(
+        args.agent,
+        args.task,
+        args.track,
+        args.seeds,
+        laps=args.laps,
+        model=args.model,
+        out=args.out,
+    )
+    print(leaderboard_markdown(rows))
+    print(f"{len(rows)} rows appended to {args.out}")
+    return 0
+
+
+def _leaderboard(args: argparse.Namespace) -> int:
+    from saferace.eval.leaderboard import (
+        leaderboard_markdown,
+        plot_trajectories,
+        write_leaderboard_csv,
+    )
+    from saferace.eval.runner import read_jsonl
+
+    rows = []
+    for path in args.results:
+        if not path.exists():
+            raise SafeRaceError(
+                f"no results file at {path}; write one with saferace eval --out {path}"
+            )
+        rows += read_jsonl(path)
+    if not rows:
+        raise SafeRaceError("the results files hold no rows")
+    print(leaderboard_markdown(rows))
+    if args.csv:
+        write_leaderboard_csv(rows, args.csv)
+        print(f"table written to {args.csv}")
+    if args.plot:
+        plot_trajectories(rows, args.plot)
+        print(f"plot written to {args.plot}")
+    return 0
+
+
+def _check_laps(laps: int) -> None:
+    if laps < 1:
+        raise SafeRaceError(f"--laps must be at least 1, got {laps}")
 
 
 def _snapshots(args: argparse.Namespace) -> int:

@@ -21,6 +21,7 @@ Speeds below ``MIN_SPEED_MPS`` are raised to it where a model divides by speed.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
@@ -31,6 +32,7 @@ import sympy as sp
 from saferace.safety.vehicle_params import VehicleParams
 
 MIN_SPEED_MPS = 0.5
+MAX_RK4_STEP_S = 0.01
 CONTROL_NAMES = ("steer_rad", "accel_mps2")
 PARAM_NAMES = (
     "mass_kg",
@@ -133,7 +135,7 @@ SYMBOLIC_MODELS: dict[str, Callable[[], SymbolicModel]] = {
 
 
 class FrenetModel:
-    """Numeric ``f(x, u, kappa)``, its Jacobians and discretisation for one model and parameter set."""
+    """Numeric ``f(x, u, kappa)``, its Jacobians and discretisation, for one parameter set."""
 
     def __init__(self, name: str, params: VehicleParams) -> None:
         if name not in SYMBOLIC_MODELS:
@@ -171,12 +173,20 @@ class FrenetModel:
         return float(self._s_dot(*self._args(x, np.zeros(2), kappa)))
 
     def step(self, x: np.ndarray, u: np.ndarray, kappa: float, dt_s: float) -> np.ndarray:
-        """One RK4 step of the nonlinear model with ``u`` and ``kappa`` held."""
-        k1 = self.f(x, u, kappa)
-        k2 = self.f(x + 0.5 * dt_s * k1, u, kappa)
-        k3 = self.f(x + 0.5 * dt_s * k2, u, kappa)
-        k4 = self.f(x + dt_s * k3, u, kappa)
-        return x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        """Integrate the nonlinear model over ``dt_s`` with ``u`` and ``kappa`` held.
+
+        RK4 in sub-steps of at most ``MAX_RK4_STEP_S``: the identified tyres make the
+        lateral dynamics stiff (time constants of about 10 ms).
+        """
+        count = max(1, math.ceil(dt_s / MAX_RK4_STEP_S - 1e-9))
+        h = dt_s / count
+        for _ in range(count):
+            k1 = self.f(x, u, kappa)
+            k2 = self.f(x + 0.5 * h * k1, u, kappa)
+            k3 = self.f(x + 0.5 * h * k2, u, kappa)
+            k4 = self.f(x + h * k3, u, kappa)
+            x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return x
 
     def discretize(
         self, x: np.ndarray, u: np.ndarray, kappa: float, dt_s: float

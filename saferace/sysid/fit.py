@@ -16,6 +16,20 @@ def derivative(t_s: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.gradient(values, t_s)
 
 
+def interval_mean(values: np.ndarray) -> np.ndarray:
+    """Mean of each pair of neighbouring samples: a signal over the sample intervals."""
+    return 0.5 * (values[1:] + values[:-1])
+
+
+def interval_rate(t_s: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Rate of change over each sample interval.
+
+    Paired with :func:`interval_mean` of the other signals, this is second-order accurate
+    even where a held input jumps between samples, unlike central differences.
+    """
+    return np.diff(values) / np.diff(t_s)
+
+
 def first_order_response(
     t_s: np.ndarray, command: np.ndarray, time_constant_s: float, start: float
 ) -> np.ndarray:
@@ -29,7 +43,7 @@ def first_order_response(
 
 
 def fit_time_constant(t_s: np.ndarray, command: np.ndarray, actual: np.ndarray) -> float:
-    """Time constant of a first-order lag from ``command`` to ``actual``: ``actual' = (command - actual) / tau``."""
+    """Time constant of the first-order lag ``actual' = (command - actual) / tau``."""
     rate = derivative(t_s, actual)
     error = command - actual
     moving = np.abs(error) > 1e-4
@@ -50,7 +64,7 @@ class LongitudinalFit:
 def fit_longitudinal(
     t_s: np.ndarray, v_x: np.ndarray, v_y: np.ndarray, r: np.ndarray, accel_cmd: np.ndarray
 ) -> LongitudinalFit:
-    """Lag, gain and linear drag of the acceleration command's realised response (grid over the lag)."""
+    """Lag, gain and linear drag of the realised response to the acceleration command."""
     measured = derivative(t_s, v_x) - v_y * r
     best = None
     for tau in np.geomspace(0.005, 0.5, 60):

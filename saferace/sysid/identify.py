@@ -1,4 +1,4 @@
-"""Identify the rc10's model parameters from MuJoCo runs and report each model's prediction error."""
+"""Identify the rc10's model parameters from MuJoCo runs; report each model's prediction error."""
 
 from __future__ import annotations
 
@@ -9,7 +9,13 @@ import numpy as np
 from saferace.safety.models import FrenetModel
 from saferace.safety.vehicle_params import VehicleParams
 from saferace.sysid.evaluate import prediction_errors
-from saferace.sysid.fit import derivative, fit_lateral, fit_longitudinal, fit_time_constant
+from saferace.sysid.fit import (
+    fit_lateral,
+    fit_longitudinal,
+    fit_time_constant,
+    interval_mean,
+    interval_rate,
+)
 from saferace.sysid.manoeuvres import collect
 
 LATERAL_MIN_SPEED_MPS = 1.0
@@ -35,12 +41,14 @@ def identify() -> IdentificationResult:
     logs, geometry = collect()
     lateral_logs = [log for name, log in logs.items() if not name.startswith("accel")]
 
-    def stacked(key: str, logs_: list[dict[str, np.ndarray]], transform=None) -> np.ndarray:
+    def over_intervals(signal) -> np.ndarray:
+        """``signal(log)`` over the sample intervals of the lateral logs, settled and rolling."""
         parts = []
-        for log in logs_:
-            values = transform(log) if transform else log[key]
-            keep = (log["t_s"] > SETTLE_S) & (log["v_x"] > LATERAL_MIN_SPEED_MPS)
-            parts.append(values[keep])
+        for log in lateral_logs:
+            keep = (interval_mean(log["t_s"]) > SETTLE_S) & (
+                interval_mean(log["v_x"]) > LATERAL_MIN_SPEED_MPS
+            )
+            parts.append(signal(log)[keep])
         return np.concatenate(parts)
 
     steer_tau = float(
@@ -52,12 +60,12 @@ def identify() -> IdentificationResult:
         )
     )
     lateral = fit_lateral(
-        v_x=stacked("v_x", lateral_logs),
-        v_y=stacked("v_y", lateral_logs),
-        r=stacked("r", lateral_logs),
-        steer_rad=stacked("steer_actual", lateral_logs),
-        v_y_dot=stacked("", lateral_logs, lambda log: derivative(log["t_s"], log["v_y"])),
-        r_dot=stacked("", lateral_logs, lambda log: derivative(log["t_s"], log["r"])),
+        v_x=over_intervals(lambda log: interval_mean(log["v_x"])),
+        v_y=over_intervals(lambda log: interval_mean(log["v_y"])),
+        r=over_intervals(lambda log: interval_mean(log["r"])),
+        steer_rad=over_intervals(lambda log: interval_mean(log["steer_actual"])),
+        v_y_dot=over_intervals(lambda log: interval_rate(log["t_s"], log["v_y"])),
+        r_dot=over_intervals(lambda log: interval_rate(log["t_s"], log["r"])),
         mass_kg=geometry["mass_kg"],
         lf_m=geometry["lf_m"],
         lr_m=geometry["lr_m"],

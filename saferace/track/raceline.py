@@ -82,6 +82,7 @@ class ReferenceLine:
     _centerline: ClosedPath
     _offset: PeriodicInterpolator
     _speed: PeriodicInterpolator
+    _heading_offset: PeriodicInterpolator
 
     @property
     def length_m(self) -> float:
@@ -96,6 +97,10 @@ class ReferenceLine:
     def offset_at(self, center_s_m: np.ndarray | float) -> np.ndarray:
         """Lateral offset from the centerline (positive left) at centerline arc length."""
         return np.interp(center_s_m, self.center_s_m, self.offset_m, period=self.track_length_m)
+
+    def heading_offset_at(self, center_s_m: np.ndarray | float) -> np.ndarray | float:
+        """The line's heading minus the centerline's, at centerline arc length (rad)."""
+        return self._heading_offset(center_s_m)
 
     def speed_at(self, center_s_m: np.ndarray | float) -> np.ndarray:
         """Reference speed at centerline arc length."""
@@ -271,6 +276,9 @@ def _reference(
     kappa = path.curvature(s)
     profile = speed_profile(kappa, path.length_m / len(s), envelope)
     center_vx = np.interp(line_s_of_center, s, profile.vx_mps, period=path.length_m)
+    heading_offset = np.angle(
+        np.exp(1j * (path.heading(line_s_of_center) - track.centerline.heading(center_s)))
+    )
     return ReferenceLine(
         name=name,
         path=path,
@@ -286,4 +294,5 @@ def _reference(
         _centerline=track.centerline,
         _offset=PeriodicInterpolator(center_s, offsets, track.length_m),
         _speed=PeriodicInterpolator(center_s, center_vx, track.length_m),
+        _heading_offset=PeriodicInterpolator(center_s, heading_offset, track.length_m),
     )

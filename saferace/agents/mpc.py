@@ -1,0 +1,363 @@
+"""Expert MPC: linear time-varying MPC on a Frenet vehicle model (paper eq. 2), with OSQP.
+
+Each control step linearises the model along the previous plan (shifted by one step),
+discretises every stage exactly (zero-order hold), and solves one sparse QP:
+
+    min  sum_k |x_k - x_ref,k|_Q^2 + |u_k|_R^2 + |u_k - u_{k-1}|_Rd^2 + w eps_k + W eps_k^2
+    s.t. x_{k+1} = A_k x_k + B_k u_k + c_k,     x_0 = measured state
+         u_min <= u_k <= u_max,  |steer_k - steer_{k-1}| <= rate * dt
+         lower_k - eps_k <= e_y,k <= upper_k + eps_k,  eps_k >= 0   (soft lane: never infeasible)
+
+References (lateral offset, heading and speed of the task's reference line) and lane
+bounds are looked up at the arc length the plan predicts for each stage. The QP is built
+once; every step only its vectors and the values of the dynamics blocks change, with
+the sparsity pattern fixed (OSQP cannot take new non-zeros), and it is warm-started.
+The expert drives from the ground truth in ``info``; steering lag is not modelled.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from saferace.envs.drivetrain import DrivetrainParams
+from saferace.safety.models import FrenetModel
+from saferace.safety.vehicle_params import VehicleParams, load_params
+from saferace.track import Track, VehicleEnvelope
+from saferace.track.raceline import ReferenceLine
+
+
+@dataclass(frozen=True)
+class MPCSettings:
+    """Horizon, weights and margins of the expert MPC."""
+
+    horizon: int = 20
+    dt_s: float = 0.05
+    weight_e_y: float = 40.0
+    weight_e_psi: float = 4.0
+    weight_speed: float = 1.0
+    weight_steer: float = 0.1
+    weight_accel: float = 0.01
+    weight_steer_rate: float = 20.0
+    weight_accel_rate: float = 0.05
+    slack_linear: float = 1e3
+    slack_quadratic: float = 1e4
+    lane_margin_m: float = 0.03
+    speed_scale: float = 1.0
+
+
+@dataclass
+class SolveStats:
+    """Per-step timings (s) and counts, for benchmarks and reports."""
+
+    solve_times_s: list[float] = field(default_factory=list)
+    step_times_s: list[float] = field(default_factory=list)
+    failures: int = 0
+
+
+class MPCExpert:
+    """The expert driver; ``act(obs, info) -> [steer_rad, accel_mps2]`` from ground truth."""
+
+    def __init__(
+        self,
+        track: Track,
+        reference: ReferenceLine,
+        model: str = "dynamic",
+        params: VehicleParams | None = None,
+        settings: MPCSettings | None = None,
+        drivetrain: DrivetrainParams | None = None,
+    ) -> None:
+        self.track = track
+        self.reference = reference
+        self.params = params or load_params()
+        self.model = FrenetModel(model, self.params)
+        self.settings = settings or MPCSettings()
+        self.drivetrain = drivetrain or DrivetrainParams()
+        self.half_width_m = 0.5 * VehicleEnvelope().width_m
+        self.stats = SolveStats()
+        self._layout = _Layout(self.model.n_state, self.model.n_control, self.settings.horizon)
+        self._build()
+        self.reset()
+
+    @classmethod
+    def for_env(cls, env, model: str = "dynamic", settings: MPCSettings | None = None) -> MPCExpert:
+        """An expert for a (possibly wrapped) SafeRace env's track and reference line."""
+        base = env.unwrapped
+        settings = settings or MPCSettings(dt_s=base.control_dt_s)
+        return cls(
+            base.track, base.reference, model=model, settings=settings, drivetrain=base.params
+        )
+
+    def reset(self) -> None:
+        """Forget the previous plan (call at the start of an episode)."""
+        self._plan_x: np.ndarray | None = None
+        self._plan_u = np.zeros((self.settings.horizon, self.model.n_control))
+        self._previous_u = np.zeros(self.model.n_control)
+
+    # ------------------------------------------------------------------ acting
+    def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        start = time.perf_counter()
+        x0 = self.state_from_info(info)
+        if info.get("time_s", 0.0) == 0.0 or self._plan_x is None:
+            self.reset()
+            self._previous_u = np.array([info.get("steer_rad", 0.0), 0.0])
+        u = self._solve(x0, info["s_m"])
+        self._previous_u = u
+        self.stats.step_times_s.append(time.perf_counter() - start)
+        return np.array([u[0], self._accel_command(u[1], info["v_x_mps"])], dtype=np.float32)
+
+    def state_from_info(self, info: dict[str, Any]) -> np.ndarray:
+        """The model's state from the env's ground truth."""
+        values = {
+            "e_y": info["e_y_m"],
+            "e_psi": info["e_psi_rad"],
+            "v": info["v_x_mps"],
+            "v_x": info["v_x_mps"],
+            "v_y": info["v_y_mps"],
+            "r": info["yaw_rate_radps"],
+        }
+        return np.array([values[name] for name in self.model.state_names])
+
+    def _accel_command(self, accel_mps2: float, speed_mps: float) -> float:
+        """The command that realises ``accel_mps2`` given the identified gain and drag."""
+        return (accel_mps2 + self.params.drag_per_s * speed_mps) / self.params.accel_gain
+
+    # ------------------------------------------------------------------ QP
+    def _build(self) -> None:
+        s, L = self.settings, self._layout
+        n, m, N = L.n, L.m, L.N
+        state_weights = {
+            "e_y": s.weight_e_y,
+            "e_psi": s.weight_e_psi,
+            "v": s.weight_speed,
+            "v_x": s.weight_speed,
+        }
+        q_state = np.array([state_weights.get(name, 0.0) for name in self.model.state_names])
+        self._q_state = q_state
+        p_diag = np.concatenate(
+            [np.tile(q_state, N), np.zeros(N * m), np.full(N, s.slack_quadratic)]
+        )
+        rate = np.array([s.weight_steer_rate, s.weight_accel_rate])
+        effort = np.array([s.weight_steer, s.weight_accel])
+        rows, cols, vals = list(range(L.size)), list(range(L.size)), list(p_diag)
+        for k in range(N):
+            for j in range(m):
+                i = L.u(k) + j
+                vals[i] += effort[j] + rate[j] * (2.0 if k < N - 1 else 1.0)
+                if k > 0:
+                    rows.append(L.u(k - 1) + j)
+                    cols.append(i)
+                    vals.append(-rate[j])
+        self._rate_weights = rate
+        P = sp.coo_matrix((2.0 * np.asarray(vals), (rows, cols)), shape=(L.size, L.size))
+        self._P = sp.triu(P + sp.triu(P, 1).T, format="csc")
+
+        # Constraint rows: dynamics, input bounds, steering rate, lane (upper, lower), slack >= 0.
+        self._A_rows, self._A_cols = [], []
+        row = 0
+        self._dyn_rows = row
+        for k in range(N):
+            for i in range(n):
+                self._entry(row + i, L.x(k) + i)  # x_{k+1}
+                for j in range(m):
+                    self._entry(row + i, L.u(k) + j)  # -B_k u_k
+                if k > 0:
+                    for j in range(n):
+                        self._entry(row + i, L.x(k - 1) + j)  # -A_k x_k
+            row += n
+        self._input_rows = row
+        for k in range(N):
+            for j in range(m):
+                self._entry(row, L.u(k) + j)
+                row += 1
+        self._rate_rows = row
+        for k in range(N):
+            self._entry(row, L.u(k))
+            if k > 0:
+                self._entry(row, L.u(k - 1))
+            row += 1
+        self._lane_rows = row
+        for k in range(N):
+            for _ in ("upper", "lower"):
+                self._entry(row, L.x(k))  # e_y is the first state
+                self._entry(row, L.eps(k))
+                row += 1
+        self._slack_rows = row
+        for k in range(N):
+            self._entry(row, L.eps(k))
+            row += 1
+        self._n_rows = row
+        nnz = len(self._A_rows)
+        order = sp.coo_matrix(
+            (np.arange(1, nnz + 1, dtype=float), (self._A_rows, self._A_cols)), shape=(row, L.size)
+        )
+        pattern = order.tocsc()
+        self._csc_order = pattern.data.astype(int) - 1  # CSC slot -> our entry index
+        self._A_template = pattern
+        self._solver: osqp.OSQP | None = None
+
+    def _entry(self, row: int, col: int) -> None:
+        self._A_rows.append(row)
+        self._A_cols.append(col)
+
+    def _constraint_values(self, A_list, B_list) -> np.ndarray:
+        """Values of every constraint entry, in the order the pattern was built."""
+        L = self._layout
+        n, m, N = L.n, L.m, L.N
+        values = []
+        for k in range(N):
+            for i in range(n):
+                values.append(1.0)
+                values.extend(-B_list[k][i])
+                if k > 0:
+                    values.extend(-A_list[k][i])
+        values.extend([1.0] * (N * m))
+        for k in range(N):
+            values.append(1.0)
+            if k > 0:
+                values.append(-1.0)
+        for _ in range(N):
+            values.extend([1.0, -1.0, 1.0, 1.0])  # e_y - eps <= upper ; e_y + eps >= lower
+        values.extend([1.0] * N)
+        return np.asarray(values)
+
+    def _solve(self, x0: np.ndarray, s0: float) -> np.ndarray:
+        st, L, model = self.settings, self._layout, self.model
+        n, m, N, dt = L.n, L.m, L.N, st.dt_s
+        plan_x, plan_u = self._linearisation_trajectory(x0, s0)
+        s_stage = np.empty(N + 1)
+        s_stage[0] = s0
+        kappas = np.empty(N)
+        A_list, B_list, c_list = [], [], []
+        for k in range(N):
+            kappa = self.track.centerline.curvature_scalar(s_stage[k])
+            kappas[k] = kappa
+            A, B, c = model.discretize(plan_x[k], plan_u[k], kappa, dt)
+            A_list.append(A)
+            B_list.append(B)
+            c_list.append(c)
+            s_stage[k + 1] = s_stage[k] + model.s_dot(plan_x[k], kappa) * dt
+        s_ref = s_stage[1:]
+        reference = np.zeros((N, n))
+        reference[:, 0] = self.reference.offset_at(s_ref)
+        reference[:, 1] = self.reference.heading_offset_at(s_ref)
+        reference[:, model.speed_index] = st.speed_scale * self.reference.speed_at(s_ref)
+        w_right, w_left = self.track.widths(s_ref)
+        clearance = self.half_width_m + st.lane_margin_m
+        upper, lower = w_left - clearance, -(w_right - clearance)
+
+        q = np.zeros(L.size)
+        q[: N * n] = -2.0 * (reference * self._q_state).ravel()
+        q[L.u(0) : L.u(0) + m] -= 2.0 * self._rate_weights * self._previous_u
+        q[L.eps(0) :] = st.slack_linear
+        lo = np.empty(self._n_rows)
+        hi = np.empty(self._n_rows)
+        dynamics_rhs = np.array(c_list)
+        dynamics_rhs[0] += A_list[0] @ x0
+        lo[: N * n] = hi[: N * n] = dynamics_rhs.ravel()
+        p = self.drivetrain
+        u_min = np.tile([-p.max_steer_rad, -p.max_brake_mps2], N)
+        u_max = np.tile([p.max_steer_rad, p.max_accel_mps2], N)
+        lo[self._input_rows : self._rate_rows], hi[self._input_rows : self._rate_rows] = (
+            u_min,
+            u_max,
+        )
+        step = p.max_steer_rate_radps * dt
+        rate_lo, rate_hi = np.full(N, -step), np.full(N, step)
+        rate_lo[0] += self._previous_u[0]
+        rate_hi[0] += self._previous_u[0]
+        lo[self._rate_rows : self._lane_rows], hi[self._rate_rows : self._lane_rows] = (
+            rate_lo,
+            rate_hi,
+        )
+        lane_lo = np.column_stack([np.full(N, -np.inf), lower]).ravel()
+        lane_hi = np.column_stack([upper, np.full(N, np.inf)]).ravel()
+        lo[self._lane_rows : self._slack_rows], hi[self._lane_rows : self._slack_rows] = (
+            lane_lo,
+            lane_hi,
+        )
+        lo[self._slack_rows :], hi[self._slack_rows :] = 0.0, np.inf
+        a_values = self._constraint_values(A_list, B_list)[self._csc_order]
+
+        start = time.perf_counter()
+        if self._solver is None:
+            A = self._A_template.copy()
+            A.data = a_values
+            self._solver = osqp.OSQP()
+            self._solver.setup(
+                P=self._P,
+                q=q,
+                A=A,
+                l=lo,
+                u=hi,
+                eps_abs=1e-4,
+                eps_rel=1e-4,
+                max_iter=4000,
+                warm_starting=True,
+                polishing=False,
+                verbose=False,
+            )
+        else:
+            self._solver.update(q=q, l=lo, u=hi, Ax=a_values)
+        result = self._solver.solve(raise_error=False)
+        self.stats.solve_times_s.append(time.perf_counter() - start)
+
+        if result.info.status_val not in (
+            osqp.SolverStatus.OSQP_SOLVED,
+            osqp.SolverStatus.OSQP_SOLVED_INACCURATE,
+        ):
+            self.stats.failures += 1
+            u = plan_u[0]
+            self._plan_x = None
+            return np.clip(
+                u, [-p.max_steer_rad, -p.max_brake_mps2], [p.max_steer_rad, p.max_accel_mps2]
+            )
+        z = result.x
+        self._plan_x = np.vstack([x0, z[: N * n].reshape(N, n)])
+        self._plan_u = z[L.u(0) : L.u(0) + N * m].reshape(N, m)
+        return self._plan_u[0].copy()
+
+    def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
+        """States and inputs to linearise about: the last plan shifted by one step.
+
+        Only the first step of an episode, with no plan yet, rolls the nonlinear model
+        out from ``x0`` with the curvature's feed-forward steering.
+        """
+        N, dt = self.settings.horizon, self.settings.dt_s
+        if self._plan_x is not None:
+            x = np.vstack([x0, self._plan_x[2:], self._plan_x[-1:]])
+            u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
+            return x, u
+        u = np.zeros((N, self.model.n_control))
+        x = np.empty((N + 1, self.model.n_state))
+        x[0] = x0
+        s = s0
+        for k in range(N):
+            kappa = self.track.centerline.curvature_scalar(s)
+            u[k, 0] = np.arctan(self.params.wheelbase_m * kappa)
+            x[k + 1] = self.model.step(x[k], u[k], kappa, dt)
+            s += self.model.s_dot(x[k], kappa) * dt
+        return x, u
+
+
+class _Layout:
+    """Positions of the decision variables: states x_1..x_N, inputs u_0..u_{N-1}, slacks."""
+
+    def __init__(self, n: int, m: int, horizon: int) -> None:
+        self.n, self.m, self.N = n, m, horizon
+        self.size = horizon * (n + m + 1)
+
+    def x(self, k: int) -> int:
+        """Index of x_{k+1} (the state after input k)."""
+        return k * self.n
+
+    def u(self, k: int) -> int:
+        return self.N * self.n + k * self.m
+
+    def eps(self, k: int) -> int:
+        return self.N * (self.n + self.m) + k

@@ -1,0 +1,190 @@
+"""The one episode runner: any agent on any task, with per-step records and lap metrics."""
+
+from __future__ import annotations
+
+import json
+import platform
+import subprocess
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from tqdm import tqdm
+
+import saferace
+from saferace.eval.agents import act, make_agent
+from saferace.eval.metrics import STEP_FIELDS, LapMetrics, lap_metrics, summarize
+
+TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
+RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch")
+
+
+@dataclass
+class EpisodeResult:
+    """Per-step arrays, per-lap metrics and the episode's end."""
+
+    steps: dict[str, np.ndarray]
+    laps: list[LapMetrics]
+    terminated: bool
+    truncated: bool
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def summary(self) -> dict:
+        return summarize(self.laps)
+
+
+def task_id(task: str) -> str:
+    """Gymnasium id of ``CenterLine``/``RacingLine`` (or a full id)."""
+    if task in TASK_IDS.values():
+        return task
+    if task not in TASK_IDS:
+        raise ValueError(f"unknown task {task!r}: use one of {', '.join(TASK_IDS)}")
+    return TASK_IDS[task]
+
+
+def run_episode(
+    env: gym.Env,
+    agent,
+    seed: int | None = None,
+    progress: bool = False,
+    on_step: Callable[[dict, dict, np.ndarray], None] | None = None,
+) -> EpisodeResult:
+    """Drive ``agent`` until the episode ends; record STEP_FIELDS after every step.
+
+    ``on_step(observation, info, action)`` is called after each step (videos, recordings).
+    """
+    observation, info = env.reset(seed=seed)
+    if hasattr(agent, "reset"):
+        agent.reset()
+    records: dict[str, list] = {name: [] for name in STEP_FIELDS}
+    terminated = truncated = False
+    base = env.unwrapped
+    with tqdm(total=base.max_steps, desc=base.track.name, unit="step", disable=not progress) as bar:
+        while not (terminated or truncated):
+            action = act(agent, observation, info)
+            observation, _, terminated, truncated, info = env.step(action)
+            for name in STEP_FIELDS:
+                records[name].append(info[name])
+            if on_step is not None:
+                on_step(observation, info, action)
+            bar.update()
+            bar.set_postfix(lap=info["lap"], v=f"{info['v_x_mps']:.1f}m/s")
+    steps = {name: np.asarray(values) for name, values in records.items()}
+    laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
+    return EpisodeResult(steps=steps, laps=laps, terminated=terminated, truncated=truncated)
+
+
+def evaluate(
+    agent_spec: str,
+    task: str,
+    track: str,
+    seeds: list[int],
+    laps: int = 1,
+    model: str = "dynamic",
+    out: str | Path | None = None,
+    progress: bool = True,
+    env_kwargs: dict[str, Any] | None = None,
+) -> list[dict]:
+    """One JSON row per seed: metrics, trajectory, configuration, versions; appended to ``out``.
+
+    Rows are written as each episode ends, so an interrupted run keeps what it finished.
+    """
+    rows = []
+    for seed in seeds:
+        env = gym.make(task_id(task), track=track, max_laps=laps, **(env_kwargs or {}))
+        try:
+            agent = make_agent(agent_spec, env, model=model)
+            result = run_episode(env, agent, seed=seed, progress=progress)
+            row = result_row(
+                agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result
+            )
+            if hasattr(agent, "stats"):
+                row["solver"] = solver_summary(agent.stats)
+        finally:
+            env.close()
+        rows.append(row)
+        if out is not None:
+            append_jsonl(out, row)
+    return rows
+
+
+def result_row(
+    agent, task, track_name, track_arg, seed, laps, model, result: EpisodeResult
+) -> dict:
+    """The JSON row of one evaluated episode."""
+    stride = max(1, len(result.steps["x_m"]) // 500)
+    return {
+        "agent": agent,
+        "task": task,
+        "track": track_name,
+        "seed": seed,
+        "summary": result.summary,
+        "laps": [lap.as_dict() for lap in result.laps],
+        "terminated": result.terminated,
+        "trajectory": {
+            name: result.steps[name][::stride].round(4).tolist()
+            for name in ("x_m", "y_m", "s_m", "v_x_mps")
+        },
+        "config": {"track": str(track_arg), "laps": laps, "model": model},
+        "saferace_version": saferace.__version__,
+        "git_revision": git_revision(),
+        "packages": package_versions(),
+        "python": platform.python_version(),
+    }
+
+
+def solver_summary(stats) -> dict:
+    solve = np.asarray(stats.solve_times_s)
+    step = np.asarray(stats.step_times_s)
+    return {
+        "solve_median_ms": float(np.median(solve) * 1e3),
+        "solve_p95_ms": float(np.percentile(solve, 95) * 1e3),
+        "step_median_ms": float(np.median(step) * 1e3),
+        "failures": stats.failures,
+    }
+
+
+def append_jsonl(path: str | Path, row: dict) -> None:
+    """Append one row and flush it to disk."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as handle:
+        handle.write(json.dumps(row) + "\n")
+        handle.flush()
+
+
+def read_jsonl(path: str | Path) -> list[dict]:
+    """Rows of a results file (blank lines skipped)."""
+    with open(path) as handle:
+        return [json.loads(line) for line in handle if line.strip()]
+
+
+def git_revision() -> str | None:
+    """The source's git revision, if SafeRace runs from a git checkout."""
+    try:
+        result = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return result.stdout.strip() or None
+
+
+def package_versions() -> dict[str, str]:
+    versions = {}
+    for name in RECORDED_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return versions
