@@ -23,7 +23,11 @@ $(VENV)/.setup-stamp: pyproject.toml
 demo: setup
 	mkdir -p results
 	$(BIN)/saferace raceline technical --out results/technical_raceline.csv --plot results/technical_raceline.png
-	$(BIN)/saferace drive --task RacingLine --track technical \
+	rm -f results/results.jsonl
+	$(BIN)/saferace eval --agent expert --task CenterLine --track technical --out results/results.jsonl
+	$(BIN)/saferace eval --agent expert --task RacingLine --track technical --out results/results.jsonl
+	$(BIN)/saferace leaderboard results/results.jsonl --plot results/trajectories.png
+	$(BIN)/saferace drive --agent expert --task RacingLine --track technical \
 		--video results/technical_racingline.mp4 --rerun results/technical_racingline.rrd
 	$(BIN)/saferace snapshots --out results/snapshots
 
@@ -41,6 +45,7 @@ bench: setup
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
 	$(BIN)/python benchmarks/raceline_speed.py
 	$(BIN)/python benchmarks/frenet_speed.py
+	$(BIN)/python benchmarks/mpc_speed.py
 	$(BIN)/python benchmarks/env_speed.py
 
 clean:

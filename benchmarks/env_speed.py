@@ -16,8 +16,7 @@ import time
 import gymnasium as gym
 import numpy as np
 
-import saferace
-import saferace.envs  # noqa: F401  - chooses the GL backend before mujoco is imported
+import saferace  # noqa: F401  - registers the tasks
 from saferace.agents.pure_pursuit import PurePursuit
 from saferace.eval.tables import markdown_table
 

@@ -64,7 +64,10 @@ def run_episode(
     records: dict[str, list] = {name: [] for name in STEP_FIELDS}
     terminated = truncated = False
     base = env.unwrapped
-    with tqdm(total=base.max_steps, desc=base.track.name, unit="step", disable=not progress) as bar:
+    # disable=None: a bar on a terminal only, not in logs and pipes.
+    with tqdm(
+        total=base.max_steps, desc=base.track.name, unit="step", disable=None if progress else True
+    ) as bar:
         while not (terminated or truncated):
             action = act(agent, observation, info)
             observation, _, terminated, truncated, info = env.step(action)

@@ -1,0 +1,122 @@
+"""Lap metrics on a hand-made trajectory, and the eval/leaderboard commands."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from saferace.eval.metrics import lap_metrics, summarize
+
+DT = 0.05
+
+
+def hand_made_steps() -> dict[str, np.ndarray]:
+    """10 steps; the first lap ends during step 6 (index 5); the second lap does not finish."""
+    return {
+        "lap": np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1]),
+        "deviation_m": np.array([0.1, -0.2, 0.0, 0.3, -0.1, 0.2, 0.0, -0.4, 0.1, 0.1]),
+        "cost": np.array([0, 0, 0, 1, 0, 1, 1, 0, 0, 0], dtype=float),
+        "steer_rad": np.array([0.0, 0.1, 0.1, 0.0, 0.0, 0.0, 0.05, 0.05, 0.05, 0.05]),
+    }
+
+
+def test_lap_metrics_by_hand():
+    laps = lap_metrics(hand_made_steps(), lap_times_s=[0.27], control_dt_s=DT)
+    assert len(laps) == 2
+    first, second = laps
+    # Lap 0 runs during steps 0-5 (the step that completes it belongs to it).
+    assert first.completed and first.lap_time_s == 0.27
+    assert first.mean_abs_deviation_m == pytest.approx(np.mean([0.1, 0.2, 0.0, 0.3, 0.1, 0.2]))
+    assert first.max_abs_deviation_m == pytest.approx(0.3)
+    assert first.time_outside_lane_s == pytest.approx(2 * DT)
+    rates = np.array([0.0, 0.1, 0.0, -0.1, 0.0, 0.0]) / DT
+    assert first.steering_rate_rms_radps == pytest.approx(np.sqrt(np.mean(rates**2)))
+    assert not second.completed and second.lap_time_s is None
+    assert second.max_abs_deviation_m == pytest.approx(0.4)
+    assert second.time_outside_lane_s == pytest.approx(DT)
+    summary = summarize(laps)
+    assert summary["laps_completed"] == 1 and summary["best_lap_time_s"] == 0.27
+    assert summary["time_outside_lane_s"] == pytest.approx(3 * DT)
+
+
+def test_no_steps_no_laps():
+    empty = {name: np.array([]) for name in hand_made_steps()}
+    assert lap_metrics(empty, [], DT) == []
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
+    )
+
+
+def test_eval_rows_and_leaderboard(tmp_path: Path):
+    results = tmp_path / "results.jsonl"
+    first = run_cli(
+        "eval",
+        "--agent",
+        "pure-pursuit",
+        "--task",
+        "CenterLine",
+        "--track",
+        "lab",
+        "--seeds",
+        "0",
+        "1",
+        "--out",
+        str(results),
+    )
+    assert first.returncode == 0, first.stderr
+    second = run_cli(
+        "eval",
+        "--agent",
+        "expert",
+        "--model",
+        "kinematic",
+        "--task",
+        "RacingLine",
+        "--track",
+        "lab",
+        "--out",
+        str(results),
+    )
+    assert second.returncode == 0, second.stderr
+    rows = [json.loads(line) for line in results.read_text().splitlines()]
+    assert [(r["agent"], r["task"], r["seed"]) for r in rows] == [
+        ("pure-pursuit", "CenterLine", 0),
+        ("pure-pursuit", "CenterLine", 1),
+        ("expert", "RacingLine", 0),
+    ]
+    for row in rows:
+        assert row["summary"]["laps_completed"] == 1
+        assert row["summary"]["time_outside_lane_s"] == 0.0
+        assert {
+            "saferace_version",
+            "git_revision",
+            "packages",
+            "config",
+            "trajectory",
+        } <= row.keys()
+        assert row["packages"]["mujoco"] == "3.17.0"
+    assert rows[2]["solver"]["solve_median_ms"] > 0.0
+    plot, table = tmp_path / "board.png", tmp_path / "board.csv"
+    board = run_cli("leaderboard", str(results), "--plot", str(plot), "--csv", str(table))
+    assert board.returncode == 0, board.stderr
+    lines = [line for line in board.stdout.splitlines() if line.startswith("|")]
+    assert len(lines) == 2 + 2  # header, rule, one line per (agent, task, track)
+    assert (
+        "| pure-pursuit | CenterLine |" in " ".join(lines[2:]).replace("  ", " ")
+        or "pure-pursuit" in lines[3]
+    )
+    assert plot.stat().st_size > 20_000 and table.read_text().count("\n") == 3
+
+
+def test_leaderboard_without_results_is_a_clear_error(tmp_path: Path):
+    result = run_cli("leaderboard", str(tmp_path / "missing.jsonl"))
+    assert result.returncode == 2
+    assert "no results file" in result.stderr and "Traceback" not in result.stderr
