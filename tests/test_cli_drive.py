@@ -33,7 +33,13 @@ def test_drive_writes_video_and_rerun_recording(tmp_path: Path):
     assert result.returncode == 0, result.stderr
     row = next(line for line in result.stdout.splitlines() if "CenterLine" in line)
     cells = [cell.strip() for cell in row.strip("|").split("|")]
-    assert cells[:5] == ["pure-pursuit", "CenterLine", "lab", "1", "1"]  # agent, task, track, seeds, laps
+    assert cells[:5] == [
+        "pure-pursuit",
+        "CenterLine",
+        "lab",
+        "1",
+        "1",
+    ]  # agent, task, track, seeds, laps
     assert float(cells[9]) == 0.0  # no time outside the lane
     capture = cv2.VideoCapture(str(video))
     frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))

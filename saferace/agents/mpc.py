@@ -113,15 +113,13 @@ class MPCExpert:
 
     def state_from_info(self, info: dict[str, Any]) -> np.ndarray:
         """The model's state from the env's ground truth."""
-        values = {
-            "e_y": info["e_y_m"],
-            "e_psi": info["e_psi_rad"],
-            "v": info["v_x_mps"],
-            "v_x": info["v_x_mps"],
-            "v_y": info["v_y_mps"],
-            "r": info["yaw_rate_radps"],
-        }
-        return np.array([values[name] for name in self.model.state_names])
+        return self.model.state_from(
+            info["e_y_m"],
+            info["e_psi_rad"],
+            info["v_x_mps"],
+            info["v_y_mps"],
+            info["yaw_rate_radps"],
+        )
 
     def _accel_command(self, accel_mps2: float, speed_mps: float) -> float:
         """The command that realises ``accel_mps2`` given the identified gain and drag."""

@@ -152,6 +152,13 @@ class FrenetModel:
         self._param_values = tuple(float(getattr(params, p)) for p in PARAM_NAMES)
         self._f, self._a, self._b, self._s_dot = _lambdified(name)
 
+    def state_from(
+        self, e_y: float, e_psi: float, v_x: float, v_y: float = 0.0, r: float = 0.0
+    ) -> np.ndarray:
+        """This model's state vector from the full Frenet/body state (``v`` is ``v_x``)."""
+        values = {"e_y": e_y, "e_psi": e_psi, "v": v_x, "v_x": v_x, "v_y": v_y, "r": r}
+        return np.array([values[name] for name in self.state_names], dtype=float)
+
     def _args(self, x: np.ndarray, u: np.ndarray, kappa: float) -> tuple[float, ...]:
         x = [float(v) for v in x]
         x[self.speed_index] = max(x[self.speed_index], MIN_SPEED_MPS)

@@ -11,19 +11,6 @@ HORIZON_S = 0.5
 WINDOW_STRIDE_S = 0.1
 
 
-def initial_state(model: FrenetModel, log: dict[str, np.ndarray], i: int) -> np.ndarray:
-    """The model's state at log row ``i``."""
-    values = {
-        "e_y": log["e_y"][i],
-        "e_psi": log["e_psi"][i],
-        "v": log["v_x"][i],
-        "v_x": log["v_x"][i],
-        "v_y": log["v_y"][i],
-        "r": log["r"][i],
-    }
-    return np.array([values[name] for name in model.state_names])
-
-
 def prediction_errors(
     model: FrenetModel, log: dict[str, np.ndarray], horizon_s: float = HORIZON_S
 ) -> dict[str, float]:
@@ -39,7 +26,9 @@ def prediction_errors(
     starts = range(round(0.5 / dt), len(t) - steps, max(1, round(WINDOW_STRIDE_S / dt)))
     e_y_errors, e_psi_errors = [], []
     for i in starts:
-        x = initial_state(model, log, i)
+        x = model.state_from(
+            log["e_y"][i], log["e_psi"][i], log["v_x"][i], log["v_y"][i], log["r"][i]
+        )
         for k in range(i, i + steps):
             x = model.step(
                 x, np.array([log["steer_actual"][k], accel[k]]), log["kappa"][k], t[k + 1] - t[k]
