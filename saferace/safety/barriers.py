@@ -1,0 +1,159 @@
+"""Lane and heading barriers and their higher-order CBF conditions, derived from a model.
+
+Barriers (``h >= 0`` is safe; widths are the track's real half widths at ``s``):
+
+- ``lane_left  = w_left  - e_y - half_width``
+- ``lane_right = w_right + e_y - half_width``
+- ``heading_left  = theta_max - e_psi``
+- ``heading_right = theta_max + e_psi``
+
+For each, code finds the order ``m`` at which the steering first appears in a time
+derivative (the relative degree in steering: 2 for the lane with the kinematic and the
+full dynamic model, 3 with the paper's simplified model, 1 or 2 for the heading) and
+builds the HOCBF condition of Xiao & Belta with ``alpha_i(h) = lam * h``:
+``psi_0 = h``, ``psi_i = d/dt psi_{i-1} + lam psi_{i-1}``, and requires ``psi_m >= 0``,
+which equals ``sum_k binom(m, k) lam^(m-k) h^(k) >= 0`` as in the paper. The widths,
+``theta_max`` and the curvature are held constant over the derivatives (their rate
+along ``s`` is neglected).
+
+``psi_m`` is affine in the acceleration; in the steering it is affine for the dynamic
+models and goes through ``tan`` for the kinematic one. Either way the filter uses its
+linearisation around the nominal control ``u_0``:
+``psi_m(x, u) ~ psi_m(x, u_0) + d psi_m / du (u - u_0) >= 0``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+import sympy as sp
+
+from saferace.safety.models import symbolic_model
+
+BARRIER_NAMES = ("lane_left", "lane_right", "heading_left", "heading_right")
+MAX_ORDER = 4
+
+_W_LEFT, _W_RIGHT, _HALF_WIDTH, _THETA_MAX, _LAM = sp.symbols(
+    "w_left w_right half_width theta_max lam", real=True
+)
+
+
+def barrier_expression(name: str, e_y: sp.Symbol, e_psi: sp.Symbol) -> sp.Expr:
+    """``h`` of a named barrier in the model's symbols."""
+    return {
+        "lane_left": _W_LEFT - e_y - _HALF_WIDTH,
+        "lane_right": _W_RIGHT + e_y - _HALF_WIDTH,
+        "heading_left": _THETA_MAX - e_psi,
+        "heading_right": _THETA_MAX + e_psi,
+    }[name]
+
+
+@dataclass(frozen=True)
+class HOCBFCondition:
+    """``psi_m(x, u) >= 0`` of one barrier: its order, value and gradient in ``u``."""
+
+    barrier: str
+    order: int
+    value: Callable[..., float]
+    control_gradient: Callable[..., list[float]]
+    barrier_value: Callable[..., float]
+    psi: tuple[sp.Expr, ...]
+
+
+def time_derivative(expr: sp.Expr, state: tuple[sp.Symbol, ...], x_dot: sp.Matrix) -> sp.Expr:
+    """``d expr / dt = grad(expr) . x_dot`` along the model."""
+    return sum(sp.diff(expr, x) * x_dot[i] for i, x in enumerate(state))
+
+
+@cache
+def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
+    """Derive the HOCBF condition of ``barrier`` for ``model_name`` (cached per process)."""
+    model = symbolic_model(model_name)
+    e_y, e_psi = model.state[0], model.state[1]
+    steer = model.control[0]
+    psi = [barrier_expression(barrier, e_y, e_psi)]
+    for _ in range(MAX_ORDER):
+        derivative = time_derivative(psi[-1], model.state, model.x_dot)
+        psi.append(derivative + _LAM * psi[-1])
+        if derivative.has(steer):
+            break
+    else:
+        raise ValueError(f"steering never reaches barrier {barrier} of model {model_name}")
+    args = (
+        *model.state,
+        *model.control,
+        model.kappa,
+        *model.params,
+        _W_LEFT,
+        _W_RIGHT,
+        _HALF_WIDTH,
+        _THETA_MAX,
+        _LAM,
+    )
+    control = sp.Matrix(model.control)
+    final = psi[-1]
+    return HOCBFCondition(
+        barrier=barrier,
+        order=len(psi) - 1,
+        value=sp.lambdify(args, final, "math"),
+        control_gradient=sp.lambdify(args, [sp.diff(final, c) for c in control], "math"),
+        barrier_value=sp.lambdify(args, psi[0], "math"),
+        psi=tuple(psi),
+    )
+
+
+def relative_degrees(model_name: str) -> dict[str, int]:
+    """Order of each barrier's HOCBF condition for a model."""
+    return {name: hocbf_condition(model_name, name).order for name in BARRIER_NAMES}
+
+
+@dataclass(frozen=True)
+class BarrierContext:
+    """What the barriers need besides the state: curvature, lane half widths, limits."""
+
+    kappa_radpm: float
+    w_left_m: float
+    w_right_m: float
+    half_width_m: float
+    theta_max_rad: float
+    lam: float
+
+
+def linearised_constraints(
+    model_name: str,
+    params: tuple[float, ...],
+    states: np.ndarray,
+    u0: np.ndarray,
+    context: BarrierContext,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``a u <= b`` per state sample and barrier (``a (n, B, 2)``, ``b (n, B)``), and ``h (n, B)``.
+
+    ``psi_m(x, u0) + J (u - u0) >= 0`` becomes ``-J u <= psi_m(x, u0) - J u0``.
+    """
+    states = np.atleast_2d(states)
+    n, count = len(states), len(BARRIER_NAMES)
+    a = np.empty((n, count, 2))
+    b = np.empty((n, count))
+    h = np.empty((n, count))
+    tail = (
+        float(context.kappa_radpm),
+        *params,
+        context.w_left_m,
+        context.w_right_m,
+        context.half_width_m,
+        context.theta_max_rad,
+        context.lam,
+    )
+    u0 = [float(u0[0]), float(u0[1])]
+    for j, name in enumerate(BARRIER_NAMES):
+        condition = hocbf_condition(model_name, name)
+        for i, x in enumerate(states.tolist()):
+            args = (*x, *u0, *tail)
+            gradient = condition.control_gradient(*args)
+            a[i, j] = (-gradient[0], -gradient[1])
+            b[i, j] = condition.value(*args) - gradient[0] * u0[0] - gradient[1] * u0[1]
+            h[i, j] = condition.barrier_value(*args)
+    return a, b, h

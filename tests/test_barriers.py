@@ -1,0 +1,135 @@
+"""Lane and heading barriers: orders derived from the models, symmetry, and Lie derivatives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from saferace.safety.barriers import (
+    BARRIER_NAMES,
+    BarrierContext,
+    hocbf_condition,
+    linearised_constraints,
+    relative_degrees,
+)
+from saferace.safety.models import PARAM_NAMES, FrenetModel, symbolic_model
+from saferace.safety.vehicle_params import VehicleParams
+
+PARAMS = VehicleParams(
+    cf0_npr=20.0, df_nspmr=150.0, cr0_npr=30.0, dr_nspmr=180.0, yaw_inertia_kgm2=0.08
+)
+PARAM_VALUES = tuple(getattr(PARAMS, name) for name in PARAM_NAMES)
+CONTEXT = BarrierContext(
+    kappa_radpm=0.3,
+    w_left_m=0.5,
+    w_right_m=0.5,
+    half_width_m=0.15,
+    theta_max_rad=np.pi / 4,
+    lam=2.5,
+)
+
+
+def test_orders_follow_the_models_relative_degree_in_steering():
+    assert relative_degrees("kinematic") == {
+        "lane_left": 2,
+        "lane_right": 2,
+        "heading_left": 1,
+        "heading_right": 1,
+    }
+    assert relative_degrees("dynamic") == {
+        "lane_left": 2,
+        "lane_right": 2,
+        "heading_left": 2,
+        "heading_right": 2,
+    }
+    # The paper's simplified model: steering reaches the lateral offset at the third derivative.
+    assert relative_degrees("dynamic-paper") == {
+        "lane_left": 3,
+        "lane_right": 3,
+        "heading_left": 2,
+        "heading_right": 2,
+    }
+
+
+@pytest.mark.parametrize("model_name", ["kinematic", "dynamic", "dynamic-paper"])
+def test_barriers_are_zero_on_the_boundary_and_symmetric(model_name: str):
+    model = FrenetModel(model_name, PARAMS)
+    edge = CONTEXT.w_left_m - CONTEXT.half_width_m
+    on_left = model.state_from(edge, 0.1, 3.0, 0.05, 0.4)
+    _, _, h = linearised_constraints(model_name, PARAM_VALUES, on_left, np.zeros(2), CONTEXT)
+    assert h[0, BARRIER_NAMES.index("lane_left")] == pytest.approx(0.0, abs=1e-12)
+    # Mirror the state (e_y, e_psi, v_y, r and the curvature flip sign): left and right swap.
+    x = model.state_from(0.2, 0.3, 3.0, 0.1, 0.8)
+    mirrored = model.state_from(-0.2, -0.3, 3.0, -0.1, -0.8)
+    mirrored_context = BarrierContext(**{**CONTEXT.__dict__, "kappa_radpm": -CONTEXT.kappa_radpm})
+    a, b, h = linearised_constraints(model_name, PARAM_VALUES, x, np.array([0.05, 1.0]), CONTEXT)
+    a_m, b_m, h_m = linearised_constraints(
+        model_name, PARAM_VALUES, mirrored, np.array([-0.05, 1.0]), mirrored_context
+    )
+    for left, right in (("lane_left", "lane_right"), ("heading_left", "heading_right")):
+        i, j = BARRIER_NAMES.index(left), BARRIER_NAMES.index(right)
+        assert h[0, i] == pytest.approx(h_m[0, j])
+        assert b[0, i] == pytest.approx(b_m[0, j])
+        np.testing.assert_allclose(a[0, i], a_m[0, j] * [-1.0, 1.0], atol=1e-12)  # steering flips
+
+
+@pytest.mark.parametrize("model_name", ["kinematic", "dynamic", "dynamic-paper"])
+@pytest.mark.parametrize("barrier", BARRIER_NAMES)
+def test_derived_psi_matches_finite_differences_along_the_model(model_name: str, barrier: str):
+    """psi_i = d/dt psi_{i-1} + lam psi_{i-1}, with d/dt taken numerically along the model."""
+    condition = hocbf_condition(model_name, barrier)
+    model = symbolic_model(model_name)
+    numeric = FrenetModel(model_name, PARAMS)
+    lam = sp.Symbol("lam", real=True)
+    extra = {
+        sp.Symbol(n, real=True): getattr(CONTEXT, f)
+        for n, f in (
+            ("w_left", "w_left_m"),
+            ("w_right", "w_right_m"),
+            ("half_width", "half_width_m"),
+            ("theta_max", "theta_max_rad"),
+        )
+    }
+    substitutions = {
+        model.kappa: CONTEXT.kappa_radpm,
+        lam: CONTEXT.lam,
+        **extra,
+        **dict(zip(model.params, PARAM_VALUES, strict=True)),
+    }
+    u = np.array([0.08, 0.7])
+    functions = [
+        sp.lambdify((*model.state, *model.control), psi.subs(substitutions), "math")
+        for psi in condition.psi
+    ]
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        x = numeric.state_from(
+            rng.uniform(-0.2, 0.2),
+            rng.uniform(-0.3, 0.3),
+            rng.uniform(2.0, 4.0),
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(-1.0, 1.0),
+        )
+        h = 1e-5
+        forward = numeric.step(x, u, CONTEXT.kappa_radpm, h)
+        backward = numeric.step(x, u, CONTEXT.kappa_radpm, -h)
+        for i in range(1, condition.order + 1):
+            previous = functions[i - 1]
+            rate = (previous(*forward, *u) - previous(*backward, *u)) / (2 * h)
+            expected = rate + CONTEXT.lam * previous(*x, *u)
+            assert functions[i](*x, *u) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+
+def test_linearisation_is_exact_for_affine_inputs_and_first_order_for_tan():
+    x = FrenetModel("dynamic", PARAMS).state_from(0.1, 0.1, 3.0, 0.05, 0.3)
+    u0, u1 = np.array([0.05, 0.5]), np.array([0.2, -1.0])
+    a0, b0, _ = linearised_constraints("dynamic", PARAM_VALUES, x, u0, CONTEXT)
+    a1, b1, _ = linearised_constraints("dynamic", PARAM_VALUES, x, u1, CONTEXT)
+    np.testing.assert_allclose(a0, a1, atol=1e-12)  # psi is affine in u: the same constraint
+    np.testing.assert_allclose(b0, b1, atol=1e-9)
+    x_kin = FrenetModel("kinematic", PARAMS).state_from(0.1, 0.1, 3.0)
+    a0, b0, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, u0, CONTEXT)
+    a1, _, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, u1, CONTEXT)
+    lane = BARRIER_NAMES.index("lane_left")
+    assert abs(a1[0, lane, 0]) > abs(a0[0, lane, 0])  # sec^2 of a larger steering angle
