@@ -46,12 +46,7 @@ def _parser() -> argparse.ArgumentParser:
     raceline.set_defaults(command=_raceline)
 
     drive = commands.add_parser("drive", help="a driver laps a track; video and Rerun recording")
-    drive.add_argument("--task", default="RacingLine", choices=["CenterLine", "RacingLine"])
-    drive.add_argument("--track", default="technical", help="built-in track name or track CSV path")
-    drive.add_argument(
-        "--agent", default="pure-pursuit", help="pure-pursuit, expert or MODULE:FACTORY"
-    )
-    drive.add_argument("--laps", type=int, default=1)
+    _add_episode_arguments(drive, default_agent="pure-pursuit")
     drive.add_argument("--seed", type=int, default=0)
     drive.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
     drive.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
@@ -62,14 +57,7 @@ def _parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser(
         "eval", help="evaluate an agent; one JSON row per (agent, task, track, seed)"
     )
-    evaluate.add_argument(
-        "--agent", default="expert", help="expert, pure-pursuit or MODULE:FACTORY"
-    )
-    evaluate.add_argument("--task", default="RacingLine", choices=["CenterLine", "RacingLine"])
-    evaluate.add_argument(
-        "--track", default="technical", help="built-in track name or track CSV path"
-    )
-    evaluate.add_argument("--laps", type=int, default=1)
+    _add_episode_arguments(evaluate, default_agent="expert")
     evaluate.add_argument("--seeds", type=int, nargs="+", default=[0])
     evaluate.add_argument(
         "--model",
@@ -102,6 +90,21 @@ def _parser() -> argparse.ArgumentParser:
     shots.add_argument("--image-size", type=int, default=64)
     shots.set_defaults(command=_snapshots)
     return parser
+
+
+TASKS = ("CenterLine", "RacingLine")
+
+
+def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -> None:
+    """The arguments of one driven episode, shared by ``drive`` and ``eval``."""
+    parser.add_argument("--task", default="RacingLine", choices=TASKS)
+    parser.add_argument(
+        "--track", default="technical", help="built-in track name or track CSV path"
+    )
+    parser.add_argument(
+        "--agent", default=default_agent, help="expert, pure-pursuit or MODULE:FACTORY"
+    )
+    parser.add_argument("--laps", type=int, default=1)
 
 
 def _raceline(args: argparse.Namespace) -> int:

@@ -94,19 +94,17 @@ class ReferenceLine:
         """Integral of the squared curvature along the line, in 1/m."""
         return self.path.curvature_squared_integral()
 
-    def offset_at(self, center_s_m: np.ndarray | float) -> np.ndarray:
+    def offset_at(self, center_s_m: np.ndarray | float) -> np.ndarray | float:
         """Lateral offset from the centerline (positive left) at centerline arc length."""
-        return np.interp(center_s_m, self.center_s_m, self.offset_m, period=self.track_length_m)
+        return self._offset(center_s_m)
 
     def heading_offset_at(self, center_s_m: np.ndarray | float) -> np.ndarray | float:
         """The line's heading minus the centerline's, at centerline arc length (rad)."""
         return self._heading_offset(center_s_m)
 
-    def speed_at(self, center_s_m: np.ndarray | float) -> np.ndarray:
+    def speed_at(self, center_s_m: np.ndarray | float) -> np.ndarray | float:
         """Reference speed at centerline arc length."""
-        return np.interp(
-            center_s_m, self.center_s_m, self.center_vx_mps, period=self.track_length_m
-        )
+        return self._speed(center_s_m)
 
     def pose_at(self, center_s_m: float) -> tuple[float, float, float]:
         """``(x, y, yaw)`` of the line at centerline arc length, heading along the line."""
