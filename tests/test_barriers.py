@@ -20,8 +20,8 @@ PARAMS = VehicleParams(
     cf0_npr=20.0, df_nspmr=150.0, cr0_npr=30.0, dr_nspmr=180.0, yaw_inertia_kgm2=0.08
 )
 PARAM_VALUES = tuple(getattr(PARAMS, name) for name in PARAM_NAMES)
+KAPPA_RADPM = 0.3
 CONTEXT = BarrierContext(
-    kappa_radpm=0.3,
     w_left_m=0.5,
     w_right_m=0.5,
     half_width_m=0.15,
@@ -57,15 +57,18 @@ def test_barriers_are_zero_on_the_boundary_and_symmetric(model_name: str):
     model = FrenetModel(model_name, PARAMS)
     edge = CONTEXT.w_left_m - CONTEXT.half_width_m
     on_left = model.state_from(edge, 0.1, 3.0, 0.05, 0.4)
-    _, _, h = linearised_constraints(model_name, PARAM_VALUES, on_left, np.zeros(2), CONTEXT)
+    _, _, h = linearised_constraints(
+        model_name, PARAM_VALUES, on_left, KAPPA_RADPM, np.zeros(2), CONTEXT
+    )
     assert h[0, BARRIER_NAMES.index("lane_left")] == pytest.approx(0.0, abs=1e-12)
     # Mirror the state (e_y, e_psi, v_y, r and the curvature flip sign): left and right swap.
     x = model.state_from(0.2, 0.3, 3.0, 0.1, 0.8)
     mirrored = model.state_from(-0.2, -0.3, 3.0, -0.1, -0.8)
-    mirrored_context = BarrierContext(**{**CONTEXT.__dict__, "kappa_radpm": -CONTEXT.kappa_radpm})
-    a, b, h = linearised_constraints(model_name, PARAM_VALUES, x, np.array([0.05, 1.0]), CONTEXT)
+    a, b, h = linearised_constraints(
+        model_name, PARAM_VALUES, x, KAPPA_RADPM, np.array([0.05, 1.0]), CONTEXT
+    )
     a_m, b_m, h_m = linearised_constraints(
-        model_name, PARAM_VALUES, mirrored, np.array([-0.05, 1.0]), mirrored_context
+        model_name, PARAM_VALUES, mirrored, -KAPPA_RADPM, np.array([-0.05, 1.0]), CONTEXT
     )
     for left, right in (("lane_left", "lane_right"), ("heading_left", "heading_right")):
         i, j = BARRIER_NAMES.index(left), BARRIER_NAMES.index(right)
@@ -92,7 +95,7 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
         )
     }
     substitutions = {
-        model.kappa: CONTEXT.kappa_radpm,
+        model.kappa: KAPPA_RADPM,
         lam: CONTEXT.lam,
         **extra,
         **dict(zip(model.params, PARAM_VALUES, strict=True)),
@@ -112,8 +115,8 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
             rng.uniform(-1.0, 1.0),
         )
         h = 1e-5
-        forward = numeric.step(x, u, CONTEXT.kappa_radpm, h)
-        backward = numeric.step(x, u, CONTEXT.kappa_radpm, -h)
+        forward = numeric.step(x, u, KAPPA_RADPM, h)
+        backward = numeric.step(x, u, KAPPA_RADPM, -h)
         for i in range(1, condition.order + 1):
             previous = functions[i - 1]
             rate = (previous(*forward, *u) - previous(*backward, *u)) / (2 * h)
@@ -124,12 +127,12 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
 def test_linearisation_is_exact_for_affine_inputs_and_first_order_for_tan():
     x = FrenetModel("dynamic", PARAMS).state_from(0.1, 0.1, 3.0, 0.05, 0.3)
     u0, u1 = np.array([0.05, 0.5]), np.array([0.2, -1.0])
-    a0, b0, _ = linearised_constraints("dynamic", PARAM_VALUES, x, u0, CONTEXT)
-    a1, b1, _ = linearised_constraints("dynamic", PARAM_VALUES, x, u1, CONTEXT)
+    a0, b0, _ = linearised_constraints("dynamic", PARAM_VALUES, x, KAPPA_RADPM, u0, CONTEXT)
+    a1, b1, _ = linearised_constraints("dynamic", PARAM_VALUES, x, KAPPA_RADPM, u1, CONTEXT)
     np.testing.assert_allclose(a0, a1, atol=1e-12)  # psi is affine in u: the same constraint
     np.testing.assert_allclose(b0, b1, atol=1e-9)
     x_kin = FrenetModel("kinematic", PARAMS).state_from(0.1, 0.1, 3.0)
-    a0, b0, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, u0, CONTEXT)
-    a1, _, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, u1, CONTEXT)
+    a0, b0, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, KAPPA_RADPM, u0, CONTEXT)
+    a1, _, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, KAPPA_RADPM, u1, CONTEXT)
     lane = BARRIER_NAMES.index("lane_left")
     assert abs(a1[0, lane, 0]) > abs(a0[0, lane, 0])  # sec^2 of a larger steering angle

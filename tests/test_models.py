@@ -75,11 +75,11 @@ def test_kinematic_steady_circle():
     kappa, v = 0.5, 2.0
     steer = math.atan(PARAMS.wheelbase_m * kappa)  # v tan(delta) / L = v kappa
     np.testing.assert_allclose(
-        model.f(np.array([0.0, 0.0, v]), np.array([steer, 0.0]), kappa), 0.0, atol=1e-12
+        model.f(np.array([0.0, 0.0, v, 0.0]), np.array([steer, 0.0]), kappa), 0.0, atol=1e-12
     )
     # Off the centerline the reference turns at s_dot kappa with s_dot = v / (1 - kappa e_y).
     e_y = 0.2
-    rate = model.f(np.array([e_y, 0.0, v]), np.array([steer, 0.0]), kappa)[1]
+    rate = model.f(np.array([e_y, 0.0, v, 0.0]), np.array([steer, 0.0]), kappa)[1]
     assert rate == pytest.approx(v * kappa - kappa * v / (1 - kappa * e_y))
 
 

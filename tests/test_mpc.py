@@ -97,7 +97,7 @@ class _ConstantSpeed:
 
 @pytest.mark.parametrize("model_name", ["kinematic", "dynamic"])
 def test_tracks_a_straight_line_from_an_offset(model_name: str):
-    n = 3 if model_name == "kinematic" else 5
+    n = 4 if model_name == "kinematic" else 5
     x0 = np.zeros(n)
     x0[0], x0[2] = 0.3, 3.0  # 0.3 m left of the line at 3 m/s
     states, inputs, expert = closed_loop(stadium(), model_name, x0, seconds=3.0, speed=3.0)
@@ -110,7 +110,7 @@ def test_tracks_a_straight_line_from_an_offset(model_name: str):
 
 @pytest.mark.parametrize("model_name", ["kinematic", "dynamic"])
 def test_tracks_a_circle_with_the_steady_state_steering(model_name: str):
-    n = 3 if model_name == "kinematic" else 5
+    n = 4 if model_name == "kinematic" else 5
     x0 = np.zeros(n)
     x0[0], x0[2] = -0.2, 2.0
     states, inputs, _ = closed_loop(circle(4.0), model_name, x0, seconds=5.0, speed=2.0)

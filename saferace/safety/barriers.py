@@ -53,13 +53,10 @@ def barrier_expression(name: str, e_y: sp.Symbol, e_psi: sp.Symbol) -> sp.Expr:
 
 @dataclass(frozen=True)
 class HOCBFCondition:
-    """``psi_m(x, u) >= 0`` of one barrier: its order, value and gradient in ``u``."""
+    """``psi_m(x, u) >= 0`` of one barrier: its order and the chain ``psi_0 .. psi_m``."""
 
     barrier: str
     order: int
-    value: Callable[..., float]
-    control_gradient: Callable[..., list[float]]
-    barrier_value: Callable[..., float]
     psi: tuple[sp.Expr, ...]
 
 
@@ -82,6 +79,13 @@ def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
             break
     else:
         raise ValueError(f"steering never reaches barrier {barrier} of model {model_name}")
+    return HOCBFCondition(barrier=barrier, order=len(psi) - 1, psi=tuple(psi))
+
+
+@cache
+def _constraint_function(model_name: str) -> Callable[..., list[float]]:
+    """One pure-Python function giving, per barrier, ``psi_m``, ``d psi_m / du`` and ``h``."""
+    model = symbolic_model(model_name)
     args = (
         *model.state,
         *model.control,
@@ -93,16 +97,12 @@ def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
         _THETA_MAX,
         _LAM,
     )
-    control = sp.Matrix(model.control)
-    final = psi[-1]
-    return HOCBFCondition(
-        barrier=barrier,
-        order=len(psi) - 1,
-        value=sp.lambdify(args, final, "math"),
-        control_gradient=sp.lambdify(args, [sp.diff(final, c) for c in control], "math"),
-        barrier_value=sp.lambdify(args, psi[0], "math"),
-        psi=tuple(psi),
-    )
+    outputs = []
+    for name in BARRIER_NAMES:
+        condition = hocbf_condition(model_name, name)
+        final = condition.psi[-1]
+        outputs += [final, *(sp.diff(final, c) for c in model.control), condition.psi[0]]
+    return sp.lambdify(args, outputs, "math", cse=True)
 
 
 def relative_degrees(model_name: str) -> dict[str, int]:
@@ -112,9 +112,8 @@ def relative_degrees(model_name: str) -> dict[str, int]:
 
 @dataclass(frozen=True)
 class BarrierContext:
-    """What the barriers need besides the state: curvature, lane half widths, limits."""
+    """What the barriers need besides the state: lane half widths, car size, limits."""
 
-    kappa_radpm: float
     w_left_m: float
     w_right_m: float
     half_width_m: float
@@ -126,20 +125,20 @@ def linearised_constraints(
     model_name: str,
     params: tuple[float, ...],
     states: np.ndarray,
+    kappa_radpm: float | np.ndarray,
     u0: np.ndarray,
     context: BarrierContext,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``a u <= b`` per state sample and barrier (``a (n, B, 2)``, ``b (n, B)``), and ``h (n, B)``.
 
-    ``psi_m(x, u0) + J (u - u0) >= 0`` becomes ``-J u <= psi_m(x, u0) - J u0``.
+    ``states`` is ``(n, n_state)`` (or one state), ``kappa_radpm`` the reference curvature of
+    each sample (or one for all). ``psi_m(x, u0) + J (u - u0) >= 0`` becomes
+    ``-J u <= psi_m(x, u0) - J u0``.
     """
-    states = np.atleast_2d(states)
+    states = np.atleast_2d(np.asarray(states, dtype=float))
     n, count = len(states), len(BARRIER_NAMES)
-    a = np.empty((n, count, 2))
-    b = np.empty((n, count))
-    h = np.empty((n, count))
+    kappas = np.broadcast_to(np.asarray(kappa_radpm, dtype=float), (n,)).tolist()
     tail = (
-        float(context.kappa_radpm),
         *params,
         context.w_left_m,
         context.w_right_m,
@@ -147,13 +146,14 @@ def linearised_constraints(
         context.theta_max_rad,
         context.lam,
     )
-    u0 = [float(u0[0]), float(u0[1])]
-    for j, name in enumerate(BARRIER_NAMES):
-        condition = hocbf_condition(model_name, name)
-        for i, x in enumerate(states.tolist()):
-            args = (*x, *u0, *tail)
-            gradient = condition.control_gradient(*args)
-            a[i, j] = (-gradient[0], -gradient[1])
-            b[i, j] = condition.value(*args) - gradient[0] * u0[0] - gradient[1] * u0[1]
-            h[i, j] = condition.barrier_value(*args)
-    return a, b, h
+    steer0, accel0 = float(u0[0]), float(u0[1])
+    function = _constraint_function(model_name)
+    values = np.array(
+        [
+            function(*x, steer0, accel0, kappa, *tail)
+            for x, kappa in zip(states.tolist(), kappas, strict=True)
+        ]
+    ).reshape(n, count, 4)
+    psi, gradient, h = values[:, :, 0], values[:, :, 1:3], values[:, :, 3]
+    b = psi - gradient[:, :, 0] * steer0 - gradient[:, :, 1] * accel0
+    return -gradient, b, h

@@ -6,7 +6,10 @@ The state excludes the arc length ``s``: the dynamics depend on ``s`` only throu
 reference curvature ``kappa``, a parameter here; :meth:`FrenetModel.s_dot` gives its rate.
 
 - ``kinematic`` (paper Sec. 3.3, with ``tan`` where the paper writes ``sin``):
-  state ``[e_y, e_psi, v]``.
+  state ``[e_y, e_psi, v, v_y]``. ``v_y`` is the measured lateral velocity of the centre of
+  mass, held constant: the body's side slip (about ``l_r / L * steer * v`` even without
+  tyre slip), which the paper's ``e_y' = v sin(e_psi)`` leaves out and which otherwise
+  drifts a filtered car past its lane barrier at a steady ``2 v_y / lam``.
 - ``dynamic``: the linear-tyre single-track model with all coupling terms,
   state ``[e_y, e_psi, v_x, v_y, r]``. Cornering stiffness per axle is
   ``C = C_0 + D v_x`` (see :class:`~saferace.safety.vehicle_params.VehicleParams`).
@@ -67,24 +70,28 @@ def _symbols() -> dict[str, sp.Symbol]:
 
 def _kinematic() -> SymbolicModel:
     S = _symbols()
-    e_y, e_psi, v, delta, a, kappa = (
+    e_y, e_psi, v, v_y, delta, a, kappa = (
         S["e_y"],
         S["e_psi"],
         S["v"],
+        S["v_y"],
         S["steer"],
         S["accel"],
         S["kappa"],
     )
     params = tuple(S[k] for k in ("m", "I_z", "l_f", "l_r", "C_f0", "D_f", "C_r0", "D_r"))
-    s_dot = v * sp.cos(e_psi) / (1 - kappa * e_y)
+    s_dot = (v * sp.cos(e_psi) - v_y * sp.sin(e_psi)) / (1 - kappa * e_y)
     x_dot = sp.Matrix(
         [
-            v * sp.sin(e_psi),
+            v * sp.sin(e_psi) + v_y * sp.cos(e_psi),
             v * sp.tan(delta) / (S["l_f"] + S["l_r"]) - kappa * s_dot,
             a,
+            0,
         ]
     )
-    return SymbolicModel("kinematic", (e_y, e_psi, v), (delta, a), kappa, params, x_dot, s_dot, 2)
+    return SymbolicModel(
+        "kinematic", (e_y, e_psi, v, v_y), (delta, a), kappa, params, x_dot, s_dot, 2
+    )
 
 
 def _dynamic(paper: bool) -> SymbolicModel:

@@ -1,0 +1,70 @@
+"""Reckless test agents: drivers that leave the lane, to show what the safety filter does.
+
+All hold a target speed with a proportional loop on ``info["v_x_mps"]``:
+
+- :class:`DriftAgent` steers a constant angle, drifting toward one boundary.
+- :class:`WeaveAgent` weaves with large sinusoidal steering.
+- :class:`SpeedingAgent` follows the task's reference (the racing line on
+  ``RacingLine-v0``) by pure pursuit at a multiple of its speed profile.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
+
+SPEED_GAIN_PER_S = 2.0
+
+
+def _speed_command(target_mps: float, info: dict[str, Any]) -> float:
+    return SPEED_GAIN_PER_S * (target_mps - info["v_x_mps"])
+
+
+@dataclass
+class DriftAgent:
+    """Constant steering (rad, positive left) at a constant target speed."""
+
+    steer_rad: float = 0.1
+    speed_mps: float = 3.0
+
+    @classmethod
+    def for_env(cls, env) -> DriftAgent:
+        return cls()
+
+    def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        return np.array([self.steer_rad, _speed_command(self.speed_mps, info)], np.float32)
+
+
+@dataclass
+class WeaveAgent:
+    """Steering ``amplitude * sin(2 pi t / period)`` at a constant target speed."""
+
+    amplitude_rad: float = 0.3
+    period_s: float = 2.0
+    speed_mps: float = 3.0
+
+    @classmethod
+    def for_env(cls, env) -> WeaveAgent:
+        return cls()
+
+    def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        steer = self.amplitude_rad * math.sin(2.0 * math.pi * info["time_s"] / self.period_s)
+        return np.array([steer, _speed_command(self.speed_mps, info)], np.float32)
+
+
+class SpeedingAgent(PurePursuit):
+    """Pure pursuit of the task's reference line at ``speed_factor`` times its speed profile."""
+
+    @classmethod
+    def for_env(cls, env, speed_factor: float = 1.6) -> SpeedingAgent:
+        settings = PurePursuitSettings(speed_scale=speed_factor, max_speed_mps=8.0)
+        base = env.unwrapped
+        return cls(base.track, base.reference, settings)
+
+
+RECKLESS_AGENTS = {"drift": DriftAgent, "weave": WeaveAgent, "speeding": SpeedingAgent}

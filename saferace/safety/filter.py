@@ -1,0 +1,300 @@
+"""``SafetyFilter``: the probabilistic HOCBF QP between any agent and a racing task."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from saferace.safety.barriers import BARRIER_NAMES, BarrierContext, linearised_constraints
+from saferace.safety.chance import confidence_quantile, constraint_statistics, constraint_std
+from saferace.safety.models import MIN_SPEED_MPS, PARAM_NAMES, symbolic_model
+from saferace.safety.qp import FilterProblem, solve_filter_qp
+from saferace.safety.state_sources import OracleStateSource, StateSource
+from saferace.safety.vehicle_params import VehicleParams, load_params
+
+#: Fallback when a solve fails: brake at this rate and steer toward the centerline.
+FALLBACK_BRAKE_MPS2 = 2.0
+FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
+FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
+#: Step (m) of the finite difference of the speed limit along the track.
+SPEED_LIMIT_DS_M = 0.05
+#: A filtered action this close to the nominal one is not an intervention.
+INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2)
+
+
+@dataclass(frozen=True)
+class NominalAction:
+    """An agent's action with the spread of its own uncertainty (e.g. its MC-dropout std).
+
+    Agents may return this instead of a plain action; the filter then weighs each control's
+    deviation by ``1 / std^2``, so it bends the controls the agent is least sure of.
+    """
+
+    mean: np.ndarray
+    std: np.ndarray | None = None
+
+
+def nominal_parts(action: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(mean, std or None)`` of a plain action or a :class:`NominalAction`."""
+    if isinstance(action, NominalAction):
+        std = None if action.std is None else np.asarray(action.std, dtype=float).ravel()
+        return np.asarray(action.mean, dtype=float).ravel(), std
+    return np.asarray(action, dtype=float).ravel(), None
+
+
+@dataclass(frozen=True)
+class SafetyDecision:
+    """What the filter did in one step (``info["safety"]``); per-barrier values by name.
+
+    ``barriers`` are the estimated ``h`` (mean over state samples; m for the lanes, rad for
+    the heading); ``constraints`` the HOCBF condition ``psi_m`` at the filtered action
+    (mean over samples, ``>= 0`` holds); ``tightening`` the chance-constraint margin
+    ``Phi^-1(eta) * std``; ``slacks`` what each constraint needed.
+    """
+
+    nominal_action: list[float]
+    filtered_action: list[float]
+    barriers: dict[str, float]
+    constraints: dict[str, float]
+    tightening: dict[str, float]
+    slacks: dict[str, float]
+    intervened: bool
+    fallback: bool
+    status: str
+    iterations: int
+    solve_time_s: float
+    filter_time_s: float
+    n_samples: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class SafetyFilter(gym.Wrapper):
+    """Keep any agent in its lane with a (probabilistic) higher-order CBF QP (paper Sec. 3).
+
+    Each step the filter takes the agent's action ``u_ref`` (and its spread, see
+    :class:`NominalAction`), samples the lane state from ``state_source``, builds the lane
+    and heading HOCBF constraints of ``model`` for every sample (linearised in the
+    steering around ``u_ref``, see :mod:`saferace.safety.barriers`), turns them into chance
+    constraints ``Pr(psi_m >= -eps) >= eta`` and applies the solution of
+
+        min (u - u_ref)^T diag(u_std^2)^-1 (u - u_ref) + k_err * sum(eps^2)
+
+    within the actuator limits (:mod:`saferace.safety.qp`). With one state sample, or
+    ``probabilistic=False``, it is the deterministic HOCBF filter (on the samples' mean).
+
+    ``info["safety"]`` holds a :class:`SafetyDecision` as a dict every step. A failed solve
+    falls back to braking at ``FALLBACK_BRAKE_MPS2`` while steering toward the centerline
+    (``-FALLBACK_STEER_PER_M * e_y - FALLBACK_STEER_PER_RAD * e_psi`` of the estimate); it
+    is counted in ``failures`` and flagged in ``info``.
+
+    Arguments: ``state_source`` (default: the oracle); ``model``: ``"kinematic"``,
+    ``"dynamic"`` or ``"dynamic-paper"``; ``lam``, ``theta_max`` (rad), ``eta`` as in the
+    paper; ``k_err`` the slack weight; ``action_std``: the spread assumed when the agent
+    gives none; ``min_action_std``: its floor, so that a confident agent does not make the
+    QP ill-conditioned; ``lane_margin_m``: added to the car's half width in the lane
+    barriers, so that the edge the filter holds the car to lies this far inside the lane
+    (the models are not exact; riding ``h = 0`` would graze the line); ``params``: vehicle
+    parameters (default: identified ones).
+
+    Beyond the paper: the lane and heading barriers cannot make the car brake (the
+    acceleration barely enters them), so an agent that enters a corner too fast for the
+    tyres' grip slides out whatever the filter steers. ``speed_limit_factor`` adds the
+    barrier ``h_speed = factor * v_ref(s) - v_x`` on the task's reference speed profile
+    (planned for 5 m/s^2 of lateral acceleration; 1.1x the speed is 6 m/s^2, well inside
+    the tyres' grip of about 9.8) with the CBF condition ``dh/dt + lam * h >= 0``, i.e.
+    ``accel <= lam * h + factor * dv_ref/ds * v_x``. It needs the car's arc length on the
+    track map (localisation, ``info["s_m"]``), not the perceived state; ``None`` turns it
+    off.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        state_source: StateSource | None = None,
+        model: str = "kinematic",
+        lam: float = 2.5,
+        theta_max: float = math.pi / 4,
+        eta: float = 0.95,
+        k_err: float = 1e4,
+        action_std: tuple[float, float] = (0.1, 1.0),
+        min_action_std: tuple[float, float] = (0.02, 0.2),
+        probabilistic: bool = True,
+        lane_margin_m: float = 0.05,
+        speed_limit_factor: float | None = 1.1,
+        params: VehicleParams | None = None,
+    ) -> None:
+        super().__init__(env)
+        if lam <= 0.0 or not 0.0 < theta_max < math.pi / 2:
+            raise ValueError(f"need lam > 0 and 0 < theta_max < pi/2, got {lam}, {theta_max}")
+        if min(action_std) <= 0.0 or min(min_action_std) <= 0.0:
+            raise ValueError("action_std and min_action_std must be positive")
+        self.state_source = state_source if state_source is not None else OracleStateSource()
+        self.model_name = model
+        self.symbolic = symbolic_model(model)  # raises on an unknown model name
+        self.lam, self.theta_max, self.eta, self.k_err = lam, theta_max, eta, k_err
+        self.z = confidence_quantile(eta)
+        self.action_std = np.asarray(action_std, dtype=float)
+        self.min_action_std = np.asarray(min_action_std, dtype=float)
+        self.probabilistic = probabilistic
+        params = params or load_params()
+        self.param_values = tuple(float(getattr(params, name)) for name in PARAM_NAMES)
+        self.lower = np.asarray(env.action_space.low, dtype=float)
+        self.upper = np.asarray(env.action_space.high, dtype=float)
+        if lane_margin_m < 0.0:
+            raise ValueError(f"lane_margin_m must be non-negative, got {lane_margin_m}")
+        self.half_width_m = float(env.unwrapped.car_half_width_m) + lane_margin_m
+        if speed_limit_factor is not None and speed_limit_factor <= 0.0:
+            raise ValueError(f"speed_limit_factor must be positive, got {speed_limit_factor}")
+        self.speed_limit_factor = speed_limit_factor
+        self.reference = env.unwrapped.reference
+        self.constraint_names = BARRIER_NAMES + (("speed",) if speed_limit_factor else ())
+        self.interventions = 0
+        self.failures = 0
+        self.steps = 0
+        self._observation: dict[str, np.ndarray] | None = None
+        self._info: dict[str, Any] | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        observation, info = self.env.reset(seed=seed, options=options)
+        self.state_source.reset(seed)
+        self.interventions = self.failures = self.steps = 0
+        self._observation, self._info = observation, info
+        return observation, info
+
+    def step(self, action):
+        if self._info is None:
+            raise gym.error.ResetNeeded("call reset() before step()")
+        mean, std = nominal_parts(action)
+        decision = self.certify(self._observation, self._info, mean, std)
+        observation, reward, terminated, truncated, info = self.env.step(
+            np.asarray(decision.filtered_action, dtype=np.float32)
+        )
+        info = {**info, "safety": decision.as_dict()}
+        self._observation, self._info = observation, info
+        return observation, reward, terminated, truncated, info
+
+    def certify(
+        self,
+        observation: dict[str, np.ndarray],
+        info: dict[str, Any],
+        action: np.ndarray,
+        action_std: np.ndarray | None = None,
+    ) -> SafetyDecision:
+        """The filtered action for ``action`` in the state seen by ``observation``/``info``."""
+        started = time.perf_counter()
+        nominal = np.asarray(action, dtype=float).ravel()
+        if nominal.shape != (2,) or not np.all(np.isfinite(nominal)):
+            raise ValueError(f"action must be 2 finite numbers [steer, accel], got {action!r}")
+        spread = self.action_std if action_std is None else np.asarray(action_std, dtype=float)
+        spread = np.maximum(spread, self.min_action_std)
+        u0 = np.clip(nominal, self.lower, self.upper)
+
+        lane = np.atleast_2d(self.state_source.samples(observation, info))
+        chance = self.probabilistic and len(lane) > 1
+        if not chance:
+            lane = lane.mean(axis=0, keepdims=True)
+        states = self._model_states(lane, observation["velocity"])
+        context = BarrierContext(
+            w_left_m=float(info["w_left_m"]),
+            w_right_m=float(info["w_right_m"]),
+            half_width_m=self.half_width_m,
+            theta_max_rad=self.theta_max,
+            lam=self.lam,
+        )
+        a, b, h = linearised_constraints(
+            self.model_name, self.param_values, states, lane[:, 2], u0, context
+        )
+        if chance:
+            statistics = constraint_statistics(a, b)
+            a_mean, b_mean, covariance = statistics.a_mean, statistics.b_mean, statistics.covariance
+        else:
+            a_mean, b_mean, covariance = a[0], b[0], None
+        if self.speed_limit_factor:
+            speed_row, speed_bound, speed_h = self._speed_constraint(info, observation["velocity"])
+            a_mean = np.vstack([a_mean, speed_row])
+            b_mean = np.append(b_mean, speed_bound)
+            h = np.column_stack([h, np.full(len(h), speed_h)])
+            if covariance is not None:  # measured speed, known map: no spread
+                covariance = np.concatenate([covariance, np.zeros((1, 3, 3))])
+        problem = FilterProblem(
+            u_mean=nominal,
+            u_std=spread,
+            a=a_mean,
+            b=b_mean,
+            lower=self.lower,
+            upper=self.upper,
+            k_err=self.k_err,
+            covariance=covariance,
+            z=self.z if chance else 0.0,
+        )
+        solve_started = time.perf_counter()
+        solution = solve_filter_qp(problem)
+        solve_time = time.perf_counter() - solve_started
+
+        fallback = not solution.solved
+        filtered = self._fallback(lane.mean(axis=0)) if fallback else solution.u
+        intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
+        count = len(self.constraint_names)
+        spread_at_u = np.zeros(count)
+        if chance:
+            spread_at_u[: len(BARRIER_NAMES)] = constraint_std(statistics, filtered)
+        self.steps += 1
+        self.interventions += intervened
+        self.failures += fallback
+        return SafetyDecision(
+            nominal_action=nominal.tolist(),
+            filtered_action=filtered.tolist(),
+            barriers=self._by_name(h.mean(axis=0)),
+            constraints=self._by_name(b_mean - a_mean @ filtered),
+            tightening=self._by_name(self.z * spread_at_u),
+            slacks=self._by_name(solution.slack),
+            intervened=intervened,
+            fallback=fallback,
+            status=solution.status,
+            iterations=solution.iterations,
+            solve_time_s=solve_time,
+            filter_time_s=time.perf_counter() - started,
+            n_samples=len(lane),
+        )
+
+    def _model_states(self, lane: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        """The model's state for each lane-state sample and the measured velocities."""
+        v_x = max(float(velocity[0]), MIN_SPEED_MPS)
+        columns = {
+            "e_y": lane[:, 0],
+            "e_psi": lane[:, 1],
+            "v": v_x,
+            "v_x": v_x,
+            "v_y": float(velocity[1]),
+            "r": float(velocity[2]),
+        }
+        return np.column_stack(
+            [np.broadcast_to(columns[str(x)], len(lane)) for x in self.symbolic.state]
+        )
+
+    def _speed_constraint(
+        self, info: dict[str, Any], velocity: np.ndarray
+    ) -> tuple[np.ndarray, float, float]:
+        """Row, bound and barrier value of ``accel <= lam * h + factor * dv_ref/ds * v_x``."""
+        s, v_x = float(info["s_m"]), float(velocity[0])
+        factor = self.speed_limit_factor
+        limit = factor * float(self.reference.speed_at(s))
+        ahead = factor * float(self.reference.speed_at(s + SPEED_LIMIT_DS_M))
+        slope = (ahead - limit) / SPEED_LIMIT_DS_M
+        h = limit - v_x
+        return np.array([0.0, 1.0]), self.lam * h + slope * max(v_x, 0.0), h
+
+    def _by_name(self, values: np.ndarray) -> dict[str, float]:
+        return {name: float(v) for name, v in zip(self.constraint_names, values, strict=True)}
+
+    def _fallback(self, lane_mean: np.ndarray) -> np.ndarray:
+        steer = -FALLBACK_STEER_PER_M * lane_mean[0] - FALLBACK_STEER_PER_RAD * lane_mean[1]
+        action = np.array([steer, -FALLBACK_BRAKE_MPS2])
+        return np.clip(action, self.lower, self.upper)

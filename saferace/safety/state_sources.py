@@ -1,0 +1,74 @@
+"""Where the safety filter gets the car's lane state: ground truth, noisy truth, or a network.
+
+A state source returns ``n`` samples of ``[e_y_m, e_psi_rad, kappa_radpm]`` (lateral offset
+from the centerline, heading error, centerline curvature), the part of the state that a
+camera must perceive. The filter combines them with the measured velocities
+``[v_x, v_y, r]`` of the observation (IMU and wheel encoders). The learned state network
+(paper Sec. 3.4, MC dropout) implements :class:`StateSource` by returning its dropout
+samples.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+
+LANE_STATE_NAMES = ("e_y_m", "e_psi_rad", "kappa_radpm")
+
+
+class StateSource(Protocol):
+    """Anything that turns an observation (and, for oracles, ``info``) into state samples."""
+
+    def reset(self, seed: int | None = None) -> None: ...
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        """``(n, 3)`` samples of ``[e_y_m, e_psi_rad, kappa_radpm]``."""
+        ...
+
+
+def true_lane_state(info: dict[str, Any]) -> np.ndarray:
+    """The simulator's ``[e_y, e_psi, kappa]`` from ``info``."""
+    return np.array([info[name] for name in LANE_STATE_NAMES], dtype=float)
+
+
+class OracleStateSource:
+    """The simulator's ground truth: one exact sample."""
+
+    def reset(self, seed: int | None = None) -> None:
+        """Nothing to reset: the truth has no state."""
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        return true_lane_state(info)[None, :]
+
+
+class NoisyOracleStateSource:
+    """``n`` samples around the truth, as a calibrated uncertain estimator would give them.
+
+    Each step the estimate is off the truth by ``N(0, std)`` and its ``n`` samples spread by
+    ``N(0, std)`` around the estimate: the samples' spread matches the estimate's real error,
+    so the truth looks like one more sample. (Samples centred on the truth would make their
+    mean almost exact, and no filter would need the spread.)
+    """
+
+    def __init__(
+        self,
+        std: tuple[float, float, float] = (0.05, 0.05, 0.0),
+        n_samples: int = 20,
+        seed: int | None = None,
+    ) -> None:
+        if n_samples < 2:
+            raise ValueError(f"a noisy oracle needs at least 2 samples, got {n_samples}")
+        if len(std) != 3 or min(std) < 0.0:
+            raise ValueError(f"std must be 3 non-negative numbers (e_y, e_psi, kappa), got {std}")
+        self.std = np.asarray(std, dtype=float)
+        self.n_samples = n_samples
+        self._seed = seed
+        self._rng = np.random.default_rng(seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        self._rng = np.random.default_rng(self._seed if seed is None else seed)
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        estimate = true_lane_state(info) + self._rng.standard_normal(3) * self.std
+        return estimate + self._rng.standard_normal((self.n_samples, 3)) * self.std
