@@ -68,7 +68,34 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--out", type=Path, required=True, help="JSONL file to append the rows to"
     )
+    _add_filter_arguments(evaluate)
+    evaluate.add_argument(
+        "--max-seconds", type=float, help="end an episode after this much simulated time"
+    )
     evaluate.set_defaults(command=_eval)
+
+    table = commands.add_parser(
+        "safety-table",
+        help="reckless agents and the expert with and without the safety filter, as a table",
+    )
+    table.add_argument("--tracks", nargs="*", help="track names or CSVs (default: all built-in)")
+    table.add_argument(
+        "--random-tracks",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="SEED",
+        help="also generate random tracks with these seeds (written to OUT/tracks)",
+    )
+    table.add_argument("--out", type=Path, default=Path("results/safety"))
+    table.add_argument("--laps", type=int, default=3)
+    table.add_argument("--max-seconds", type=float, default=60.0)
+    table.add_argument(
+        "--state-noise", type=float, nargs=2, default=[0.05, 0.05], metavar=("E_Y_M", "E_PSI_RAD")
+    )
+    table.add_argument("--samples", type=int, default=20)
+    table.add_argument("--filter-model", default="kinematic", choices=FILTER_MODELS)
+    table.set_defaults(command=_safety_table)
 
     board = commands.add_parser("leaderboard", help="markdown table (and plots) from eval results")
     board.add_argument("results", type=Path, nargs="+", help="JSONL files written by saferace eval")
@@ -102,9 +129,54 @@ def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) 
         "--track", default="technical", help="built-in track name or track CSV path"
     )
     parser.add_argument(
-        "--agent", default=default_agent, help="expert, pure-pursuit or MODULE:FACTORY"
+        "--agent",
+        default=default_agent,
+        help="expert, pure-pursuit, drift, weave, speeding or MODULE:FACTORY",
     )
     parser.add_argument("--laps", type=int, default=1)
+
+
+FILTER_MODELS = ("kinematic", "dynamic", "dynamic-paper")
+
+
+def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--filter", default="none", choices=["none", "cbf"], help="wrap the agent in a filter"
+    )
+    parser.add_argument(
+        "--filter-model", default="kinematic", choices=FILTER_MODELS, help="the filter's model"
+    )
+    parser.add_argument(
+        "--state-noise",
+        type=float,
+        nargs=2,
+        metavar=("E_Y_M", "E_PSI_RAD"),
+        help="the filter sees noisy state samples with these standard deviations",
+    )
+    parser.add_argument("--samples", type=int, default=20, help="state samples per step")
+    parser.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="filter on the samples' mean instead of with chance constraints",
+    )
+
+
+def _filter_config(args: argparse.Namespace):
+    from saferace.eval.filters import FilterConfig
+
+    if args.samples < 2:
+        raise SafeRaceError(f"--samples must be at least 2, got {args.samples}")
+    if args.state_noise is not None and min(args.state_noise) < 0:
+        raise SafeRaceError(f"--state-noise must not be negative, got {args.state_noise}")
+    if args.filter == "none" and (args.state_noise is not None or args.deterministic):
+        raise SafeRaceError("--state-noise and --deterministic need --filter cbf")
+    return FilterConfig(
+        kind=args.filter,
+        model=args.filter_model,
+        state_noise=None if args.state_noise is None else tuple(args.state_noise),
+        samples=args.samples,
+        probabilistic=not args.deterministic,
+    )
 
 
 def _raceline(args: argparse.Namespace) -> int:
@@ -187,6 +259,11 @@ def _eval(args: argparse.Namespace) -> int:
     from saferace.eval.runner import evaluate
 
     _check_laps(args.laps)
+    env_kwargs = {}
+    if args.max_seconds is not None:
+        if args.max_seconds <= 0:
+            raise SafeRaceError(f"--max-seconds must be positive, got {args.max_seconds}")
+        env_kwargs["max_steps"] = round(args.max_seconds * 20.0)
     rows = evaluate(
         args.agent,
         args.task,
@@ -195,9 +272,37 @@ def _eval(args: argparse.Namespace) -> int:
         laps=args.laps,
         model=args.model,
         out=args.out,
+        env_kwargs=env_kwargs,
+        safety=_filter_config(args),
     )
     print(leaderboard_markdown(rows))
     print(f"{len(rows)} rows appended to {args.out}")
+    return 0
+
+
+def _safety_table(args: argparse.Namespace) -> int:
+    from saferace.eval.safety_table import run_table
+    from saferace.track import builtin_track_names
+    from saferace.track.random_track import write_random_track
+
+    _check_laps(args.laps)
+    if args.max_seconds <= 0 or args.samples < 2 or min(args.state_noise) < 0:
+        raise SafeRaceError("need --max-seconds > 0, --samples >= 2, --state-noise >= 0")
+    tracks = list(args.tracks) if args.tracks else list(builtin_track_names())
+    for seed in args.random_tracks:
+        path = write_random_track(args.out / "tracks" / f"random_{seed}.csv", seed)
+        tracks.append(str(path))
+    run_table(
+        tracks,
+        args.out,
+        laps=args.laps,
+        max_seconds=args.max_seconds,
+        noise=tuple(args.state_noise),
+        samples=args.samples,
+        model=args.filter_model,
+    )
+    print((args.out / "safety_table.md").read_text())
+    print(f"tables, runs and reckless_paths.png written to {args.out}")
     return 0
 
 

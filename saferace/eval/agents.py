@@ -10,6 +10,9 @@ import numpy as np
 
 from saferace.errors import SafeRaceError
 
+RECKLESS_AGENT_NAMES = ("drift", "weave", "speeding")
+BUILTIN_AGENTS = ("expert", "pure-pursuit", *RECKLESS_AGENT_NAMES)
+
 
 class Agent(Protocol):
     """Anything with ``act(observation, info) -> action``."""
@@ -18,7 +21,8 @@ class Agent(Protocol):
 
 
 def make_agent(spec: str, env, model: str = "dynamic") -> Agent | Callable:
-    """``expert`` (MPC), ``pure-pursuit``, or ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
+    """``expert`` (MPC), ``pure-pursuit``, a reckless test agent (``drift``, ``weave``,
+    ``speeding``), or ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
     if spec == "expert":
         from saferace.agents.mpc import MPCExpert
 
@@ -27,8 +31,13 @@ def make_agent(spec: str, env, model: str = "dynamic") -> Agent | Callable:
         from saferace.agents.pure_pursuit import PurePursuit
 
         return PurePursuit.for_env(env)
+    if spec in RECKLESS_AGENT_NAMES:
+        from saferace.agents.reckless import RECKLESS_AGENTS
+
+        return RECKLESS_AGENTS[spec].for_env(env)
     if ":" not in spec:
-        raise SafeRaceError(f"unknown agent {spec!r}: use expert, pure-pursuit or MODULE:FACTORY")
+        names = ", ".join(BUILTIN_AGENTS)
+        raise SafeRaceError(f"unknown agent {spec!r}: use {names} or MODULE:FACTORY")
     module_name, factory_name = spec.split(":", 1)
     try:
         factory = getattr(importlib.import_module(module_name), factory_name)

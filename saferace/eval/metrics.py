@@ -19,11 +19,26 @@ STEP_FIELDS = (
     "steer_rad",
     "accel_mps2",
 )
+#: Per-step records of a safety filter (``info["safety"]``), see :func:`safety_step_record`.
+SAFETY_FIELDS = (
+    "intervened",
+    "steer_correction_rad",
+    "accel_correction_mps2",
+    "max_slack",
+    "failed_solve",
+    "solve_time_s",
+)
 
 
 @dataclass(frozen=True)
 class LapMetrics:
-    """What one lap (or the unfinished rest of an episode) achieved."""
+    """What one lap (or the unfinished rest of an episode) achieved.
+
+    ``min_lane_barrier_m`` is the true lane barrier ``min(w_left - e_y, w_right + e_y) -
+    half car width`` at its lowest (negative: part of the car was outside). The filter's
+    fields are None for episodes driven without one: how many steps it changed the
+    action, by how much on average (over all steps), its largest slack and failed solves.
+    """
 
     lap: int
     completed: bool
@@ -32,6 +47,14 @@ class LapMetrics:
     max_abs_deviation_m: float
     time_outside_lane_s: float
     steering_rate_rms_radps: float
+    steps: int = 0
+    min_lane_barrier_m: float | None = None
+    interventions: int | None = None
+    intervention_rate: float | None = None
+    mean_steer_correction_rad: float | None = None
+    mean_accel_correction_mps2: float | None = None
+    max_slack: float | None = None
+    failed_solves: int | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -41,6 +64,9 @@ def lap_metrics(
     steps: dict[str, np.ndarray], lap_times_s: list[float], control_dt_s: float
 ) -> list[LapMetrics]:
     """Metrics for each lap; a step belongs to the lap that was running when it began.
+
+    ``steps`` may hold ``lane_barrier_m`` and the :data:`SAFETY_FIELDS`; their metrics are
+    None without them.
 
     ``steps[field]`` are arrays over the episode's steps (after each ``env.step``),
     ``steps["lap"]`` the laps completed after that step, ``lap_times_s`` the times of the
@@ -58,6 +84,8 @@ def lap_metrics(
             continue
         deviation = np.abs(np.asarray(steps["deviation_m"])[mask])
         completed = lap < len(lap_times_s)
+        barrier = steps.get("lane_barrier_m")
+        safety = _safety_metrics(steps, mask) if "intervened" in steps else {}
         metrics.append(
             LapMetrics(
                 lap=lap,
@@ -69,9 +97,37 @@ def lap_metrics(
                     np.sum(np.asarray(steps["cost"])[mask] > 0) * control_dt_s
                 ),
                 steering_rate_rms_radps=float(np.sqrt(np.mean(steer_rate[mask] ** 2))),
+                steps=int(mask.sum()),
+                min_lane_barrier_m=None if barrier is None else float(np.min(barrier[mask])),
+                **safety,
             )
         )
     return metrics
+
+
+def _safety_metrics(steps: dict[str, np.ndarray], mask: np.ndarray) -> dict:
+    intervened = np.asarray(steps["intervened"], dtype=bool)[mask]
+    return {
+        "interventions": int(intervened.sum()),
+        "intervention_rate": float(intervened.mean()),
+        "mean_steer_correction_rad": float(np.mean(steps["steer_correction_rad"][mask])),
+        "mean_accel_correction_mps2": float(np.mean(steps["accel_correction_mps2"][mask])),
+        "max_slack": float(np.max(steps["max_slack"][mask])),
+        "failed_solves": int(np.sum(steps["failed_solve"][mask])),
+    }
+
+
+def safety_step_record(safety: dict) -> dict:
+    """The :data:`SAFETY_FIELDS` of one step's ``info["safety"]``."""
+    nominal, filtered = safety["nominal_action"], safety["filtered_action"]
+    return {
+        "intervened": safety["intervened"],
+        "steer_correction_rad": abs(filtered[0] - nominal[0]),
+        "accel_correction_mps2": abs(filtered[1] - nominal[1]),
+        "max_slack": max(safety["slacks"].values()),
+        "failed_solve": safety["fallback"],
+        "solve_time_s": safety["solve_time_s"],
+    }
 
 
 def summarize(laps: list[LapMetrics]) -> dict:
@@ -90,4 +146,32 @@ def summarize(laps: list[LapMetrics]) -> dict:
         "steering_rate_rms_radps": float(np.mean([lap.steering_rate_rms_radps for lap in laps]))
         if laps
         else None,
+        "min_lane_barrier_m": _extreme(min, [lap.min_lane_barrier_m for lap in laps]),
+        **_summarize_safety(laps),
+    }
+
+
+def _extreme(function, values: list) -> float | None:
+    present = [v for v in values if v is not None]
+    return function(present) if present else None
+
+
+def _summarize_safety(laps: list[LapMetrics]) -> dict:
+    """Filter metrics over the episode (steps of all laps together); {} without a filter."""
+    filtered = [lap for lap in laps if lap.interventions is not None]
+    if not filtered:
+        return {}
+    steps = np.array([lap.steps for lap in filtered], dtype=float)
+    total = max(steps.sum(), 1.0)
+
+    def weighted(name: str) -> float:
+        return float(np.dot(steps, [getattr(lap, name) for lap in filtered]) / total)
+
+    return {
+        "interventions": sum(lap.interventions for lap in filtered),
+        "intervention_rate": sum(lap.interventions for lap in filtered) / total,
+        "mean_steer_correction_rad": weighted("mean_steer_correction_rad"),
+        "mean_accel_correction_mps2": weighted("mean_accel_correction_mps2"),
+        "max_slack": max(lap.max_slack for lap in filtered),
+        "failed_solves": sum(lap.failed_solves for lap in filtered),
     }

@@ -17,7 +17,16 @@ from tqdm import tqdm
 
 import saferace
 from saferace.eval.agents import act, make_agent
-from saferace.eval.metrics import STEP_FIELDS, LapMetrics, lap_metrics, summarize
+from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.eval.metrics import (
+    SAFETY_FIELDS,
+    STEP_FIELDS,
+    LapMetrics,
+    lap_metrics,
+    safety_step_record,
+    summarize,
+)
+from saferace.safety.filter import SafetyFilter, nominal_parts
 
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
 RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch")
@@ -56,23 +65,39 @@ def run_episode(
 ) -> EpisodeResult:
     """Drive ``agent`` until the episode ends; record STEP_FIELDS after every step.
 
-    ``on_step(observation, info, action)`` is called after each step (videos, recordings).
+    Also recorded: the true lane barrier ``lane_barrier_m`` and, if ``env`` is wrapped in a
+    :class:`~saferace.safety.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
+    return a :class:`~saferace.safety.filter.NominalAction`; without a filter its mean is
+    applied. ``on_step(observation, info, action)`` is called after each step (videos,
+    recordings).
     """
     observation, info = env.reset(seed=seed)
     if hasattr(agent, "reset"):
         agent.reset()
-    records: dict[str, list] = {name: [] for name in STEP_FIELDS}
+    filtered = _has_safety_filter(env)
+    fields = STEP_FIELDS + ("lane_barrier_m",) + (SAFETY_FIELDS if filtered else ())
+    records: dict[str, list] = {name: [] for name in fields}
     terminated = truncated = False
     base = env.unwrapped
+    half_width = base.car_half_width_m
     # disable=None: a bar on a terminal only, not in logs and pipes.
     with tqdm(
         total=base.max_steps, desc=base.track.name, unit="step", disable=None if progress else True
     ) as bar:
         while not (terminated or truncated):
             action = act(agent, observation, info)
+            if not filtered:
+                action = nominal_parts(action)[0]
             observation, _, terminated, truncated, info = env.step(action)
             for name in STEP_FIELDS:
                 records[name].append(info[name])
+            records["lane_barrier_m"].append(
+                min(info["w_left_m"] - info["e_y_m"], info["w_right_m"] + info["e_y_m"])
+                - half_width
+            )
+            if filtered:
+                for name, value in safety_step_record(info["safety"]).items():
+                    records[name].append(value)
             if on_step is not None:
                 on_step(observation, info, action)
             bar.update()
@@ -80,6 +105,14 @@ def run_episode(
     steps = {name: np.asarray(values) for name, values in records.items()}
     laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
     return EpisodeResult(steps=steps, laps=laps, terminated=terminated, truncated=truncated)
+
+
+def _has_safety_filter(env: gym.Env) -> bool:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, SafetyFilter):
+            return True
+        env = env.env
+    return False
 
 
 def evaluate(
@@ -92,22 +125,33 @@ def evaluate(
     out: str | Path | None = None,
     progress: bool = True,
     env_kwargs: dict[str, Any] | None = None,
+    safety: FilterConfig | None = None,
 ) -> list[dict]:
     """One JSON row per seed: metrics, trajectory, configuration, versions; appended to ``out``.
 
-    Rows are written as each episode ends, so an interrupted run keeps what it finished.
+    ``safety`` wraps the agent in a safety filter. Rows are written as each episode ends,
+    so an interrupted run keeps what it finished.
     """
+    safety = safety or FilterConfig()
     rows = []
     for seed in seeds:
         env = gym.make(task_id(task), track=track, max_laps=laps, **(env_kwargs or {}))
+        env = apply_filter(env, safety, seed)
         try:
             agent = make_agent(agent_spec, env, model=model)
             result = run_episode(env, agent, seed=seed, progress=progress)
             row = result_row(
                 agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result
             )
+            row["filter"] = safety.as_dict()
             if hasattr(agent, "stats"):
                 row["solver"] = solver_summary(agent.stats)
+            if "solve_time_s" in result.steps:
+                solve = result.steps["solve_time_s"]
+                row["filter_solver"] = {
+                    "solve_median_ms": float(np.median(solve) * 1e3),
+                    "solve_p95_ms": float(np.percentile(solve, 95) * 1e3),
+                }
         finally:
             env.close()
         rows.append(row)

@@ -1,0 +1,253 @@
+"""What the safety filter does: reckless agents and the expert, with and without it.
+
+One command (``saferace safety-table``) runs, on every given track: each reckless agent
+without a filter, with the oracle filter, and with noisy state samples through the
+probabilistic filter and through the deterministic filter on the samples' mean; and the
+MPC expert on both tasks without and with the oracle filter (its lap-time cost). Rows are
+appended to ``runs.jsonl`` as each run ends and a rerun skips the runs already there, so
+an interrupted table resumes.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from saferace.eval.filters import FilterConfig
+from saferace.eval.runner import append_jsonl, evaluate, read_jsonl
+from saferace.eval.tables import markdown_table
+
+RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
+CONTROL_HZ = 20.0
+
+
+@dataclass(frozen=True)
+class Run:
+    """One table entry: an agent on a task and track behind a filter configuration."""
+
+    agent: str
+    task: str
+    track: str
+    safety: FilterConfig
+
+    @property
+    def key(self) -> tuple[str, str, str, str]:
+        return (self.agent, self.task, self.track, self.safety.label)
+
+
+def planned_runs(
+    tracks: list[str], noise: tuple[float, float], samples: int, model: str
+) -> list[Run]:
+    """Every run of the table, in order."""
+    oracle = FilterConfig(kind="cbf", model=model)
+    noisy = FilterConfig(kind="cbf", model=model, state_noise=noise, samples=samples)
+    noisy_det = FilterConfig(
+        kind="cbf", model=model, state_noise=noise, samples=samples, probabilistic=False
+    )
+    runs = []
+    for track in tracks:
+        for agent, task in RECKLESS_TASKS.items():
+            for safety in (FilterConfig(), oracle, noisy, noisy_det):
+                runs.append(Run(agent, task, track, safety))
+        for task in ("CenterLine", "RacingLine"):
+            for safety in (FilterConfig(), oracle):
+                runs.append(Run("expert", task, track, safety))
+    return runs
+
+
+def run_table(
+    tracks: list[str],
+    out_dir: str | Path,
+    laps: int = 3,
+    max_seconds: float = 60.0,
+    noise: tuple[float, float] = (0.05, 0.05),
+    samples: int = 20,
+    model: str = "kinematic",
+    seed: int = 0,
+    progress: bool = True,
+) -> list[dict]:
+    """Run what is not in ``out_dir/runs.jsonl`` yet; write the tables; return all rows."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    runs_file = out_dir / "runs.jsonl"
+    done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
+    runs = planned_runs(tracks, noise, samples, model)
+    todo = [run for run in runs if run.key not in done]
+    env_kwargs = {"max_steps": round(max_seconds * CONTROL_HZ), "control_hz": CONTROL_HZ}
+    for run in tqdm(todo, desc="safety table", unit="run", disable=None if progress else True):
+        (row,) = evaluate(
+            run.agent,
+            run.task,
+            run.track,
+            [seed],
+            laps=laps,
+            progress=False,
+            env_kwargs=env_kwargs,
+            safety=run.safety,
+        )
+        row["track_arg"] = run.track
+        append_jsonl(runs_file, row)
+        done[run.key] = row
+    rows = [done[run.key] for run in runs]
+    write_tables(rows, out_dir)
+    plot_reckless_paths(rows, out_dir / "reckless_paths.png")
+    return rows
+
+
+def _row_key(row: dict) -> tuple[str, str, str, str]:
+    return (row["agent"], row["task"], row["track_arg"], FilterConfig(**_config(row)).label)
+
+
+def _config(row: dict) -> dict:
+    config = dict(row["filter"])
+    if config.get("state_noise") is not None:
+        config["state_noise"] = tuple(config["state_noise"])
+    return config
+
+
+TABLE_COLUMNS = [
+    "track",
+    "agent",
+    "task",
+    "filter",
+    "laps",
+    "outside lane [s]",
+    "min barrier [m]",
+    "interventions [%]",
+    "failed solves",
+    "max slack",
+    "mean lap [s]",
+    "solve median/p95 [ms]",
+]
+
+
+def table_rows(rows: list[dict]) -> list[list]:
+    """One table line per run."""
+    lines = []
+    for row in rows:
+        summary = row["summary"]
+        rate = summary.get("intervention_rate")
+        solver = row.get("filter_solver")
+        lines.append(
+            [
+                row["track"],
+                row["agent"],
+                row["task"],
+                FilterConfig(**_config(row)).label,
+                summary["laps_completed"],
+                summary["time_outside_lane_s"],
+                summary["min_lane_barrier_m"],
+                "-" if rate is None else 100.0 * rate,
+                summary.get("failed_solves", "-"),
+                summary.get("max_slack", "-"),
+                summary["mean_lap_time_s"] if summary["mean_lap_time_s"] is not None else "-",
+                f"{solver['solve_median_ms']:.3f}/{solver['solve_p95_ms']:.3f}" if solver else "-",
+            ]
+        )
+    return lines
+
+
+def expert_cost_rows(rows: list[dict]) -> list[list]:
+    """Per track and task: the expert's mean lap time without and with the oracle filter."""
+    by_key = {(r["track"], r["task"], FilterConfig(**_config(r)).label): r for r in rows}
+    lines = []
+    for (track, task, label), row in by_key.items():
+        if row["agent"] != "expert" or label != "oracle" or (track, task, "none") not in by_key:
+            continue
+        free = by_key[(track, task, "none")]["summary"]["mean_lap_time_s"]
+        filtered = row["summary"]["mean_lap_time_s"]
+        cost = 100.0 * (filtered / free - 1.0) if free and filtered else None
+        lines.append(
+            [
+                track,
+                task,
+                free,
+                filtered,
+                "-" if cost is None else cost,
+                100.0 * row["summary"]["intervention_rate"],
+                row["summary"]["time_outside_lane_s"],
+            ]
+        )
+    return lines
+
+
+EXPERT_COLUMNS = [
+    "track",
+    "task",
+    "lap, no filter [s]",
+    "lap, filter [s]",
+    "lap-time cost [%]",
+    "interventions [%]",
+    "outside lane [s]",
+]
+
+
+def write_tables(rows: list[dict], out_dir: Path) -> None:
+    """``safety_table.md`` (both tables) and ``safety_table.csv`` / ``expert_cost.csv``."""
+    runs, costs = table_rows(rows), expert_cost_rows(rows)
+    text = (
+        "# Safety filter: reckless agents and the expert\n\n"
+        + markdown_table(TABLE_COLUMNS, runs)
+        + "\n\n## Expert lap-time cost of the filter\n\n"
+        + markdown_table(EXPERT_COLUMNS, costs)
+        + "\n"
+    )
+    (out_dir / "safety_table.md").write_text(text)
+    for name, columns, lines in (
+        ("safety_table.csv", TABLE_COLUMNS, runs),
+        ("expert_cost.csv", EXPERT_COLUMNS, costs),
+    ):
+        with open(out_dir / name, "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(columns)
+            writer.writerows(lines)
+
+
+FILTER_STYLES = {
+    "none": ("tab:red", "no filter"),
+    "oracle": ("tab:green", "filter, true state"),
+    "noisy-prob": ("tab:blue", "probabilistic filter, noisy state"),
+    "noisy-det": ("tab:orange", "deterministic filter, noisy mean"),
+}
+
+
+def plot_reckless_paths(rows: list[dict], path: Path) -> None:
+    """The reckless agents' paths on each track, one colour per filter setting."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from saferace.eval.track_plots import plot_track
+    from saferace.track import Track
+
+    reckless = [row for row in rows if row["agent"] in RECKLESS_TASKS]
+    tracks = list(dict.fromkeys(row["track_arg"] for row in reckless))
+    agents = list(RECKLESS_TASKS)
+    if not tracks:
+        return
+    figure, axes = plt.subplots(
+        len(tracks), len(agents), figsize=(4 * len(agents), 3.6 * len(tracks)), squeeze=False
+    )
+    for i, track_arg in enumerate(tracks):
+        track = Track.load(track_arg)
+        for j, agent in enumerate(agents):
+            ax = axes[i, j]
+            plot_track(ax, track)
+            for row in reckless:
+                if row["track_arg"] != track_arg or row["agent"] != agent:
+                    continue
+                colour, label = FILTER_STYLES[FilterConfig(**_config(row)).label]
+                trajectory = row["trajectory"]
+                ax.plot(trajectory["x_m"], trajectory["y_m"], color=colour, lw=1.0, label=label)
+            ax.set_title(f"{agent} on {track.name}")
+            ax.set_aspect("equal")
+            ax.set_axis_off()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="upper center", ncol=4)
+    figure.tight_layout(rect=(0, 0, 1, 0.97))
+    figure.savefig(path, dpi=90)
+    plt.close(figure)

@@ -1,0 +1,33 @@
+"""Random closed tracks, for testing on tracks nobody tuned anything for."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from saferace.track.track_io import write_track_csv
+
+
+def random_blob_points(seed: int, count: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth random closed curve: an ellipse with a few random low-order harmonics."""
+    rng = np.random.default_rng(seed)
+    theta = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    radius = 6.0 + sum(
+        rng.uniform(-0.5, 0.5) * np.cos(k * theta + rng.uniform(0, 2 * np.pi)) for k in (2, 3)
+    )
+    return 1.4 * radius * np.cos(theta), radius * np.sin(theta)
+
+
+def write_random_track(path: str | Path, seed: int) -> Path:
+    """A random track CSV (clockwise for odd seeds) with varying half widths of 0.35-0.7 m."""
+    x, y = random_blob_points(seed)
+    if seed % 2:
+        x, y = x[::-1], y[::-1]
+    rng = np.random.default_rng(seed)
+    w_right = rng.uniform(0.45, 0.6) + 0.1 * np.sin(np.linspace(0, 4 * np.pi, len(x)))
+    w_left = rng.uniform(0.45, 0.6) + 0.1 * np.cos(np.linspace(0, 2 * np.pi, len(x)))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_track_csv(path, x, y, w_right, w_left)
+    return path
