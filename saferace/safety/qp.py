@@ -33,6 +33,12 @@ import numpy as np
 
 ARMIJO_FRACTION = 1e-4
 GRADIENT_TOLERANCE = 1e-9
+#: Stop when the Newton decrement (the model's predicted decrease) is below this, relative:
+#: large slack weights scale the gradient's rounding noise beyond GRADIENT_TOLERANCE.
+NEWTON_DECREMENT_TOLERANCE = 1e-20
+#: ... or when the full Newton step (the distance to the minimum of the local quadratic
+#: model) is below this, relative to the control.
+STEP_TOLERANCE = 1e-8
 MAX_NEWTON_STEPS = 60
 MAX_LINE_SEARCH_HALVINGS = 60
 MIN_STD = 1e-12  # below this a constraint's spread counts as zero
@@ -185,6 +191,11 @@ def _minimise(
             step = [-(h11 * g0 - h01 * g1) / det, -(h00 * g1 - h01 * g0) / det]
         else:
             step = [-g0 / h00 if free0 else 0.0, -g1 / h11 if free1 else 0.0]
+        if -(g0 * step[0] + g1 * step[1]) <= NEWTON_DECREMENT_TOLERANCE * (1.0 + abs(f)) or (
+            abs(step[0]) <= STEP_TOLERANCE * (1.0 + abs(u[0]))
+            and abs(step[1]) <= STEP_TOLERANCE * (1.0 + abs(u[1]))
+        ):
+            return u, "solved", iteration  # within rounding of the minimum
         t = 1.0
         for _ in range(MAX_LINE_SEARCH_HALVINGS):
             trial = [

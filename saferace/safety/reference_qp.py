@@ -52,10 +52,14 @@ def solve_with_cvxpy(problem: FilterProblem, tight: bool = True) -> tuple[np.nda
     """The reference minimiser (Clarabel) and cvxpy's status.
 
     At tight tolerances Clarabel often reports ``optimal_inaccurate``: it stopped at its
-    reduced tolerances, which are still far below the 1e-5 the filter is checked to.
+    reduced tolerances, which are still far below the 1e-5 the filter is checked to. If
+    Clarabel fails at them, it solves again at its defaults.
     """
     program, u, _ = filter_qp_problem(problem)
     with warnings.catch_warnings():  # the status says it; no need to warn as well
         warnings.filterwarnings("ignore", message="Solution may be inaccurate")
-        program.solve(solver=cp.CLARABEL, **(CLARABEL_TIGHT if tight else {}))
+        try:
+            program.solve(solver=cp.CLARABEL, **(CLARABEL_TIGHT if tight else {}))
+        except cp.error.SolverError:  # too tight for a badly scaled problem: default settings
+            program.solve(solver=cp.CLARABEL)
     return np.asarray(u.value, dtype=float), program.status
