@@ -158,6 +158,7 @@ class SafetyFilter(gym.Wrapper):
         self.interventions = 0
         self.failures = 0
         self.steps = 0
+        self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
 
@@ -234,6 +235,7 @@ class SafetyFilter(gym.Wrapper):
             covariance=covariance,
             z=self.z if chance else 0.0,
         )
+        self.last_problem = problem
         solve_started = time.perf_counter()
         solution = solve_filter_qp(problem)
         solve_time = time.perf_counter() - solve_started
