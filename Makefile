@@ -30,6 +30,7 @@ demo: setup
 	$(BIN)/saferace drive --agent expert --task RacingLine --track technical \
 		--video results/technical_racingline.mp4 --rerun results/technical_racingline.rrd
 	$(BIN)/saferace snapshots --out results/snapshots
+	$(BIN)/saferace safety-table --random-tracks 11 23 --out results/safety
 
 test: setup
 	$(BIN)/ruff check .

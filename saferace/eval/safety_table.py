@@ -98,14 +98,15 @@ def run_table(
 
 
 def _row_key(row: dict) -> tuple[str, str, str, str]:
-    return (row["agent"], row["task"], row["track_arg"], FilterConfig(**_config(row)).label)
+    return (row["agent"], row["task"], row["track_arg"], filter_label(row))
 
 
-def _config(row: dict) -> dict:
+def filter_label(row: dict) -> str:
+    """The :attr:`FilterConfig.label` of a result row."""
     config = dict(row["filter"])
     if config.get("state_noise") is not None:
         config["state_noise"] = tuple(config["state_noise"])
-    return config
+    return FilterConfig(**config).label
 
 
 TABLE_COLUMNS = [
@@ -136,7 +137,7 @@ def table_rows(rows: list[dict]) -> list[list]:
                 row["track"],
                 row["agent"],
                 row["task"],
-                FilterConfig(**_config(row)).label,
+                filter_label(row),
                 summary["laps_completed"],
                 summary["time_outside_lane_s"],
                 summary["min_lane_barrier_m"],
@@ -152,7 +153,7 @@ def table_rows(rows: list[dict]) -> list[list]:
 
 def expert_cost_rows(rows: list[dict]) -> list[list]:
     """Per track and task: the expert's mean lap time without and with the oracle filter."""
-    by_key = {(r["track"], r["task"], FilterConfig(**_config(r)).label): r for r in rows}
+    by_key = {(r["track"], r["task"], filter_label(r)): r for r in rows}
     lines = []
     for (track, task, label), row in by_key.items():
         if row["agent"] != "expert" or label != "oracle" or (track, task, "none") not in by_key:
@@ -164,8 +165,8 @@ def expert_cost_rows(rows: list[dict]) -> list[list]:
             [
                 track,
                 task,
-                free,
-                filtered,
+                "-" if free is None else free,
+                "-" if filtered is None else filtered,
                 "-" if cost is None else cost,
                 100.0 * row["summary"]["intervention_rate"],
                 row["summary"]["time_outside_lane_s"],
@@ -207,7 +208,7 @@ def write_tables(rows: list[dict], out_dir: Path) -> None:
 
 
 FILTER_STYLES = {
-    "none": ("tab:red", "no filter"),
+    "none": ("black", "no filter"),
     "oracle": ("tab:green", "filter, true state"),
     "noisy-prob": ("tab:blue", "probabilistic filter, noisy state"),
     "noisy-det": ("tab:orange", "deterministic filter, noisy mean"),
@@ -240,7 +241,7 @@ def plot_reckless_paths(rows: list[dict], path: Path) -> None:
             for row in reckless:
                 if row["track_arg"] != track_arg or row["agent"] != agent:
                     continue
-                colour, label = FILTER_STYLES[FilterConfig(**_config(row)).label]
+                colour, label = FILTER_STYLES[filter_label(row)]
                 trajectory = row["trajectory"]
                 ax.plot(trajectory["x_m"], trajectory["y_m"], color=colour, lw=1.0, label=label)
             ax.set_title(f"{agent} on {track.name}")

@@ -14,6 +14,7 @@ from saferace.safety.barriers import BARRIER_NAMES, BarrierContext, linearised_c
 from saferace.safety.chance import confidence_quantile, constraint_statistics, constraint_std
 from saferace.safety.models import MIN_SPEED_MPS, PARAM_NAMES, symbolic_model
 from saferace.safety.qp import FilterProblem, solve_filter_qp
+from saferace.safety.speed_limit import braking_speed_limit
 from saferace.safety.state_sources import OracleStateSource, StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
@@ -23,6 +24,8 @@ FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
 FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
 #: Step (m) of the finite difference of the speed limit along the track.
 SPEED_LIMIT_DS_M = 0.05
+#: Deceleration (m/s^2) the speed limit plans for before corners: below the car's 4.
+SPEED_LIMIT_DECEL_MPS2 = 2.0
 #: A filtered action this close to the nominal one is not an intervention.
 INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2)
 
@@ -106,10 +109,11 @@ class SafetyFilter(gym.Wrapper):
     Beyond the paper: the lane and heading barriers cannot make the car brake (the
     acceleration barely enters them), so an agent that enters a corner too fast for the
     tyres' grip slides out whatever the filter steers. ``speed_limit_factor`` adds the
-    barrier ``h_speed = factor * v_ref(s) - v_x`` on the task's reference speed profile
-    (planned for 5 m/s^2 of lateral acceleration; 1.1x the speed is 6 m/s^2, well inside
-    the tyres' grip of about 9.8) with the CBF condition ``dh/dt + lam * h >= 0``, i.e.
-    ``accel <= lam * h + factor * dv_ref/ds * v_x``. It needs the car's arc length on the
+    barrier ``h_speed = v_limit(s) - v_x``: the task's reference speed profile (planned for
+    5 m/s^2 of lateral acceleration; 1.1x the speed is 6 m/s^2, well inside the tyres'
+    grip of about 9.8), braked for at ``SPEED_LIMIT_DECEL_MPS2`` before corners
+    (:mod:`saferace.safety.speed_limit`), with the CBF condition ``dh/dt + lam * h >= 0``,
+    i.e. ``accel <= lam * h + dv_limit/ds * v_x``. It needs the car's arc length on the
     track map (localisation, ``info["s_m"]``), not the perceived state; ``None`` turns it
     off.
     """
@@ -153,7 +157,11 @@ class SafetyFilter(gym.Wrapper):
         if speed_limit_factor is not None and speed_limit_factor <= 0.0:
             raise ValueError(f"speed_limit_factor must be positive, got {speed_limit_factor}")
         self.speed_limit_factor = speed_limit_factor
-        self.reference = env.unwrapped.reference
+        self.speed_limit = (
+            braking_speed_limit(env.unwrapped.reference, speed_limit_factor, SPEED_LIMIT_DECEL_MPS2)
+            if speed_limit_factor
+            else None
+        )
         self.constraint_names = BARRIER_NAMES + (("speed",) if speed_limit_factor else ())
         self.interventions = 0
         self.failures = 0
@@ -284,11 +292,10 @@ class SafetyFilter(gym.Wrapper):
     def _speed_constraint(
         self, info: dict[str, Any], velocity: np.ndarray
     ) -> tuple[np.ndarray, float, float]:
-        """Row, bound and barrier value of ``accel <= lam * h + factor * dv_ref/ds * v_x``."""
+        """Row, bound and barrier value of ``accel <= lam * h + dv_limit/ds * v_x``."""
         s, v_x = float(info["s_m"]), float(velocity[0])
-        factor = self.speed_limit_factor
-        limit = factor * float(self.reference.speed_at(s))
-        ahead = factor * float(self.reference.speed_at(s + SPEED_LIMIT_DS_M))
+        limit = self.speed_limit(s)
+        ahead = self.speed_limit(s + SPEED_LIMIT_DS_M)
         slope = (ahead - limit) / SPEED_LIMIT_DS_M
         h = limit - v_x
         return np.array([0.0, 1.0]), self.lam * h + slope * max(v_x, 0.0), h

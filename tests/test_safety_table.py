@@ -1,0 +1,64 @@
+"""The safety-table command: resumable runs, tables, plot; and (slow) the issue's claims."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from saferace.eval.runner import read_jsonl
+from saferace.eval.safety_table import RECKLESS_TASKS, filter_label, run_table
+from saferace.track import builtin_track_names
+from saferace.track.random_track import write_random_track
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
+    )
+
+
+def test_table_command_writes_tables_and_resumes(tmp_path: Path):
+    out = tmp_path / "safety"
+    args = ("safety-table", "--tracks", "lab", "--laps", "1", "--max-seconds", "4")
+    first = run_cli(*args, "--out", str(out))
+    assert first.returncode == 0, first.stderr
+    rows = read_jsonl(out / "runs.jsonl")
+    assert len(rows) == 3 * 4 + 2 * 2  # reckless agents x filters, expert x tasks x filters
+    table = (out / "safety_table.md").read_text()
+    runs_part, costs_part = table.split("## Expert")
+    assert sum(line.startswith("|   lab |") for line in runs_part.splitlines()) == len(rows)
+    assert sum(line.startswith("|   lab |") for line in costs_part.splitlines()) == 2
+    assert "noisy-det" in runs_part
+    assert (out / "expert_cost.csv").read_text().count("\n") == 3
+    assert (out / "reckless_paths.png").stat().st_size > 10_000
+    second = run_cli(*args, "--out", str(out))  # everything is done: nothing runs again
+    assert second.returncode == 0 and len(read_jsonl(out / "runs.jsonl")) == len(rows)
+
+
+def test_table_command_refuses_bad_arguments(tmp_path: Path):
+    result = run_cli("safety-table", "--samples", "1", "--out", str(tmp_path))
+    assert result.returncode == 2 and "samples" in result.stderr
+
+
+@pytest.mark.slow
+def test_filter_keeps_every_reckless_agent_in_its_lane_on_every_track(tmp_path: Path):
+    """The issue's table: built-in tracks and two tracks the repository has never seen."""
+    unseen = [str(write_random_track(tmp_path / f"unseen_{s}.csv", s)) for s in (11, 23)]
+    rows = run_table([*builtin_track_names(), *unseen], tmp_path / "table", progress=False)
+    by_key = {(r["agent"], r["task"], r["track_arg"], filter_label(r)): r["summary"] for r in rows}
+    first_laps = {(r["agent"], r["track_arg"], filter_label(r)): r["laps"][0] for r in rows}
+    for track in [*builtin_track_names(), *unseen]:
+        for agent, task in RECKLESS_TASKS.items():
+            assert first_laps[(agent, track, "none")]["time_outside_lane_s"] > 0.0, (agent, track)
+            for label in ("oracle", "noisy-prob"):
+                filtered = by_key[(agent, task, track, label)]
+                assert filtered["time_outside_lane_s"] == 0.0, (agent, track, label)
+                assert filtered["failed_solves"] == 0
+        for task in ("CenterLine", "RacingLine"):
+            free = by_key[("expert", task, track, "none")]
+            filtered = by_key[("expert", task, track, "oracle")]
+            assert filtered["time_outside_lane_s"] == 0.0
+            assert filtered["mean_lap_time_s"] < 1.02 * free["mean_lap_time_s"]
