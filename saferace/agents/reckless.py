@@ -21,40 +21,43 @@ from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
 SPEED_GAIN_PER_S = 2.0
 
 
-def _speed_command(target_mps: float, info: dict[str, Any]) -> float:
-    return SPEED_GAIN_PER_S * (target_mps - info["v_x_mps"])
-
-
 @dataclass
-class DriftAgent:
-    """Constant steering (rad, positive left) at a constant target speed."""
+class _SteeringPattern:
+    """A steering pattern in time at a constant target speed; subclasses give the steering."""
 
-    steer_rad: float = 0.1
     speed_mps: float = 3.0
 
     @classmethod
-    def for_env(cls, env) -> DriftAgent:
+    def for_env(cls, env) -> _SteeringPattern:
         return cls()
 
+    def steer_rad(self, time_s: float) -> float:
+        raise NotImplementedError
+
     def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
-        return np.array([self.steer_rad, _speed_command(self.speed_mps, info)], np.float32)
+        accel = SPEED_GAIN_PER_S * (self.speed_mps - info["v_x_mps"])
+        return np.array([self.steer_rad(info["time_s"]), accel], np.float32)
 
 
 @dataclass
-class WeaveAgent:
+class DriftAgent(_SteeringPattern):
+    """Constant steering (rad, positive left) at a constant target speed."""
+
+    steer_angle_rad: float = 0.1
+
+    def steer_rad(self, time_s: float) -> float:
+        return self.steer_angle_rad
+
+
+@dataclass
+class WeaveAgent(_SteeringPattern):
     """Steering ``amplitude * sin(2 pi t / period)`` at a constant target speed."""
 
     amplitude_rad: float = 0.3
     period_s: float = 2.0
-    speed_mps: float = 3.0
 
-    @classmethod
-    def for_env(cls, env) -> WeaveAgent:
-        return cls()
-
-    def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
-        steer = self.amplitude_rad * math.sin(2.0 * math.pi * info["time_s"] / self.period_s)
-        return np.array([steer, _speed_command(self.speed_mps, info)], np.float32)
+    def steer_rad(self, time_s: float) -> float:
+        return self.amplitude_rad * math.sin(2.0 * math.pi * time_s / self.period_s)
 
 
 class SpeedingAgent(PurePursuit):
