@@ -281,7 +281,7 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 def _safety_table(args: argparse.Namespace) -> int:
-    from saferace.eval.safety_table import run_table
+    from saferace.eval.safety_table import RANDOM_TRACK_RADIUS_M, run_table
     from saferace.track import builtin_track_names
     from saferace.track.random_track import write_random_track
 
@@ -290,7 +290,8 @@ def _safety_table(args: argparse.Namespace) -> int:
         raise SafeRaceError("need --max-seconds > 0, --samples >= 2, --state-noise >= 0")
     tracks = list(args.tracks) if args.tracks else list(builtin_track_names())
     for seed in args.random_tracks:
-        path = write_random_track(args.out / "tracks" / f"random_{seed}.csv", seed)
+        path = args.out / "tracks" / f"random_{seed}.csv"
+        write_random_track(path, seed, RANDOM_TRACK_RADIUS_M)
         tracks.append(str(path))
     run_table(
         tracks,

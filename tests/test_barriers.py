@@ -92,6 +92,8 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
             ("w_right", "w_right_m"),
             ("half_width", "half_width_m"),
             ("theta_max", "theta_max_rad"),
+            ("w_left_slope", "w_left_slope"),
+            ("w_right_slope", "w_right_slope"),
         )
     }
     substitutions = {
@@ -136,3 +138,14 @@ def test_linearisation_is_exact_for_affine_inputs_and_first_order_for_tan():
     a1, _, _ = linearised_constraints("kinematic", PARAM_VALUES, x_kin, KAPPA_RADPM, u1, CONTEXT)
     lane = BARRIER_NAMES.index("lane_left")
     assert abs(a1[0, lane, 0]) > abs(a0[0, lane, 0])  # sec^2 of a larger steering angle
+
+
+@pytest.mark.parametrize("model_name", ["kinematic", "dynamic", "dynamic-paper"])
+def test_a_narrowing_lane_moves_the_lane_barrier_at_its_slope_times_s_dot(model_name: str):
+    condition = hocbf_condition(model_name, "lane_left")
+    model = symbolic_model(model_name)
+    slope = sp.Symbol("w_left_slope", real=True)
+    first = condition.psi[1]
+    assert sp.simplify(sp.diff(first, slope) - model.s_dot) == 0
+    # The right lane's slope enters the right barrier only.
+    assert not first.has(sp.Symbol("w_right_slope", real=True))

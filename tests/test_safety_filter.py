@@ -36,6 +36,8 @@ def psi_functions(model_name: str, context: BarrierContext, kappa: float, params
         "half_width": context.half_width_m,
         "theta_max": context.theta_max_rad,
         "lam": context.lam,
+        "w_left_slope": context.w_left_slope,
+        "w_right_slope": context.w_right_slope,
     }
     substitutions = {sp.Symbol(k, real=True): v for k, v in values.items()}
     substitutions[model.kappa] = kappa

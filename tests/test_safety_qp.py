@@ -129,3 +129,21 @@ def test_invalid_problems_are_refused_or_flagged():
         FilterProblem(**{**problem.__dict__, "u_std": np.array([0.0, 1.0])})
     broken = FilterProblem(**{**problem.__dict__, "b": np.array([np.nan, 0.0, 0.0, 0.0])})
     assert solve_filter_qp(broken).status == "non_finite"
+
+
+def test_nearly_parallel_constraints_with_a_large_slack_weight():
+    """Lane and heading rows of the paper's model nearly parallel, k_err = 1e6: Newton steps
+    crawl along the narrow valley; the active-set rescue must still find the minimum."""
+    problem = FilterProblem(
+        u_mean=np.array([-0.10137272, -0.51108116]),
+        u_std=np.array([0.1, 1.0]),
+        a=np.array([[1525.75656, 0.471098644], [-1525.75656, -0.471098644],
+                     [717.810364, 0.216556039], [-717.810364, -0.216556039]]),
+        b=np.array([-165.58165895, 176.51915895, -75.00000766, 84.81748471]),
+        lower=np.array([-1e4, -4.0]),
+        upper=np.array([1e4, 4.0]),
+        k_err=1e6,
+    )  # fmt: skip
+    solution = solve_filter_qp(problem)
+    assert solution.solved and solution.slack.max() < 1e-6
+    np.testing.assert_allclose(solution.u, cvxpy_solution(problem), atol=1e-5)

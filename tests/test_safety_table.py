@@ -9,7 +9,12 @@ from pathlib import Path
 import pytest
 
 from saferace.eval.runner import read_jsonl
-from saferace.eval.safety_table import RECKLESS_TASKS, filter_label, run_table
+from saferace.eval.safety_table import (
+    RANDOM_TRACK_RADIUS_M,
+    RECKLESS_TASKS,
+    filter_label,
+    run_table,
+)
 from saferace.track import builtin_track_names
 from saferace.track.random_track import write_random_track
 
@@ -46,7 +51,10 @@ def test_table_command_refuses_bad_arguments(tmp_path: Path):
 @pytest.mark.slow
 def test_filter_keeps_every_reckless_agent_in_its_lane_on_every_track(tmp_path: Path):
     """The issue's table: built-in tracks and two tracks the repository has never seen."""
-    unseen = [str(write_random_track(tmp_path / f"unseen_{s}.csv", s)) for s in (11, 23)]
+    unseen = [
+        str(write_random_track(tmp_path / f"unseen_{s}.csv", s, RANDOM_TRACK_RADIUS_M))
+        for s in (11, 23)
+    ]
     rows = run_table([*builtin_track_names(), *unseen], tmp_path / "table", progress=False)
     by_key = {(r["agent"], r["task"], r["track_arg"], filter_label(r)): r["summary"] for r in rows}
     first_laps = {(r["agent"], r["track_arg"], filter_label(r)): r["laps"][0] for r in rows}

@@ -21,6 +21,9 @@ from saferace.eval.runner import append_jsonl, evaluate, read_jsonl
 from saferace.eval.tables import markdown_table
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
+#: Size of generated test tracks: tight enough that 1.6x the racing line's speed exceeds
+#: the grip within a lap (on gentle tracks the car's 7 m/s top speed caps the agent).
+RANDOM_TRACK_RADIUS_M = 3.0
 CONTROL_HZ = 20.0
 
 

@@ -12,9 +12,11 @@ derivative (the relative degree in steering: 2 for the lane with the kinematic a
 full dynamic model, 3 with the paper's simplified model, 1 or 2 for the heading) and
 builds the HOCBF condition of Xiao & Belta with ``alpha_i(h) = lam * h``:
 ``psi_0 = h``, ``psi_i = d/dt psi_{i-1} + lam psi_{i-1}``, and requires ``psi_m >= 0``,
-which equals ``sum_k binom(m, k) lam^(m-k) h^(k) >= 0`` as in the paper. The widths,
-``theta_max`` and the curvature are held constant over the derivatives (their rate
-along ``s`` is neglected).
+which equals ``sum_k binom(m, k) lam^(m-k) h^(k) >= 0`` as in the paper. The half
+widths change along the track at their local slopes (``dw/dt = dw/ds * s_dot``, the
+slope held constant); ``theta_max`` and the curvature are held constant (the curvature's
+rate along ``s`` is neglected). Without the slopes, a lane narrowing at 0.03 m/m holds a
+filtered car about ``2 * 0.03 * v / lam`` beyond its barrier.
 
 ``psi_m`` is affine in the acceleration; in the steering it is affine for the dynamic
 models and goes through ``tan`` for the kinematic one. Either way the filter uses its
@@ -39,6 +41,8 @@ MAX_ORDER = 4
 _W_LEFT, _W_RIGHT, _HALF_WIDTH, _THETA_MAX, _LAM = sp.symbols(
     "w_left w_right half_width theta_max lam", real=True
 )
+#: How fast each half width changes along the track (m per m of centerline).
+_W_LEFT_SLOPE, _W_RIGHT_SLOPE = sp.symbols("w_left_slope w_right_slope", real=True)
 
 
 def barrier_expression(name: str, e_y: sp.Symbol, e_psi: sp.Symbol) -> sp.Expr:
@@ -65,6 +69,15 @@ def time_derivative(expr: sp.Expr, state: tuple[sp.Symbol, ...], x_dot: sp.Matri
     return sum(sp.diff(expr, x) * x_dot[i] for i, x in enumerate(state))
 
 
+def _with_lane_widths(model) -> tuple[tuple[sp.Symbol, ...], sp.Matrix]:
+    """The model's state and rates extended by the half widths, which change with ``s``."""
+    state = (*model.state, _W_LEFT, _W_RIGHT)
+    rates = model.x_dot.col_join(
+        sp.Matrix([_W_LEFT_SLOPE * model.s_dot, _W_RIGHT_SLOPE * model.s_dot])
+    )
+    return state, rates
+
+
 @cache
 def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
     """Derive the HOCBF condition of ``barrier`` for ``model_name`` (cached per process)."""
@@ -72,8 +85,9 @@ def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
     e_y, e_psi = model.state[0], model.state[1]
     steer = model.control[0]
     psi = [barrier_expression(barrier, e_y, e_psi)]
+    state, rates = _with_lane_widths(model)
     for _ in range(MAX_ORDER):
-        derivative = time_derivative(psi[-1], model.state, model.x_dot)
+        derivative = time_derivative(psi[-1], state, rates)
         psi.append(derivative + _LAM * psi[-1])
         if derivative.has(steer):
             break
@@ -96,6 +110,8 @@ def _constraint_function(model_name: str) -> Callable[..., list[float]]:
         _HALF_WIDTH,
         _THETA_MAX,
         _LAM,
+        _W_LEFT_SLOPE,
+        _W_RIGHT_SLOPE,
     )
     outputs = []
     for name in BARRIER_NAMES:
@@ -119,6 +135,8 @@ class BarrierContext:
     half_width_m: float
     theta_max_rad: float
     lam: float
+    w_left_slope: float = 0.0  # d w_left / ds
+    w_right_slope: float = 0.0
 
 
 def linearised_constraints(
@@ -145,6 +163,8 @@ def linearised_constraints(
         context.half_width_m,
         context.theta_max_rad,
         context.lam,
+        context.w_left_slope,
+        context.w_right_slope,
     )
     steer0, accel0 = float(u0[0]), float(u0[1])
     function = _constraint_function(model_name)

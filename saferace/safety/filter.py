@@ -22,8 +22,8 @@ from saferace.safety.vehicle_params import VehicleParams, load_params
 FALLBACK_BRAKE_MPS2 = 2.0
 FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
 FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
-#: Step (m) of the finite difference of the speed limit along the track.
-SPEED_LIMIT_DS_M = 0.05
+#: Step (m) of the finite differences of the speed limit and lane widths along the track.
+MAP_DS_M = 0.05
 #: Deceleration (m/s^2) the speed limit plans for before corners: below the car's 4.
 SPEED_LIMIT_DECEL_MPS2 = 2.0
 #: A filtered action this close to the nominal one is not an intervention.
@@ -115,7 +115,8 @@ class SafetyFilter(gym.Wrapper):
     (:mod:`saferace.safety.speed_limit`), with the CBF condition ``dh/dt + lam * h >= 0``,
     i.e. ``accel <= lam * h + dv_limit/ds * v_x``. It needs the car's arc length on the
     track map (localisation, ``info["s_m"]``), not the perceived state; ``None`` turns it
-    off.
+    off. The lane barriers take the half widths' slopes along the track from the map at
+    the same ``s`` (see :mod:`saferace.safety.barriers`).
     """
 
     def __init__(
@@ -157,6 +158,7 @@ class SafetyFilter(gym.Wrapper):
         if speed_limit_factor is not None and speed_limit_factor <= 0.0:
             raise ValueError(f"speed_limit_factor must be positive, got {speed_limit_factor}")
         self.speed_limit_factor = speed_limit_factor
+        self.track = env.unwrapped.track
         self.speed_limit = (
             braking_speed_limit(env.unwrapped.reference, speed_limit_factor, SPEED_LIMIT_DECEL_MPS2)
             if speed_limit_factor
@@ -210,12 +212,15 @@ class SafetyFilter(gym.Wrapper):
         if not chance:
             lane = lane.mean(axis=0, keepdims=True)
         states = self._model_states(lane, observation["velocity"])
+        w_left_slope, w_right_slope = self._width_slopes(float(info["s_m"]))
         context = BarrierContext(
             w_left_m=float(info["w_left_m"]),
             w_right_m=float(info["w_right_m"]),
             half_width_m=self.half_width_m,
             theta_max_rad=self.theta_max,
             lam=self.lam,
+            w_left_slope=w_left_slope,
+            w_right_slope=w_right_slope,
         )
         a, b, h = linearised_constraints(
             self.model_name, self.param_values, states, lane[:, 2], u0, context
@@ -289,14 +294,21 @@ class SafetyFilter(gym.Wrapper):
             [np.broadcast_to(columns[str(x)], len(lane)) for x in self.symbolic.state]
         )
 
+    def _width_slopes(self, s_m: float) -> tuple[float, float]:
+        """``(d w_left / ds, d w_right / ds)`` of the track map at ``s_m``."""
+        right_ahead, left_ahead = self.track.widths(s_m + MAP_DS_M)
+        right_behind, left_behind = self.track.widths(s_m - MAP_DS_M)
+        scale = 0.5 / MAP_DS_M
+        return (left_ahead - left_behind) * scale, (right_ahead - right_behind) * scale
+
     def _speed_constraint(
         self, info: dict[str, Any], velocity: np.ndarray
     ) -> tuple[np.ndarray, float, float]:
         """Row, bound and barrier value of ``accel <= lam * h + dv_limit/ds * v_x``."""
         s, v_x = float(info["s_m"]), float(velocity[0])
         limit = self.speed_limit(s)
-        ahead = self.speed_limit(s + SPEED_LIMIT_DS_M)
-        slope = (ahead - limit) / SPEED_LIMIT_DS_M
+        ahead = self.speed_limit(s + MAP_DS_M)
+        slope = (ahead - limit) / MAP_DS_M
         h = limit - v_x
         return np.array([0.0, 1.0]), self.lam * h + slope * max(v_x, 0.0), h
 

@@ -41,6 +41,7 @@ NEWTON_DECREMENT_TOLERANCE = 1e-20
 STEP_TOLERANCE = 1e-8
 MAX_NEWTON_STEPS = 60
 MAX_LINE_SEARCH_HALVINGS = 60
+MAX_RESCUE_ROUNDS = 30
 MIN_STD = 1e-12  # below this a constraint's spread counts as zero
 MIN_ANCHOR_STD = 1e-9  # floor of the linearisation point of the square root
 
@@ -74,7 +75,7 @@ class FilterSolution:
 
     u: np.ndarray
     slack: np.ndarray
-    status: str  # "solved", "max_iterations" or "non_finite"
+    status: str  # "solved", "stalled", "max_iterations" or "non_finite"
     iterations: int
 
     @property
@@ -208,14 +209,117 @@ def _minimise(
                 break
             t *= 0.5
         else:
-            return u, "solved", iteration  # no descent left at machine precision
+            return u, "stalled", iteration  # no descent found along the Newton direction
         if not math.isfinite(f_trial):
             return u, "non_finite", iteration
         moved = abs(trial[0] - u[0]) + abs(trial[1] - u[1])
         u, f = trial, f_trial
         if moved <= 1e-15 * (1.0 + abs(u[0]) + abs(u[1])):
-            return u, "solved", iteration
-    return u, "max_iterations", MAX_NEWTON_STEPS
+            return u, "stalled", iteration
+    return u, "stalled", MAX_NEWTON_STEPS
+
+
+def _active_set_minimum(
+    objective: _Objective,
+    rows: list[tuple[float, float, float]],
+    lower: list[float],
+    upper: list[float],
+) -> list[float] | None:
+    """The exact minimiser of ``F`` with affine constraints ``rows`` (``a0 u0 + a1 u1 <= b``).
+
+    Tries every set of violated constraints and every box face, fewest violated first, and
+    returns the one candidate that satisfies the optimality conditions (``F`` is strictly
+    convex, so there is exactly one). Slow next to Newton (up to ``2^B * 9`` 2x2 solves),
+    but immune to the ill-conditioning of nearly parallel constraints with a large slack
+    weight, where Newton steps crawl.
+    """
+    w0, w1 = objective.weight
+    m0, m1 = objective.mean
+    k = objective.k_err
+    scale = 1.0 + max(abs(b) for _, _, b in rows) + max(abs(a0) + abs(a1) for a0, a1, _ in rows)
+    tolerance = 1e-9 * scale
+    faces = (
+        (None, None),
+        (None, 0),
+        (None, 1),
+        (0, None),
+        (1, None),
+        (0, 0),
+        (0, 1),
+        (1, 0),
+        (1, 1),
+    )
+    bounds = (lower, upper)
+    masks = sorted(range(1 << len(rows)), key=lambda mask: bin(mask).count("1"))
+    for mask in masks:
+        h00, h01, h11 = 2 * w0, 0.0, 2 * w1
+        r0, r1 = 2 * w0 * m0, 2 * w1 * m1
+        for j, (a0, a1, b) in enumerate(rows):
+            if mask >> j & 1:
+                h00 += 2 * k * a0 * a0
+                h01 += 2 * k * a0 * a1
+                h11 += 2 * k * a1 * a1
+                r0 += 2 * k * b * a0
+                r1 += 2 * k * b * a1
+        for face0, face1 in faces:
+            if face0 is None and face1 is None:
+                det = h00 * h11 - h01 * h01
+                u0, u1 = (h11 * r0 - h01 * r1) / det, (h00 * r1 - h01 * r0) / det
+            elif face0 is None:
+                u1 = bounds[face1][1]
+                u0 = (r0 - h01 * u1) / h00
+            elif face1 is None:
+                u0 = bounds[face0][0]
+                u1 = (r1 - h01 * u0) / h11
+            else:
+                u0, u1 = bounds[face0][0], bounds[face1][1]
+            if not (lower[0] - 1e-12 <= u0 <= upper[0] + 1e-12):
+                continue
+            if not (lower[1] - 1e-12 <= u1 <= upper[1] + 1e-12):
+                continue
+            g0, g1 = h00 * u0 + h01 * u1 - r0, h01 * u0 + h11 * u1 - r1  # gradient of F
+            gradient_tolerance = 1e-7 * (1.0 + abs(r0) + abs(r1) + abs(h00 * u0) + abs(h11 * u1))
+            if (face0 == 0 and g0 < -gradient_tolerance) or (
+                face0 == 1 and g0 > gradient_tolerance
+            ):
+                continue
+            if (face1 == 0 and g1 < -gradient_tolerance) or (
+                face1 == 1 and g1 > gradient_tolerance
+            ):
+                continue
+            consistent = True
+            for j, (a0, a1, b) in enumerate(rows):
+                g = a0 * u0 + a1 * u1 - b
+                if (g < -tolerance) if mask >> j & 1 else (g > tolerance):
+                    consistent = False
+                    break
+            if consistent:
+                return [u0, u1]
+    return None
+
+
+def _rescue(
+    objective: _Objective, u: list[float], lower: list[float], upper: list[float]
+) -> tuple[list[float], str]:
+    """When Newton stalls: exact active-set solves of the constraints linearised at ``u``
+    (exact at once for affine constraints; for the cone, repeated to a fixed point)."""
+    for _ in range(MAX_RESCUE_ROUNDS):
+        rows = []
+        for row in objective.rows:
+            a0, a1, b = row[0], row[1], row[2]
+            if objective.z and row[3] is not None:
+                s, s0, s1, *_ = objective.spread(row, *u)
+                a0, a1 = a0 + objective.z * s0, a1 + objective.z * s1
+                b = b - objective.z * s + objective.z * (s0 * u[0] + s1 * u[1])
+            rows.append((a0, a1, b))
+        new_u = _active_set_minimum(objective, rows, lower, upper)
+        if new_u is None:
+            return u, "stalled"
+        moved = abs(new_u[0] - u[0]) + abs(new_u[1] - u[1])
+        u = new_u
+        if not objective.z or moved <= 1e-10 * (1.0 + abs(u[0]) + abs(u[1])):
+            return u, "solved"
+    return u, "max_iterations"
 
 
 def _solution(objective: _Objective, u: list[float], status: str, iterations: int):
@@ -240,6 +344,8 @@ def solve_filter_qp(problem: FilterProblem) -> FilterSolution:
         return _failed(problem)
     lower, upper = problem.lower.tolist(), problem.upper.tolist()
     u, status, iterations = _minimise(objective, objective.mean, lower, upper)
+    if status == "stalled":
+        u, status = _rescue(objective, u, lower, upper)
     return _solution(objective, u, status, iterations)
 
 

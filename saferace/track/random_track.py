@@ -9,19 +9,22 @@ import numpy as np
 from saferace.track.track_io import write_track_csv
 
 
-def random_blob_points(seed: int, count: int = 300) -> tuple[np.ndarray, np.ndarray]:
+def random_blob_points(
+    seed: int, count: int = 300, radius_m: float = 6.0
+) -> tuple[np.ndarray, np.ndarray]:
     """A smooth random closed curve: an ellipse with a few random low-order harmonics."""
     rng = np.random.default_rng(seed)
     theta = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
-    radius = 6.0 + sum(
+    radius = radius_m + (radius_m / 6.0) * sum(
         rng.uniform(-0.5, 0.5) * np.cos(k * theta + rng.uniform(0, 2 * np.pi)) for k in (2, 3)
     )
     return 1.4 * radius * np.cos(theta), radius * np.sin(theta)
 
 
-def write_random_track(path: str | Path, seed: int) -> Path:
-    """A random track CSV (clockwise for odd seeds) with varying half widths of 0.35-0.7 m."""
-    x, y = random_blob_points(seed)
+def write_random_track(path: str | Path, seed: int, radius_m: float = 6.0) -> Path:
+    """A random track CSV (clockwise for odd seeds) with varying half widths of 0.35-0.7 m;
+    ``radius_m`` sets its size (the mean radius of its shorter axis)."""
+    x, y = random_blob_points(seed, radius_m=radius_m)
     if seed % 2:
         x, y = x[::-1], y[::-1]
     rng = np.random.default_rng(seed)
