@@ -35,8 +35,11 @@ def collect_problems(track: str, seconds: float, state_source) -> list:
     env = gym.make("saferace/CenterLine-v0", track=track, max_laps=3, max_steps=int(seconds * 20))
     env = SafetyFilter(env, state_source=state_source)
     problems = []
-    run_episode(env, WeaveAgent.for_env(env), seed=0, on_step=lambda *_: problems.append(
-        env.last_problem))  # fmt: skip
+
+    def record(*_) -> None:
+        problems.append(env.last_problem)
+
+    run_episode(env, WeaveAgent.for_env(env), seed=0, on_step=record)
     env.close()
     return problems
 

@@ -105,11 +105,10 @@ class _Objective:
             (row[0], row[1], offset, sigma, anchor)
             for row, offset, sigma, anchor in zip(a, b, sigmas, anchors, strict=True)
         ]
-        self.finite = math.isfinite(
-            sum(self.mean) + sum(self.weight) + sum(map(sum, a)) + sum(b) + sum(map(sum, sigmas))
-            if chance
-            else sum(self.mean) + sum(self.weight) + sum(map(sum, a)) + sum(b)
-        )
+        total = sum(self.mean) + sum(self.weight) + sum(map(sum, a)) + sum(b)
+        if chance:
+            total += sum(map(sum, sigmas))
+        self.finite = math.isfinite(total)  # a NaN or inf anywhere makes the sum non-finite
 
     @staticmethod
     def spread(row, u0: float, u1: float) -> tuple[float, float, float, float, float, float]:
