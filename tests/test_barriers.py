@@ -8,7 +8,9 @@ import sympy as sp
 
 from saferace.safety.barriers import (
     BARRIER_NAMES,
+    MAX_ORDER,
     BarrierContext,
+    class_k_gains,
     hocbf_condition,
     linearised_constraints,
     relative_degrees,
@@ -26,8 +28,39 @@ CONTEXT = BarrierContext(
     w_right_m=0.5,
     half_width_m=0.15,
     theta_max_rad=np.pi / 4,
-    lam=2.5,
+    lam=(8.0, 2.5),
+    lateral_decel_mps2=3.0,
 )
+
+
+def class_k_value(barrier: str, order: int, lam: float, x: float) -> float:
+    """The class-K functions written out: the lane's first saturates at sqrt(2 a x)."""
+    if order == 1 and barrier.startswith("lane"):
+        return lam * x / (1.0 + lam**4 * x**2 / (4.0 * CONTEXT.lateral_decel_mps2**2)) ** 0.25
+    return lam * x
+
+
+def test_gains_per_order_repeat_the_last_and_refuse_bad_values():
+    assert class_k_gains(2.5) == (2.5,) * MAX_ORDER
+    assert class_k_gains((8.0, 2.5)) == (8.0,) + (2.5,) * (MAX_ORDER - 1)
+    for bad in ((), (1.0, 0.0), (1.0,) * (MAX_ORDER + 1)):
+        with pytest.raises(ValueError, match="class-K gains"):
+            class_k_gains(bad)
+
+
+def test_lane_condition_lets_the_car_approach_no_faster_than_it_can_turn_away():
+    """psi_1 = dh/dt + alpha_1(h): lam_1 h near the edge, sqrt(2 a h) far from it."""
+    psi_1 = hocbf_condition("kinematic", "lane_left").psi[1]
+    at_rest = {"e_y": 0.0, "e_psi": 0.0, "v_y": 0.0, "half_width": 0.0, "w_left_slope": 0.0}
+    at_rest["lam_1"] = 8.0
+    for decel, h, expected in (
+        (3.0, 1e-4, 8.0 * 1e-4),
+        (3.0, 50.0, np.sqrt(2 * 3.0 * 50.0)),
+        (np.inf, 50.0, 8.0 * 50.0),  # the paper's linear function
+    ):
+        values = {**at_rest, "lateral_decel": decel, "w_left": h}
+        value = psi_1.subs({symbol: values.get(symbol.name, 1.0) for symbol in psi_1.free_symbols})
+        assert float(value) == pytest.approx(expected, rel=0.01)
 
 
 def test_orders_follow_the_models_relative_degree_in_steering():
@@ -84,7 +117,6 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
     condition = hocbf_condition(model_name, barrier)
     model = symbolic_model(model_name)
     numeric = FrenetModel(model_name, PARAMS)
-    lam = sp.Symbol("lam", real=True)
     extra = {
         sp.Symbol(n, real=True): getattr(CONTEXT, f)
         for n, f in (
@@ -96,9 +128,11 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
             ("w_right_slope", "w_right_slope"),
         )
     }
+    gains = {sp.Symbol(f"lam_{i}", real=True): g for i, g in enumerate(CONTEXT.gains, start=1)}
     substitutions = {
         model.kappa: KAPPA_RADPM,
-        lam: CONTEXT.lam,
+        sp.Symbol("lateral_decel", positive=True): CONTEXT.lateral_decel_mps2,
+        **gains,
         **extra,
         **dict(zip(model.params, PARAM_VALUES, strict=True)),
     }
@@ -122,7 +156,7 @@ def test_derived_psi_matches_finite_differences_along_the_model(model_name: str,
         for i in range(1, condition.order + 1):
             previous = functions[i - 1]
             rate = (previous(*forward, *u) - previous(*backward, *u)) / (2 * h)
-            expected = rate + CONTEXT.lam * previous(*x, *u)
+            expected = rate + class_k_value(barrier, i, CONTEXT.gains[i - 1], previous(*x, *u))
             assert functions[i](*x, *u) == pytest.approx(expected, rel=1e-5, abs=1e-6)
 
 

@@ -35,11 +35,15 @@ def psi_functions(model_name: str, context: BarrierContext, kappa: float, params
         "w_right": context.w_right_m,
         "half_width": context.half_width_m,
         "theta_max": context.theta_max_rad,
-        "lam": context.lam,
+        "lateral_decel": context.lateral_decel_mps2,
+        **{f"lam_{i}": gain for i, gain in enumerate(context.gains, start=1)},
         "w_left_slope": context.w_left_slope,
         "w_right_slope": context.w_right_slope,
     }
-    substitutions = {sp.Symbol(k, real=True): v for k, v in values.items()}
+    substitutions = {
+        sp.Symbol(k, **({"positive": True} if k == "lateral_decel" else {"real": True})): v
+        for k, v in values.items()
+    }
     substitutions[model.kappa] = kappa
     substitutions.update(dict(zip(model.params, params, strict=True)))
     arguments = (*model.state, *model.control)
@@ -50,8 +54,17 @@ def psi_functions(model_name: str, context: BarrierContext, kappa: float, params
     ]
 
 
-@pytest.mark.parametrize("model_name", ["kinematic", "dynamic-paper"])
-def test_forward_invariance_in_the_pure_model(model_name: str):
+@pytest.mark.parametrize(
+    ("model_name", "lam", "lateral_decel_mps2"),
+    [
+        ("kinematic", 2.5, np.inf),  # the paper's class-K functions
+        ("kinematic", (8.0, 8.0), 3.0),  # large gains, the lane's first function saturating
+        ("dynamic-paper", 2.5, np.inf),
+    ],
+)
+def test_forward_invariance_in_the_pure_model(
+    model_name: str, lam: float | tuple[float, ...], lateral_decel_mps2: float
+):
     """Random nominal controls from random safe states never leave the safe set.
 
     The HOCBF theorem assumes the QP stays feasible, so the filtered steering is unbounded
@@ -61,7 +74,7 @@ def test_forward_invariance_in_the_pure_model(model_name: str):
     params = load_params()
     values = tuple(float(getattr(params, name)) for name in PARAM_NAMES)
     model = FrenetModel(model_name, params)
-    context = BarrierContext(0.5, 0.5, 0.15, np.pi / 4, 2.5)
+    context = BarrierContext(0.5, 0.5, 0.15, np.pi / 4, lam, lateral_decel_mps2)
     # Steering unbounded (for tan: within (-pi/2, pi/2)); the acceleration keeps the car's
     # limit, or the 5 ms integration steps would not resolve the speed it commands.
     bound = np.array([1.4 if model_name == "kinematic" else 1e4, 4.0])
@@ -151,6 +164,27 @@ def test_failed_solves_fall_back_to_braking_toward_the_center(monkeypatch):
     env.close()
 
 
+def test_steering_is_bounded_to_the_tyres_grip():
+    """``|tan delta| <= a_max L / v^2``: less steering the faster the car."""
+    bounded = SafetyFilter(make_env(), max_lateral_accel_mps2=2.0)
+    free = SafetyFilter(make_env())
+    clipped = 0
+    for speed in (2.0, 4.0, 6.0):
+        options = {"start_speed_mps": speed}
+        observation, info = bounded.reset(seed=0, options=options)
+        free.reset(seed=0, options=options)
+        nominal = np.array([0.36, 0.0])
+        unbounded_steer = free.certify(observation, info, nominal).filtered_action[0]
+        steer = bounded.certify(observation, info, nominal).filtered_action[0]
+        v_x = float(observation["velocity"][0])
+        allowed = np.arctan(2.0 * bounded.wheelbase_m / v_x**2)
+        assert steer == pytest.approx(min(unbounded_steer, allowed), abs=1e-6)
+        clipped += allowed < unbounded_steer
+    assert 0 < clipped < 3  # the bound binds at speed only
+    bounded.close()
+    free.close()
+
+
 def test_bad_arguments_are_refused():
     with pytest.raises(KeyError):
         SafetyFilter(make_env(), model="bicycle")
@@ -158,6 +192,10 @@ def test_bad_arguments_are_refused():
         SafetyFilter(make_env(), eta=0.3)
     with pytest.raises(ValueError, match="lane_margin_m"):
         SafetyFilter(make_env(), lane_margin_m=-0.1)
+    with pytest.raises(ValueError, match="class-K gains"):
+        SafetyFilter(make_env(), lam=(8.0, -1.0))
+    with pytest.raises(ValueError, match="lateral_decel_mps2"):
+        SafetyFilter(make_env(), lateral_decel_mps2=0.0)
     env = SafetyFilter(make_env())
     with pytest.raises(gym.error.ResetNeeded):
         env.step(np.zeros(2))

@@ -10,13 +10,19 @@ Barriers (``h >= 0`` is safe; widths are the track's real half widths at ``s``):
 For each, code finds the order ``m`` at which the steering first appears in a time
 derivative (the relative degree in steering: 2 for the lane with the kinematic and the
 full dynamic model, 3 with the paper's simplified model, 1 or 2 for the heading) and
-builds the HOCBF condition of Xiao & Belta with ``alpha_i(h) = lam * h``:
-``psi_0 = h``, ``psi_i = d/dt psi_{i-1} + lam psi_{i-1}``, and requires ``psi_m >= 0``,
-which equals ``sum_k binom(m, k) lam^(m-k) h^(k) >= 0`` as in the paper. The half
-widths change along the track at their local slopes (``dw/dt = dw/ds * s_dot``, the
-slope held constant); ``theta_max`` and the curvature are held constant (the curvature's
-rate along ``s`` is neglected). Without the slopes, a lane narrowing at 0.03 m/m holds a
-filtered car about ``2 * 0.03 * v / lam`` beyond its barrier.
+builds the HOCBF condition of Xiao & Belta: ``psi_0 = h``,
+``psi_i = d/dt psi_{i-1} + alpha_i(psi_{i-1})``, and requires ``psi_m >= 0``. The class-K
+functions are linear, ``alpha_i(x) = lam_i x``, except that the lane barriers' first one
+saturates to the stopping condition of a lateral deceleration ``a`` when one is given:
+``alpha_1(h) = lam_1 h / (1 + lam_1^4 h^2 / (4 a^2))^(1/4)`` (smooth, increasing) is
+``lam_1 h`` near the edge and ``sqrt(2 a h)`` far from it, so ``psi_1 >= 0`` never lets
+the car head for the edge faster than it can turn away at ``a``. With ``a = inf`` and one
+``lam`` for every order this is the paper's condition,
+``sum_k binom(m, k) lam^(m-k) h^(k) >= 0``. The half widths change along the track at their
+local slopes (``dw/dt = dw/ds * s_dot``, the slope held constant); ``theta_max`` and the
+curvature are held constant (the curvature's rate along ``s`` is neglected). Without the
+slopes, a lane narrowing at 0.03 m/m holds a filtered car about ``2 * 0.03 * v / lam``
+beyond its barrier.
 
 ``psi_m`` is affine in the acceleration; in the steering it is affine for the dynamic
 models and goes through ``tan`` for the kinematic one. Either way the filter uses its
@@ -26,6 +32,7 @@ linearisation around the nominal control ``u_0``:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
@@ -38,9 +45,13 @@ from saferace.safety.models import symbolic_model
 BARRIER_NAMES = ("lane_left", "lane_right", "heading_left", "heading_right")
 MAX_ORDER = 4
 
-_W_LEFT, _W_RIGHT, _HALF_WIDTH, _THETA_MAX, _LAM = sp.symbols(
-    "w_left w_right half_width theta_max lam", real=True
+_W_LEFT, _W_RIGHT, _HALF_WIDTH, _THETA_MAX = sp.symbols(
+    "w_left w_right half_width theta_max", real=True
 )
+#: The class-K gain of each order, ``lam_1 .. lam_MAX_ORDER``.
+_LAMS = sp.symbols(f"lam_1:{MAX_ORDER + 1}", real=True)
+#: The lateral deceleration the lane barriers' first class-K function saturates to.
+_LATERAL_DECEL = sp.Symbol("lateral_decel", positive=True)
 #: How fast each half width changes along the track (m per m of centerline).
 _W_LEFT_SLOPE, _W_RIGHT_SLOPE = sp.symbols("w_left_slope w_right_slope", real=True)
 
@@ -78,6 +89,13 @@ def _with_lane_widths(model) -> tuple[tuple[sp.Symbol, ...], sp.Matrix]:
     return state, rates
 
 
+def class_k(barrier: str, order: int, lam: sp.Symbol, x: sp.Expr) -> sp.Expr:
+    """``alpha_order(x)`` of ``barrier`` (see the module docstring)."""
+    if order == 1 and barrier.startswith("lane"):
+        return lam * x / (1 + lam**4 * x**2 / (4 * _LATERAL_DECEL**2)) ** sp.Rational(1, 4)
+    return lam * x
+
+
 @cache
 def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
     """Derive the HOCBF condition of ``barrier`` for ``model_name`` (cached per process)."""
@@ -86,9 +104,9 @@ def hocbf_condition(model_name: str, barrier: str) -> HOCBFCondition:
     steer = model.control[0]
     psi = [barrier_expression(barrier, e_y, e_psi)]
     state, rates = _with_lane_widths(model)
-    for _ in range(MAX_ORDER):
+    for lam in _LAMS:
         derivative = time_derivative(psi[-1], state, rates)
-        psi.append(derivative + _LAM * psi[-1])
+        psi.append(derivative + class_k(barrier, len(psi), lam, psi[-1]))
         if derivative.has(steer):
             break
     else:
@@ -109,7 +127,8 @@ def _constraint_function(model_name: str) -> Callable[..., list[float]]:
         _W_RIGHT,
         _HALF_WIDTH,
         _THETA_MAX,
-        _LAM,
+        *_LAMS,
+        _LATERAL_DECEL,
         _W_LEFT_SLOPE,
         _W_RIGHT_SLOPE,
     )
@@ -119,6 +138,14 @@ def _constraint_function(model_name: str) -> Callable[..., list[float]]:
         final = condition.psi[-1]
         outputs += [final, *(sp.diff(final, c) for c in model.control), condition.psi[0]]
     return sp.lambdify(args, outputs, "math", cse=True)
+
+
+def class_k_gains(lam: float | tuple[float, ...]) -> tuple[float, ...]:
+    """The gain of each HOCBF order from one ``lam`` or a tuple ``(lam_1, lam_2, ...)``."""
+    gains = (float(lam),) if np.isscalar(lam) else tuple(float(g) for g in lam)
+    if not gains or len(gains) > MAX_ORDER or min(gains) <= 0.0:
+        raise ValueError(f"need 1 to {MAX_ORDER} positive class-K gains, got {lam!r}")
+    return gains + gains[-1:] * (MAX_ORDER - len(gains))
 
 
 def relative_degrees(model_name: str) -> dict[str, int]:
@@ -134,9 +161,16 @@ class BarrierContext:
     w_right_m: float
     half_width_m: float
     theta_max_rad: float
-    lam: float
+    lam: float | tuple[float, ...]
+    lateral_decel_mps2: float = math.inf  # inf: linear class-K functions, as in the paper
     w_left_slope: float = 0.0  # d w_left / ds
     w_right_slope: float = 0.0
+
+    @property
+    def gains(self) -> tuple[float, ...]:
+        """``lam_1 .. lam_MAX_ORDER``: one ``lam`` for every order, or ``lam`` per order with
+        the last one repeated for higher orders."""
+        return class_k_gains(self.lam)
 
 
 def linearised_constraints(
@@ -162,7 +196,8 @@ def linearised_constraints(
         context.w_right_m,
         context.half_width_m,
         context.theta_max_rad,
-        context.lam,
+        *context.gains,
+        context.lateral_decel_mps2,
         context.w_left_slope,
         context.w_right_slope,
     )
