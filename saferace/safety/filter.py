@@ -330,11 +330,12 @@ class SafetyFilter(gym.Wrapper):
 
     def _grip_bounds(self, v_x: float) -> tuple[np.ndarray, np.ndarray]:
         """The actuator box, its steering narrowed to ``|tan delta| <= a_max L / v_x^2``."""
+        if self.max_lateral_accel_mps2 is None:
+            return self.lower, self.upper
+        speed_sq = max(v_x, MIN_SPEED_MPS) ** 2
+        steer_max = math.atan(self.max_lateral_accel_mps2 * self.wheelbase_m / speed_sq)
         lower, upper = self.lower.copy(), self.upper.copy()
-        if self.max_lateral_accel_mps2 is not None:
-            speed_sq = max(v_x, MIN_SPEED_MPS) ** 2
-            steer_max = math.atan(self.max_lateral_accel_mps2 * self.wheelbase_m / speed_sq)
-            lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
+        lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
         return lower, upper
 
     def _width_slopes(self, s_m: float) -> tuple[float, float]:
