@@ -185,6 +185,23 @@ def test_steering_is_bounded_to_the_tyres_grip():
     free.close()
 
 
+def test_the_filter_brakes_to_a_stop_but_never_reverses():
+    """Braking is capped at what stops the car within one control step."""
+    env = SafetyFilter(make_env())
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 1.0})
+    speeds = []
+    for _ in range(40):
+        v_x = float(observation["velocity"][0])
+        observation, _, terminated, truncated, info = env.step(np.array([0.0, -4.0]))
+        applied = info["safety"]["filtered_action"][1]
+        assert applied == pytest.approx(max(-4.0, -max(v_x, 0.0) / env.control_dt_s))
+        speeds.append(float(observation["velocity"][0]))
+        assert not (terminated or truncated)
+    assert min(speeds) > -0.05
+    assert speeds[-1] < 0.05  # it did stop
+    env.close()
+
+
 def test_bad_arguments_are_refused():
     with pytest.raises(KeyError):
         SafetyFilter(make_env(), model="bicycle")
