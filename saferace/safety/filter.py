@@ -341,7 +341,7 @@ class SafetyFilter(gym.Wrapper):
         ``|tan delta| <= a_max L / v_x^2``.
         """
         lower, upper = self.lower.copy(), self.upper.copy()
-        lower[1] = min(max(lower[1], -max(v_x, 0.0) / self.control_dt_s), upper[1])
+        lower[1] = max(lower[1], -max(v_x, 0.0) / self.control_dt_s)
         if self.max_lateral_accel_mps2 is not None:
             speed_sq = max(v_x, MIN_SPEED_MPS) ** 2
             steer_max = math.atan(self.max_lateral_accel_mps2 * self.wheelbase_m / speed_sq)
