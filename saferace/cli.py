@@ -95,6 +95,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     table.add_argument("--samples", type=int, default=20)
     table.add_argument("--filter-model", default="kinematic", choices=FILTER_MODELS)
+    _add_gains_argument(table)
     table.set_defaults(command=_safety_table)
 
     board = commands.add_parser("leaderboard", help="markdown table (and plots) from eval results")
@@ -137,6 +138,7 @@ def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) 
 
 
 FILTER_MODELS = ("kinematic", "dynamic", "dynamic-paper")
+FILTER_GAINS = ("paper", "tuned")  # the keys of saferace.safety.filter.GAIN_PRESETS
 
 
 def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
@@ -159,6 +161,16 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="filter on the samples' mean instead of with chance constraints",
     )
+    _add_gains_argument(parser)
+
+
+def _add_gains_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--filter-gains",
+        default="paper",
+        choices=FILTER_GAINS,
+        help="the filter's class-K gains: the paper's, or those measured to cost the expert least",
+    )
 
 
 def _filter_config(args: argparse.Namespace):
@@ -176,6 +188,7 @@ def _filter_config(args: argparse.Namespace):
         state_noise=None if args.state_noise is None else tuple(args.state_noise),
         samples=args.samples,
         probabilistic=not args.deterministic,
+        gains=args.filter_gains,
     )
 
 
@@ -301,6 +314,7 @@ def _safety_table(args: argparse.Namespace) -> int:
         noise=tuple(args.state_noise),
         samples=args.samples,
         model=args.filter_model,
+        gains=args.filter_gains,
     )
     print((args.out / "safety_table.md").read_text())
     print(f"tables, runs and reckless_paths.png written to {args.out}")

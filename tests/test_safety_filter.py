@@ -9,6 +9,8 @@ import sympy as sp
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.agents.reckless import DriftAgent, WeaveAgent
+from saferace.cli import FILTER_GAINS
+from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.eval.runner import run_episode
 from saferace.safety import filter as filter_module
 from saferace.safety.barriers import (
@@ -17,7 +19,7 @@ from saferace.safety.barriers import (
     hocbf_condition,
     linearised_constraints,
 )
-from saferace.safety.filter import NominalAction, SafetyFilter
+from saferace.safety.filter import GAIN_PRESETS, NominalAction, SafetyFilter
 from saferace.safety.models import PARAM_NAMES, FrenetModel, symbolic_model
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.state_sources import NoisyOracleStateSource
@@ -59,6 +61,7 @@ def psi_functions(model_name: str, context: BarrierContext, kappa: float, params
     [
         ("kinematic", 2.5, np.inf),  # the paper's class-K functions
         ("kinematic", (8.0, 8.0), 3.0),  # large gains, the lane's first function saturating
+        ("kinematic", (20.0, 4.0), 5.0),  # GAIN_PRESETS["tuned"]
         ("dynamic-paper", 2.5, np.inf),
     ],
 )
@@ -218,12 +221,23 @@ def test_bad_arguments_are_refused():
         env.step(np.zeros(2))
 
 
+def test_gain_presets_reach_the_filter_by_name():
+    assert tuple(GAIN_PRESETS) == FILTER_GAINS
+    filtered = apply_filter(make_env(), FilterConfig(kind="cbf", gains="tuned"))
+    assert filtered.lam == GAIN_PRESETS["tuned"]["lam"]
+    assert filtered.lateral_decel_mps2 == GAIN_PRESETS["tuned"]["lateral_decel_mps2"]
+    assert apply_filter(make_env(), FilterConfig(kind="cbf")).lam == 2.5  # the paper's
+    with pytest.raises(ValueError, match="gains"):
+        FilterConfig(kind="cbf", gains="fast")
+
+
+@pytest.mark.parametrize("gains", list(GAIN_PRESETS))
 @pytest.mark.parametrize("agent_class", [DriftAgent, WeaveAgent])
-def test_reckless_agents_leave_the_lane_unless_filtered(agent_class):
+def test_reckless_agents_leave_the_lane_unless_filtered(agent_class, gains: str):
     free = make_env(max_steps=300)
     result = run_episode(free, agent_class.for_env(free), seed=0)
     assert result.summary["time_outside_lane_s"] > 0.0
-    filtered = SafetyFilter(make_env(max_steps=300))
+    filtered = SafetyFilter(make_env(max_steps=300), **GAIN_PRESETS[gains])
     result = run_episode(filtered, agent_class.for_env(filtered), seed=0)
     assert result.summary["time_outside_lane_s"] == 0.0
     assert result.summary["min_lane_barrier_m"] > 0.0

@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 
 import gymnasium as gym
 
-from saferace.safety.filter import SafetyFilter
+from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.state_sources import NoisyOracleStateSource, OracleStateSource
 
 FILTER_KINDS = ("none", "cbf")
@@ -18,7 +18,8 @@ class FilterConfig:
 
     ``state_noise`` ``(e_y_m, e_psi_rad)`` standard deviations make the state source a
     noisy oracle with ``samples`` samples; ``probabilistic=False`` then filters
-    deterministically on the samples' mean.
+    deterministically on the samples' mean. ``gains`` names an entry of
+    :data:`~saferace.safety.filter.GAIN_PRESETS`.
     """
 
     kind: str = "none"
@@ -27,10 +28,13 @@ class FilterConfig:
     samples: int = 20
     probabilistic: bool = True
     eta: float = 0.95
+    gains: str = "paper"
 
     def __post_init__(self) -> None:
         if self.kind not in FILTER_KINDS:
             raise ValueError(f"unknown filter {self.kind!r}: use one of {', '.join(FILTER_KINDS)}")
+        if self.gains not in GAIN_PRESETS:
+            raise ValueError(f"unknown gains {self.gains!r}: use one of {', '.join(GAIN_PRESETS)}")
         if self.state_noise is not None and len(self.state_noise) != 2:
             raise ValueError(f"state_noise is (e_y_m, e_psi_rad), got {self.state_noise}")
 
@@ -62,4 +66,5 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         model=config.model,
         eta=config.eta,
         probabilistic=config.probabilistic,
+        **GAIN_PRESETS[config.gains],
     )

@@ -37,18 +37,23 @@ class Run:
     safety: FilterConfig
 
     @property
-    def key(self) -> tuple[str, str, str, str]:
-        return (self.agent, self.task, self.track, self.safety.label)
+    def key(self) -> tuple[str, str, str, str, str]:
+        return (self.agent, self.task, self.track, self.safety.label, self.safety.gains)
 
 
 def planned_runs(
-    tracks: list[str], noise: tuple[float, float], samples: int, model: str
+    tracks: list[str], noise: tuple[float, float], samples: int, model: str, gains: str
 ) -> list[Run]:
     """Every run of the table, in order."""
-    oracle = FilterConfig(kind="cbf", model=model)
-    noisy = FilterConfig(kind="cbf", model=model, state_noise=noise, samples=samples)
+    oracle = FilterConfig(kind="cbf", model=model, gains=gains)
+    noisy = FilterConfig(kind="cbf", model=model, state_noise=noise, samples=samples, gains=gains)
     noisy_det = FilterConfig(
-        kind="cbf", model=model, state_noise=noise, samples=samples, probabilistic=False
+        kind="cbf",
+        model=model,
+        state_noise=noise,
+        samples=samples,
+        probabilistic=False,
+        gains=gains,
     )
     runs = []
     for track in tracks:
@@ -69,6 +74,7 @@ def run_table(
     noise: tuple[float, float] = (0.05, 0.05),
     samples: int = 20,
     model: str = "kinematic",
+    gains: str = "paper",
     seed: int = 0,
     progress: bool = True,
 ) -> list[dict]:
@@ -77,7 +83,7 @@ def run_table(
     out_dir.mkdir(parents=True, exist_ok=True)
     runs_file = out_dir / "runs.jsonl"
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
-    runs = planned_runs(tracks, noise, samples, model)
+    runs = planned_runs(tracks, noise, samples, model, gains)
     todo = [run for run in runs if run.key not in done]
     env_kwargs = {"max_steps": round(max_seconds * CONTROL_HZ), "control_hz": CONTROL_HZ}
     for run in tqdm(todo, desc="safety table", unit="run", disable=None if progress else True):
@@ -95,13 +101,14 @@ def run_table(
         append_jsonl(runs_file, row)
         done[run.key] = row
     rows = [done[run.key] for run in runs]
-    write_tables(rows, out_dir)
+    write_tables(rows, out_dir, gains)
     plot_reckless_paths(rows, out_dir / "reckless_paths.png")
     return rows
 
 
-def _row_key(row: dict) -> tuple[str, str, str, str]:
-    return (row["agent"], row["task"], row["track_arg"], filter_label(row))
+def _row_key(row: dict) -> tuple[str, str, str, str, str]:
+    gains = row["filter"].get("gains", "paper")
+    return (row["agent"], row["task"], row["track_arg"], filter_label(row), gains)
 
 
 def filter_label(row: dict) -> str:
@@ -189,11 +196,11 @@ EXPERT_COLUMNS = [
 ]
 
 
-def write_tables(rows: list[dict], out_dir: Path) -> None:
+def write_tables(rows: list[dict], out_dir: Path, gains: str) -> None:
     """``safety_table.md`` (both tables) and ``safety_table.csv`` / ``expert_cost.csv``."""
     runs, costs = table_rows(rows), expert_cost_rows(rows)
     text = (
-        "# Safety filter: reckless agents and the expert\n\n"
+        f"# Safety filter ({gains} gains): reckless agents and the expert\n\n"
         + markdown_table(TABLE_COLUMNS, runs)
         + "\n\n## Expert lap-time cost of the filter\n\n"
         + markdown_table(EXPERT_COLUMNS, costs)

@@ -63,9 +63,9 @@ class ReferenceLine:
     """A closed reference line with its speed profile.
 
     Arrays ``s_m ... ax_mps2`` are equally spaced samples along the line's own arc
-    length. ``center_s_m``/``offset_m``/``center_vx_mps`` describe the line as a lateral
-    offset from the centerline at centerline arc length, which is how the tasks ask
-    "where should the car be at this ``s``?".
+    length. ``center_s_m``/``offset_m``/``center_vx_mps``/``center_kappa_radpm`` describe
+    the line as a lateral offset from the centerline at centerline arc length, which is
+    how the tasks ask "where should the car be at this ``s``?".
     """
 
     name: str
@@ -78,6 +78,7 @@ class ReferenceLine:
     center_s_m: np.ndarray
     offset_m: np.ndarray
     center_vx_mps: np.ndarray
+    center_kappa_radpm: np.ndarray
     track_length_m: float
     _centerline: ClosedPath
     _offset: PeriodicInterpolator
@@ -288,6 +289,7 @@ def _reference(
         center_s_m=center_s,
         offset_m=offsets,
         center_vx_mps=center_vx,
+        center_kappa_radpm=np.interp(line_s_of_center, s, kappa, period=path.length_m),
         track_length_m=track.length_m,
         _centerline=track.centerline,
         _offset=PeriodicInterpolator(center_s, offsets, track.length_m),
