@@ -3,7 +3,8 @@
 One command (``saferace safety-table``) runs, on every given track: each reckless agent
 without a filter, with the oracle filter, and with noisy state samples through the
 probabilistic filter and through the deterministic filter on the samples' mean; and the
-MPC expert on both tasks without and with the oracle filter (its lap-time cost). Rows are
+MPC expert on both tasks without and with the oracle filter (its lap-time cost), with the
+filter's gains named by ``gains`` (the paper's or the tuned ones). Rows are
 appended to ``runs.jsonl`` as each run ends and a rerun skips the runs already there, so
 an interrupted table resumes.
 """
