@@ -15,13 +15,13 @@ from saferace.safety.barriers import (
     linearised_constraints,
     relative_degrees,
 )
-from saferace.safety.models import PARAM_NAMES, FrenetModel, symbolic_model
+from saferace.safety.models import FrenetModel, param_values, symbolic_model
 from saferace.safety.vehicle_params import VehicleParams
 
 PARAMS = VehicleParams(
     cf0_npr=20.0, df_nspmr=150.0, cr0_npr=30.0, dr_nspmr=180.0, yaw_inertia_kgm2=0.08
 )
-PARAM_VALUES = tuple(getattr(PARAMS, name) for name in PARAM_NAMES)
+PARAM_VALUES = param_values(PARAMS)
 KAPPA_RADPM = 0.3
 CONTEXT = BarrierContext(
     w_left_m=0.5,

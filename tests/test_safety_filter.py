@@ -20,7 +20,7 @@ from saferace.safety.barriers import (
     linearised_constraints,
 )
 from saferace.safety.filter import GAIN_PRESETS, NominalAction, SafetyFilter
-from saferace.safety.models import PARAM_NAMES, FrenetModel, symbolic_model
+from saferace.safety.models import FrenetModel, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.state_sources import NoisyOracleStateSource
 from saferace.safety.vehicle_params import load_params
@@ -75,7 +75,7 @@ def test_forward_invariance_in_the_pure_model(
     model's tan is linearised at the filtered control itself (three re-linearisations).
     """
     params = load_params()
-    values = tuple(float(getattr(params, name)) for name in PARAM_NAMES)
+    values = param_values(params)
     model = FrenetModel(model_name, params)
     context = BarrierContext(0.5, 0.5, 0.15, np.pi / 4, lam, lateral_decel_mps2)
     # Steering unbounded (for tan: within (-pi/2, pi/2)); the acceleration keeps the car's

@@ -27,10 +27,6 @@ class ConstraintStatistics:
     b_mean: np.ndarray  # (B,)
     covariance: np.ndarray  # (B, 3, 3)
 
-    @property
-    def count(self) -> int:
-        return len(self.b_mean)
-
 
 def confidence_quantile(eta: float) -> float:
     """``Phi^-1(eta)``; ``eta`` in ``[0.5, 1)`` keeps the chance constraint convex."""

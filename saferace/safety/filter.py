@@ -17,7 +17,7 @@ from saferace.safety.barriers import (
     linearised_constraints,
 )
 from saferace.safety.chance import confidence_quantile, constraint_statistics, constraint_std
-from saferace.safety.models import MIN_SPEED_MPS, PARAM_NAMES, symbolic_model
+from saferace.safety.models import MIN_SPEED_MPS, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, solve_filter_qp
 from saferace.safety.speed_limit import braking_speed_limit
 from saferace.safety.state_sources import OracleStateSource, StateSource
@@ -194,7 +194,7 @@ class SafetyFilter(gym.Wrapper):
         self.probabilistic = probabilistic
         params = params or load_params()
         self.wheelbase_m = params.wheelbase_m
-        self.param_values = tuple(float(getattr(params, name)) for name in PARAM_NAMES)
+        self.param_values = param_values(params)
         self.lower = np.asarray(env.action_space.low, dtype=float)
         self.upper = np.asarray(env.action_space.high, dtype=float)
         self.control_dt_s = float(env.unwrapped.control_dt_s)

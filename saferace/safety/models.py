@@ -49,6 +49,11 @@ PARAM_NAMES = (
 )
 
 
+def param_values(params: VehicleParams) -> tuple[float, ...]:
+    """``params`` in the order of ``PARAM_NAMES``: how the lambdified models take them."""
+    return tuple(float(getattr(params, name)) for name in PARAM_NAMES)
+
+
 @dataclass(frozen=True)
 class SymbolicModel:
     """A model's sympy form: state, control, curvature and parameter symbols and ``x_dot``."""
@@ -156,7 +161,7 @@ class FrenetModel:
         self.n_state = len(self.symbolic.state)
         self.n_control = len(self.symbolic.control)
         self.speed_index = self.symbolic.speed_index
-        self._param_values = tuple(float(getattr(params, p)) for p in PARAM_NAMES)
+        self._param_values = param_values(params)
         self._f, self._a, self._b, self._s_dot = _lambdified(name)
 
     def state_from(
