@@ -96,3 +96,12 @@ def test_user_choice_is_respected(variable: str):
         "import saferace.envs, os; print(os.environ['MUJOCO_GL'])", **{variable: "osmesa"}
     )
     assert result.stdout.strip() == "osmesa"
+
+
+@pytest.mark.parametrize("backend", ["egl", "osmesa"])
+def test_learned_driver_can_be_imported_after_rendering(backend: str):
+    """Mesa's LLVM is loaded with the first context; Triton's (CUDA PyTorch) must come first."""
+    code = RENDER_ONE_FRAME + "import torchvision\nprint('imported')\n"
+    result = run_python(code, MUJOCO_GL=backend, PYOPENGL_PLATFORM=None)
+    assert result.returncode == 0, f"exit {result.returncode}: {result.stderr[-2000:]}"
+    assert result.stdout.split()[-1] == "imported"

@@ -6,10 +6,20 @@ subprocess so that a failing backend cannot poison this process, and exports the
 first that renders (child processes, such as vector-env workers, inherit it). When
 neither works, rendering raises :class:`RenderingUnavailableError` saying what to
 install.
+
+Mesa's software renderer (llvmpipe) loads LLVM: OSMesa when ``mujoco`` is imported, EGL
+with the first GL context. Triton, which CUDA builds of PyTorch import (``torch._dynamo``,
+so also ``torchvision``), bundles its own LLVM, whose static initialisers crash the process
+(``llvm::DebugCounter``, a segmentation fault seen under gdb) when Mesa's LLVM is already
+loaded; the other order works. :func:`load_llvm_users_before_mesa` therefore imports Triton
+(0.12 s, without torch), where it is installed, before ``mujoco``, so that the learned
+driver can be imported at any time.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import logging
 import os
 import subprocess
@@ -81,6 +91,25 @@ def configure_gl_backend() -> None:
         return
     os.environ["MUJOCO_GL"] = backend
     os.environ.setdefault("PYOPENGL_PLATFORM", backend)
+
+
+#: Libraries with a bundled LLVM that must be loaded before Mesa's (see the module docstring).
+LLVM_BEFORE_MESA = ("triton",)
+
+
+def load_llvm_users_before_mesa() -> None:
+    """Import the installed :data:`LLVM_BEFORE_MESA` libraries, unless ``mujoco`` came first."""
+    for name in LLVM_BEFORE_MESA:
+        if name in sys.modules or importlib.util.find_spec(name) is None:
+            continue
+        if "mujoco" in sys.modules:
+            logger.warning(
+                "mujoco was imported before saferace.envs: importing PyTorch's %s (torchvision, "
+                "the learned driver) after rendering with Mesa may crash this process",
+                name,
+            )
+            return
+        importlib.import_module(name)
 
 
 def renderer_error(exc: BaseException) -> RenderingUnavailableError:
