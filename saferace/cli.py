@@ -48,8 +48,6 @@ def _parser() -> argparse.ArgumentParser:
     drive = commands.add_parser("drive", help="a driver laps a track; video and Rerun recording")
     _add_episode_arguments(drive, default_agent="pure-pursuit")
     drive.add_argument("--seed", type=int, default=0)
-    drive.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
-    drive.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
     drive.set_defaults(command=_drive)
@@ -74,6 +72,86 @@ def _parser() -> argparse.ArgumentParser:
     )
     evaluate.set_defaults(command=_eval)
 
+    collect = commands.add_parser(
+        "collect", help="record a round of expert-labelled frames while a driver drives"
+    )
+    _add_episode_arguments(collect, default_agent="expert")
+    collect.set_defaults(laps=3)
+    collect.add_argument("--seeds", type=int, nargs="+", default=[0], help="one episode per seed")
+    collect.add_argument(
+        "--perturb",
+        type=float,
+        nargs="+",
+        metavar=("STEER_STD_RAD", "CORRELATION_S"),
+        help="DART-style steering noise on the driver: its std (rad) and correlation time "
+        "(s, default 0.5); the label stays the expert's",
+    )
+    collect.add_argument(
+        "--model",
+        default="dynamic",
+        choices=["kinematic", "dynamic", "dynamic-paper"],
+        help="vehicle model of the labelling expert MPC (and of an expert driver)",
+    )
+    collect.add_argument("--max-seconds", type=float, help="end an episode after this long")
+    collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
+    _add_filter_arguments(collect)
+    collect.set_defaults(command=_collect)
+
+    train = commands.add_parser(
+        "train", help="train the control and state networks on collection rounds"
+    )
+    train.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
+    train.add_argument("--out", type=Path, required=True, help="checkpoint to write (NAME.pt)")
+    train.add_argument(
+        "--stereo", action="store_true", help="insist that the rounds are stereo (6 channels)"
+    )
+    train.add_argument("--epochs", type=int, default=10)
+    train.add_argument("--batch-size", type=int, default=32)
+    train.add_argument("--lr", type=float, default=1e-3, help="Adam's learning rate")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument(
+        "--val-stretch",
+        type=float,
+        nargs=2,
+        default=[0.55, 0.7],
+        metavar=("START", "END"),
+        help="the stretch of the lap held out for validation, as fractions of the lap",
+    )
+    train.add_argument("--dropout", type=float, default=0.2, help="dropout of the heads")
+    train.add_argument("--init", type=Path, help="warm-start from this checkpoint")
+    train.add_argument(
+        "--backbone-weights",
+        type=Path,
+        help="a torchvision ResNet-18 state dict (e.g. ImageNet) to start both backbones from",
+    )
+    train.add_argument("--samples", type=int, default=10, help="MC-dropout samples to score")
+    train.set_defaults(command=_train)
+
+    validate = commands.add_parser(
+        "validate", help="score a checkpoint's networks on rounds (e.g. of an unseen track)"
+    )
+    validate.add_argument("checkpoint", type=Path)
+    validate.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
+    validate.add_argument("--out", type=Path, required=True, help="folder for tables and plots")
+    validate.add_argument("--samples", type=int, default=10, help="MC-dropout samples")
+    validate.set_defaults(command=_validate)
+
+    gradcam = commands.add_parser(
+        "gradcam", help="GradCAM heat maps of every network output on frames of a track"
+    )
+    gradcam.add_argument("checkpoint", type=Path)
+    gradcam.add_argument("--track", default="lab", help="built-in track name or track CSV path")
+    gradcam.add_argument("--task", default="CenterLine", choices=TASKS)
+    gradcam.add_argument("--frames", type=int, default=6, help="frames spread over one lap")
+    gradcam.add_argument(
+        "--layer",
+        default="layer2",
+        choices=["layer1", "layer2", "layer3", "layer4"],
+        help="the ResNet stage whose activations GradCAM weighs (finer: earlier)",
+    )
+    gradcam.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
+    gradcam.set_defaults(command=_gradcam)
+
     table = commands.add_parser(
         "safety-table",
         help="reckless agents and the expert with and without the safety filter, as a table",
@@ -95,6 +173,14 @@ def _parser() -> argparse.ArgumentParser:
     )
     table.add_argument("--samples", type=int, default=20)
     table.add_argument("--filter-model", default="kinematic", choices=FILTER_MODELS)
+    table.add_argument(
+        "--state-source",
+        metavar="learned:CKPT",
+        help="also run the reckless agents through the filter fed this state network",
+    )
+    table.add_argument(
+        "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of the network"
+    )
     _add_gains_argument(table)
     table.set_defaults(command=_safety_table)
 
@@ -135,6 +221,8 @@ def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) 
         help="expert, pure-pursuit, drift, weave, speeding or MODULE:FACTORY",
     )
     parser.add_argument("--laps", type=int, default=1)
+    parser.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
+    parser.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
 
 
 FILTER_MODELS = ("kinematic", "dynamic", "dynamic-paper")
@@ -155,7 +243,19 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
         metavar=("E_Y_M", "E_PSI_RAD"),
         help="the filter sees noisy state samples with these standard deviations",
     )
-    parser.add_argument("--samples", type=int, default=20, help="state samples per step")
+    parser.add_argument(
+        "--state-source",
+        default="oracle",
+        metavar="oracle|noisy|learned:CKPT",
+        help="what feeds the filter the lane state: the truth, noisy truth (--state-noise, "
+        "default 0.05 0.05), or a checkpoint's state network (the perceived state)",
+    )
+    parser.add_argument(
+        "--samples",
+        type=int,
+        help="state samples per step (default 20 for noisy state), MC-dropout samples of the "
+        "networks (default 10)",
+    )
     parser.add_argument(
         "--deterministic",
         action="store_true",
@@ -173,22 +273,42 @@ def _add_gains_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+DEFAULT_STATE_NOISE = (0.05, 0.05)
+NOISY_SAMPLES, MC_SAMPLES = 20, 10
+
+
 def _filter_config(args: argparse.Namespace):
     from saferace.eval.filters import FilterConfig
 
-    if args.samples < 2:
-        raise SafeRaceError(f"--samples must be at least 2, got {args.samples}")
-    if args.state_noise is not None and min(args.state_noise) < 0:
-        raise SafeRaceError(f"--state-noise must not be negative, got {args.state_noise}")
-    if args.filter == "none" and (args.state_noise is not None or args.deterministic):
-        raise SafeRaceError("--state-noise and --deterministic need --filter cbf")
+    source = args.state_source
+    learned = source.startswith("learned:")
+    if source not in ("oracle", "noisy") and not learned:
+        raise SafeRaceError(
+            f"unknown --state-source {source!r}: use oracle, noisy or learned:CHECKPOINT"
+        )
+    noise = args.state_noise
+    if source == "noisy" and noise is None:
+        noise = DEFAULT_STATE_NOISE
+    if learned and noise is not None:
+        raise SafeRaceError("--state-noise is for the noisy oracle, not a learned state source")
+    noisy = noise is not None
+    samples = args.samples if args.samples is not None else (NOISY_SAMPLES if noisy else MC_SAMPLES)
+    if noisy and samples < 2:
+        raise SafeRaceError(f"--samples must be at least 2 for noisy state, got {samples}")
+    if samples < 1:
+        raise SafeRaceError(f"--samples must be at least 1, got {samples}")
+    if noisy and min(noise) < 0:
+        raise SafeRaceError(f"--state-noise must not be negative, got {noise}")
+    if args.filter == "none" and (noisy or args.deterministic or source != "oracle"):
+        raise SafeRaceError("--state-source, --state-noise and --deterministic need --filter cbf")
     return FilterConfig(
         kind=args.filter,
         model=args.filter_model,
-        state_noise=None if args.state_noise is None else tuple(args.state_noise),
-        samples=args.samples,
+        state_noise=None if noise is None else tuple(noise),
+        samples=samples,
         probabilistic=not args.deterministic,
         gains=args.filter_gains,
+        state_source=source if learned else None,
     )
 
 
@@ -269,14 +389,10 @@ def _drive(args: argparse.Namespace) -> int:
 
 def _eval(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
-    from saferace.eval.runner import evaluate
+    from saferace.eval.runner import evaluate, max_steps_for
 
     _check_laps(args.laps)
-    env_kwargs = {}
-    if args.max_seconds is not None:
-        if args.max_seconds <= 0:
-            raise SafeRaceError(f"--max-seconds must be positive, got {args.max_seconds}")
-        env_kwargs["max_steps"] = round(args.max_seconds * 20.0)
+    safety = _filter_config(args)
     rows = evaluate(
         args.agent,
         args.task,
@@ -285,8 +401,13 @@ def _eval(args: argparse.Namespace) -> int:
         laps=args.laps,
         model=args.model,
         out=args.out,
-        env_kwargs=env_kwargs,
-        safety=_filter_config(args),
+        env_kwargs={
+            "max_steps": max_steps_for(args.max_seconds),
+            "image_size": (args.image_size, args.image_size),
+            "stereo": args.stereo,
+        },
+        safety=safety,
+        mc_samples=args.samples or MC_SAMPLES,
     )
     print(leaderboard_markdown(rows))
     print(f"{len(rows)} rows appended to {args.out}")
@@ -306,6 +427,10 @@ def _safety_table(args: argparse.Namespace) -> int:
         path = args.out / "tracks" / f"random_{seed}.csv"
         write_random_track(path, seed, RANDOM_TRACK_RADIUS_M)
         tracks.append(str(path))
+    if args.state_source is not None and not args.state_source.startswith("learned:"):
+        raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
+    if args.mc_samples < 1:
+        raise SafeRaceError(f"--mc-samples must be at least 1, got {args.mc_samples}")
     run_table(
         tracks,
         args.out,
@@ -315,10 +440,93 @@ def _safety_table(args: argparse.Namespace) -> int:
         samples=args.samples,
         model=args.filter_model,
         gains=args.filter_gains,
+        state_source=args.state_source,
+        mc_samples=args.mc_samples,
     )
     print((args.out / "safety_table.md").read_text())
     print(f"tables, runs and reckless_paths.png written to {args.out}")
     return 0
+
+
+def _collect(args: argparse.Namespace) -> int:
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.learning.collect import CollectionConfig, Perturbation, collect_round
+
+    _check_laps(args.laps)
+    perturbation = Perturbation()
+    if args.perturb:
+        if len(args.perturb) > 2:
+            raise SafeRaceError("--perturb takes STEER_STD_RAD and optionally CORRELATION_S")
+        perturbation = Perturbation(*args.perturb)
+    config = CollectionConfig(
+        agent=args.agent,
+        task=args.task,
+        track=args.track,
+        seeds=tuple(args.seeds),
+        laps=args.laps,
+        max_seconds=args.max_seconds,
+        perturbation=perturbation,
+        safety=_filter_config(args),
+        expert_model=args.model,
+        image_size=(args.image_size, args.image_size),
+        stereo=args.stereo,
+        mc_samples=args.samples or MC_SAMPLES,
+    )
+    collected = collect_round(args.out, config)
+    rows = [
+        {"agent": args.agent, "task": args.task, "track": Path(args.track).stem, "summary": s}
+        for s in collected.episodes
+    ]
+    print(leaderboard_markdown(rows))
+    print(f"round of {collected.frame_count} frames written to {collected.path}")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from saferace.learning.commands import train_and_report
+    from saferace.learning.training import TrainConfig
+
+    config = TrainConfig(
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        learning_rate=args.lr,
+        seed=args.seed,
+        val_stretch=tuple(args.val_stretch),
+        dropout=args.dropout,
+        init=None if args.init is None else str(args.init),
+        backbone_weights=None if args.backbone_weights is None else str(args.backbone_weights),
+    )
+    report = train_and_report(args.data, args.out, config, args.samples, args.stereo)
+    _print_report(report)
+    return 0
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from saferace.learning.commands import validate_checkpoint
+
+    _print_report(validate_checkpoint(args.checkpoint, args.data, args.out, args.samples))
+    return 0
+
+
+def _gradcam(args: argparse.Namespace) -> int:
+    from saferace.learning.commands import gradcam_report
+
+    if args.frames < 1:
+        raise SafeRaceError(f"--frames must be at least 1, got {args.frames}")
+    report = gradcam_report(
+        args.checkpoint, args.track, args.out, args.task, args.frames, args.layer
+    )
+    _print_report(report)
+    return 0
+
+
+def _print_report(report) -> None:
+    from saferace.learning.validation import validation_markdown
+
+    if report.rows:
+        print(validation_markdown(report.rows))
+    for path in report.files:
+        print(f"written: {path}")
 
 
 def _leaderboard(args: argparse.Namespace) -> int:

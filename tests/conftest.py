@@ -19,3 +19,30 @@ def builtin_track(request: pytest.FixtureRequest) -> Track:
 def unseen_track_csv(request: pytest.FixtureRequest, tmp_path: Path) -> Path:
     """A CSV track the repository has never seen, clockwise for one seed."""
     return write_random_track(tmp_path / f"unseen_{request.param}.csv", request.param)
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
+    """A checkpoint trained for one epoch on 3 s of expert driving on ``lab``, mono and stereo.
+
+    ``tiny_checkpoint(stereo)`` gives ``(checkpoint path, data folder)``; nothing in it
+    drives well, but every part of the learned driver runs on it.
+    """
+    from saferace.learning.collect import CollectionConfig, collect_round
+    from saferace.learning.commands import train_and_report
+    from saferace.learning.training import TrainConfig
+
+    made: dict[bool, tuple[Path, Path]] = {}
+
+    def make(stereo: bool = False) -> tuple[Path, Path]:
+        if stereo not in made:
+            folder = tmp_path_factory.mktemp("stereo" if stereo else "mono")
+            config = CollectionConfig(track="lab", laps=1, max_seconds=3.0, stereo=stereo)
+            collect_round(folder / "data", config, progress=False)
+            checkpoint = folder / "tiny.pt"
+            settings = TrainConfig(epochs=1, val_stretch=(0.05, 0.08))
+            train_and_report([folder / "data"], checkpoint, settings, mc_samples=3, progress=False)
+            made[stereo] = checkpoint, folder / "data"
+        return made[stereo]
+
+    return make

@@ -44,6 +44,25 @@ def test_table_command_writes_tables_and_resumes(tmp_path: Path):
     assert second.returncode == 0 and len(read_jsonl(out / "runs.jsonl")) == len(rows)
 
 
+def test_table_adds_the_perceived_state_runs(tiny_checkpoint, tmp_path: Path):
+    source = f"learned:{tiny_checkpoint()[0]}"
+    rows = run_table(
+        ["lab"], tmp_path, laps=1, max_seconds=1.0, progress=False, state_source=source,
+        mc_samples=3,
+    )  # fmt: skip
+    learned = [row for row in rows if row["filter"]["state_source"] == source]
+    assert len(learned) == 2 * len(RECKLESS_TASKS)  # probabilistic and on the mean
+    assert {filter_label(row) for row in learned} == {"learned-prob", "learned-det"}
+    assert all(row["state_source"]["mc_samples"] == 3 for row in learned)
+    table = (tmp_path / "safety_table.md").read_text()
+    assert table.count("learned-prob") == len(RECKLESS_TASKS)
+    again = run_table(
+        ["lab"], tmp_path, laps=1, max_seconds=1.0, progress=False, state_source=source,
+        mc_samples=3,
+    )  # fmt: skip
+    assert len(again) == len(rows) == len(read_jsonl(tmp_path / "runs.jsonl"))  # resumed
+
+
 def test_table_command_refuses_bad_arguments(tmp_path: Path):
     result = run_cli("safety-table", "--samples", "1", "--out", str(tmp_path))
     assert result.returncode == 2 and "samples" in result.stderr

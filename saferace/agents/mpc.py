@@ -12,7 +12,10 @@ References (lateral offset, heading and speed of the task's reference line) and 
 bounds are looked up at the arc length the plan predicts for each stage. The QP is built
 once; every step only its vectors and the values of the dynamics blocks change, with
 the sparsity pattern fixed (OSQP cannot take new non-zeros), and it is warm-started.
-The expert drives from the ground truth in ``info``; steering lag is not modelled.
+The expert drives from the ground truth in ``info``; steering lag is not modelled. Its
+steering-rate limit and penalty start from the steering the car has (``info["steer_rad"]``),
+whoever chose it: the expert's own last command, or a filter's, a perturbation's or another
+driver's when it only labels the frames (:mod:`saferace.learning.collect`).
 """
 
 from __future__ import annotations
@@ -30,6 +33,11 @@ from saferace.safety.models import FrenetModel
 from saferace.safety.vehicle_params import VehicleParams, load_params
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import ReferenceLine
+
+#: The expert's target-speed label: its plan's speed this far ahead (s). A speed loop with
+#: ``kp = 1 / lookahead`` tracking it asks for the plan's mean acceleration over that time
+#: (:class:`saferace.agents.pid.PIDGains`).
+TARGET_SPEED_LOOKAHEAD_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -105,11 +113,23 @@ class MPCExpert:
         x0 = self.state_from_info(info)
         if info.get("time_s", 0.0) == 0.0 or self._plan_x is None:
             self.reset()
-            self._previous_u = np.array([info.get("steer_rad", 0.0), 0.0])
+        self._previous_u[0] = info.get("steer_rad", self._previous_u[0])
         u = self._solve(x0, info["s_m"])
         self._previous_u = u
+        self._x0 = x0
         self.stats.step_times_s.append(time.perf_counter() - start)
         return np.array([u[0], self._accel_command(u[1], info["v_x_mps"])], dtype=np.float32)
+
+    def planned_speed_mps(self, lookahead_s: float = TARGET_SPEED_LOOKAHEAD_S) -> float:
+        """The speed the last plan reaches ``lookahead_s`` ahead (call after :meth:`act`).
+
+        After a failed solve (no plan) it is the speed the applied acceleration reaches.
+        """
+        step = min(max(round(lookahead_s / self.settings.dt_s), 1), self.settings.horizon)
+        index = self.model.speed_index
+        if self._plan_x is None:
+            return float(self._x0[index] + self._previous_u[1] * step * self.settings.dt_s)
+        return float(self._plan_x[step, index])
 
     def state_from_info(self, info: dict[str, Any]) -> np.ndarray:
         """The model's state from the env's ground truth."""

@@ -28,6 +28,7 @@ from saferace.track.raceline import ReferenceLine, center_line, racing_line
 
 #: Bounds of ``[v_x, v_y, r]`` (m/s, m/s, rad/s): far beyond the car's 7 m/s, but finite.
 VELOCITY_BOUND = np.array([30.0, 30.0, 100.0], np.float32)
+DEFAULT_CONTROL_HZ = 20.0
 CAR_GEOM_GROUP = 2  # the car's own visual geoms: hidden from the onboard cameras
 _STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
 _SENSORS_OFF = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
@@ -121,7 +122,7 @@ class RacingEnv(gym.Env):
         track: str | Track = "technical",
         image_size: tuple[int, int] = (64, 64),
         stereo: bool = False,
-        control_hz: float = 20.0,
+        control_hz: float = DEFAULT_CONTROL_HZ,
         physics_dt_s: float = 0.005,
         max_laps: int = 1,
         max_steps: int | None = None,

@@ -12,6 +12,9 @@ from saferace.errors import SafeRaceError
 
 RECKLESS_AGENT_NAMES = ("drift", "weave", "speeding")
 BUILTIN_AGENTS = ("expert", "pure-pursuit", *RECKLESS_AGENT_NAMES)
+#: Agents of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use (like
+#: gymnasium's entry points), ``FACTORY(env, ARGUMENT, mc_samples=N)``.
+AGENT_KINDS = {"learned": "saferace.learning.agent:learned_agent"}
 
 
 class Agent(Protocol):
@@ -20,9 +23,10 @@ class Agent(Protocol):
     def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray: ...
 
 
-def make_agent(spec: str, env, model: str = "dynamic") -> Agent | Callable:
-    """``expert`` (MPC), ``pure-pursuit``, a reckless test agent (``drift``, ``weave``,
-    ``speeding``), or ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
+def make_agent(spec: str, env, model: str = "dynamic", mc_samples: int = 10) -> Agent | Callable:
+    """``expert`` (MPC on ``model``), ``pure-pursuit``, a reckless test agent (``drift``,
+    ``weave``, ``speeding``), ``learned:CHECKPOINT`` (the control network, ``mc_samples``
+    MC-dropout samples per step), or ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
     if spec == "expert":
         from saferace.agents.mpc import MPCExpert
 
@@ -37,13 +41,22 @@ def make_agent(spec: str, env, model: str = "dynamic") -> Agent | Callable:
         return RECKLESS_AGENTS[spec].for_env(env)
     if ":" not in spec:
         names = ", ".join(BUILTIN_AGENTS)
-        raise SafeRaceError(f"unknown agent {spec!r}: use {names} or MODULE:FACTORY")
-    module_name, factory_name = spec.split(":", 1)
+        raise SafeRaceError(
+            f"unknown agent {spec!r}: use {names}, learned:CHECKPOINT or MODULE:FACTORY"
+        )
+    kind, argument = spec.split(":", 1)
+    if kind in AGENT_KINDS:
+        return load_entry_point(AGENT_KINDS[kind])(env, argument, mc_samples=mc_samples)
+    return load_entry_point(spec)(env)
+
+
+def load_entry_point(path: str) -> Callable:
+    """The object named by ``MODULE:NAME``."""
+    module_name, _, name = path.partition(":")
     try:
-        factory = getattr(importlib.import_module(module_name), factory_name)
+        return getattr(importlib.import_module(module_name), name)
     except (ImportError, AttributeError) as exc:
-        raise SafeRaceError(f"cannot load agent factory {spec!r}: {exc}") from None
-    return factory(env)
+        raise SafeRaceError(f"cannot load {path!r}: {exc}") from None
 
 
 def act(

@@ -6,20 +6,25 @@ from dataclasses import asdict, dataclass
 
 import gymnasium as gym
 
+from saferace.eval.agents import load_entry_point
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.state_sources import NoisyOracleStateSource, OracleStateSource
 
 FILTER_KINDS = ("none", "cbf")
+#: State sources of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use,
+#: ``FACTORY(ARGUMENT, n_samples=N, seed=S)`` (the state network: ``learned:CHECKPOINT``).
+STATE_SOURCE_KINDS = {"learned": "saferace.learning.agent:learned_state_source"}
 
 
 @dataclass(frozen=True)
 class FilterConfig:
     """Which filter wraps the agent and what state it sees.
 
-    ``state_noise`` ``(e_y_m, e_psi_rad)`` standard deviations make the state source a
-    noisy oracle with ``samples`` samples; ``probabilistic=False`` then filters
-    deterministically on the samples' mean. ``gains`` names an entry of
-    :data:`~saferace.safety.filter.GAIN_PRESETS`.
+    The state source is the oracle unless ``state_noise`` ``(e_y_m, e_psi_rad)`` standard
+    deviations make it a noisy oracle with ``samples`` samples, or ``state_source`` names a
+    learned one (``learned:CHECKPOINT``: the state network's ``samples`` MC-dropout samples,
+    the perceived state); ``probabilistic=False`` filters deterministically on the samples'
+    mean. ``gains`` names an entry of :data:`~saferace.safety.filter.GAIN_PRESETS`.
     """
 
     kind: str = "none"
@@ -29,6 +34,7 @@ class FilterConfig:
     probabilistic: bool = True
     eta: float = 0.95
     gains: str = "paper"
+    state_source: str | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in FILTER_KINDS:
@@ -37,15 +43,26 @@ class FilterConfig:
             raise ValueError(f"unknown gains {self.gains!r}: use one of {', '.join(GAIN_PRESETS)}")
         if self.state_noise is not None and len(self.state_noise) != 2:
             raise ValueError(f"state_noise is (e_y_m, e_psi_rad), got {self.state_noise}")
+        if self.state_source is not None:
+            kind = self.state_source.split(":", 1)[0]
+            if kind not in STATE_SOURCE_KINDS or ":" not in self.state_source:
+                raise ValueError(
+                    f"unknown state source {self.state_source!r}: use oracle, noisy or "
+                    "learned:CHECKPOINT"
+                )
+            if self.state_noise is not None:
+                raise ValueError("a learned state source takes no state_noise")
 
     @property
     def label(self) -> str:
-        """Short name for tables: ``none``, ``oracle``, ``noisy-prob`` or ``noisy-det``."""
+        """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
+        ``learned-prob`` or ``learned-det``."""
         if self.kind == "none":
             return "none"
-        if self.state_noise is None:
+        if self.state_source is None and self.state_noise is None:
             return "oracle"
-        return "noisy-prob" if self.probabilistic else "noisy-det"
+        source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
+        return f"{source}-{'prob' if self.probabilistic else 'det'}"
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -55,7 +72,11 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
     """``env`` wrapped as ``config`` says (unchanged for ``kind="none"``)."""
     if config.kind == "none":
         return env
-    if config.state_noise is None:
+    if config.state_source is not None:
+        kind, argument = config.state_source.split(":", 1)
+        factory = load_entry_point(STATE_SOURCE_KINDS[kind])
+        source = factory(argument, n_samples=config.samples, seed=seed)
+    elif config.state_noise is None:
         source = OracleStateSource()
     else:
         e_y_std, e_psi_std = config.state_noise

@@ -16,6 +16,8 @@ import numpy as np
 from tqdm import tqdm
 
 import saferace
+from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
+from saferace.errors import SafeRaceError
 from saferace.eval.agents import act, make_agent
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.eval.metrics import (
@@ -29,7 +31,7 @@ from saferace.eval.metrics import (
 from saferace.safety.filter import SafetyFilter, nominal_parts
 
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
-RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch")
+RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch", "torchvision")
 
 
 @dataclass
@@ -54,6 +56,15 @@ def task_id(task: str) -> str:
     if task not in TASK_IDS:
         raise ValueError(f"unknown task {task!r}: use one of {', '.join(TASK_IDS)}")
     return TASK_IDS[task]
+
+
+def max_steps_for(seconds: float | None, control_hz: float = DEFAULT_CONTROL_HZ) -> int | None:
+    """The step limit of an episode of ``seconds`` simulated time (None: the task's own)."""
+    if seconds is None:
+        return None
+    if seconds <= 0:
+        raise SafeRaceError(f"an episode's time limit must be positive, got {seconds} s")
+    return round(seconds * control_hz)
 
 
 def run_episode(
@@ -126,11 +137,13 @@ def evaluate(
     progress: bool = True,
     env_kwargs: dict[str, Any] | None = None,
     safety: FilterConfig | None = None,
+    mc_samples: int = 10,
 ) -> list[dict]:
     """One JSON row per seed: metrics, trajectory, configuration, versions; appended to ``out``.
 
     ``safety`` wraps the agent in a safety filter. Rows are written as each episode ends,
-    so an interrupted run keeps what it finished.
+    so an interrupted run keeps what it finished. A learned agent or state source is
+    recorded by its checkpoint (``agent_checkpoint``, ``state_source``).
     """
     safety = safety or FilterConfig()
     rows = []
@@ -138,12 +151,18 @@ def evaluate(
         env = gym.make(task_id(task), track=track, max_laps=laps, **(env_kwargs or {}))
         env = apply_filter(env, safety, seed)
         try:
-            agent = make_agent(agent_spec, env, model=model)
+            agent = make_agent(agent_spec, env, model=model, mc_samples=mc_samples)
             result = run_episode(env, agent, seed=seed, progress=progress)
             row = result_row(
                 agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result
             )
             row["filter"] = safety.as_dict()
+            row["config"]["env"] = env_kwargs or {}
+            if hasattr(agent, "describe"):
+                row["agent_checkpoint"] = agent.describe()
+            source = getattr(env, "state_source", None)
+            if hasattr(source, "describe"):
+                row["state_source"] = source.describe()
             if hasattr(agent, "stats"):
                 row["solver"] = solver_summary(agent.stats)
             if "solve_time_s" in result.steps:

@@ -12,13 +12,13 @@ an interrupted table resumes.
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
 from saferace.eval.filters import FilterConfig
-from saferace.eval.runner import append_jsonl, evaluate, read_jsonl
+from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
@@ -38,28 +38,32 @@ class Run:
     safety: FilterConfig
 
     @property
-    def key(self) -> tuple[str, str, str, str, str]:
-        return (self.agent, self.task, self.track, self.safety.label, self.safety.gains)
+    def key(self) -> tuple[str | None, ...]:
+        safety = self.safety
+        return (self.agent, self.task, self.track, safety.label, safety.gains, safety.state_source)
 
 
 def planned_runs(
-    tracks: list[str], noise: tuple[float, float], samples: int, model: str, gains: str
+    tracks: list[str],
+    noise: tuple[float, float],
+    samples: int,
+    model: str,
+    gains: str,
+    state_source: str | None = None,
+    mc_samples: int = 10,
 ) -> list[Run]:
-    """Every run of the table, in order."""
+    """Every run of the table, in order; ``state_source`` (``learned:CHECKPOINT``) adds the
+    reckless agents through the filter fed that source's samples, probabilistic and not."""
     oracle = FilterConfig(kind="cbf", model=model, gains=gains)
     noisy = FilterConfig(kind="cbf", model=model, state_noise=noise, samples=samples, gains=gains)
-    noisy_det = FilterConfig(
-        kind="cbf",
-        model=model,
-        state_noise=noise,
-        samples=samples,
-        probabilistic=False,
-        gains=gains,
-    )
+    reckless_filters = [FilterConfig(), oracle, noisy, replace(noisy, probabilistic=False)]
+    if state_source is not None:
+        learned = replace(oracle, state_source=state_source, samples=mc_samples)
+        reckless_filters += [learned, replace(learned, probabilistic=False)]
     runs = []
     for track in tracks:
         for agent, task in RECKLESS_TASKS.items():
-            for safety in (FilterConfig(), oracle, noisy, noisy_det):
+            for safety in reckless_filters:
                 runs.append(Run(agent, task, track, safety))
         for task in ("CenterLine", "RacingLine"):
             for safety in (FilterConfig(), oracle):
@@ -78,15 +82,17 @@ def run_table(
     gains: str = "paper",
     seed: int = 0,
     progress: bool = True,
+    state_source: str | None = None,
+    mc_samples: int = 10,
 ) -> list[dict]:
     """Run what is not in ``out_dir/runs.jsonl`` yet; write the tables; return all rows."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     runs_file = out_dir / "runs.jsonl"
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
-    runs = planned_runs(tracks, noise, samples, model, gains)
+    runs = planned_runs(tracks, noise, samples, model, gains, state_source, mc_samples)
     todo = [run for run in runs if run.key not in done]
-    env_kwargs = {"max_steps": round(max_seconds * CONTROL_HZ), "control_hz": CONTROL_HZ}
+    env_kwargs = {"max_steps": max_steps_for(max_seconds, CONTROL_HZ), "control_hz": CONTROL_HZ}
     for run in tqdm(todo, desc="safety table", unit="run", disable=None if progress else True):
         (row,) = evaluate(
             run.agent,
@@ -107,17 +113,29 @@ def run_table(
     return rows
 
 
-def _row_key(row: dict) -> tuple[str, str, str, str, str]:
-    gains = row["filter"].get("gains", "paper")
-    return (row["agent"], row["task"], row["track_arg"], filter_label(row), gains)
+def _row_key(row: dict) -> tuple[str | None, ...]:
+    safety = row_filter(row)
+    return (
+        row["agent"],
+        row["task"],
+        row["track_arg"],
+        safety.label,
+        safety.gains,
+        safety.state_source,
+    )
+
+
+def row_filter(row: dict) -> FilterConfig:
+    """The :class:`FilterConfig` of a result row."""
+    config = dict(row["filter"])
+    if config.get("state_noise") is not None:
+        config["state_noise"] = tuple(config["state_noise"])
+    return FilterConfig(**config)
 
 
 def filter_label(row: dict) -> str:
     """The :attr:`FilterConfig.label` of a result row."""
-    config = dict(row["filter"])
-    if config.get("state_noise") is not None:
-        config["state_noise"] = tuple(config["state_noise"])
-    return FilterConfig(**config).label
+    return row_filter(row).label
 
 
 TABLE_COLUMNS = [
@@ -223,6 +241,8 @@ FILTER_STYLES = {
     "oracle": ("tab:green", "filter, true state"),
     "noisy-prob": ("tab:blue", "probabilistic filter, noisy state"),
     "noisy-det": ("tab:orange", "deterministic filter, noisy mean"),
+    "learned-prob": ("tab:purple", "probabilistic filter, perceived state"),
+    "learned-det": ("tab:brown", "deterministic filter, perceived mean"),
 }
 
 
@@ -259,7 +279,9 @@ def plot_reckless_paths(rows: list[dict], path: Path) -> None:
             ax.set_aspect("equal")
             ax.set_axis_off()
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    figure.legend(handles, labels, loc="upper center", ncol=4)
-    figure.tight_layout(rect=(0, 0, 1, 0.97))
+    columns = min(len(labels), 3)
+    figure.legend(handles, labels, loc="upper center", ncol=columns)
+    legend_rows = -(-len(labels) // columns)
+    figure.tight_layout(rect=(0, 0, 1, 1.0 - 0.04 * legend_rows / len(tracks)))
     figure.savefig(path, dpi=90)
     plt.close(figure)

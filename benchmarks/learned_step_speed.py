@@ -1,0 +1,163 @@
+"""One control step of the learned driver beside the expert's, and what each speed lever buys.
+
+A learned step: render, the control network and the state network with ``n = 10`` MC-dropout
+samples each, the PID speed loop, and the filter's QP on the perceived state
+(:class:`~saferace.safety.filter.SafetyFilter` fed by
+:class:`~saferace.learning.agent.LearnedStateSource`), then physics. The baseline, measured
+in the same run: the expert MPC's step on ground truth (render, MPC, physics). Networks
+have random weights (the time does not depend on them). Target: at least 50 learned steps/s
+at 64x64 mono on 2 cores. The next tables time the control network's inference alone, from
+the naive way (the whole network once per MC sample, NCHW, autograd on) adding one lever at
+a time: one backbone pass with the head sampled in one batch, inference mode, channels-last;
+and the same on one thread.
+
+    python benchmarks/learned_step_speed.py [--steps N] [--track NAME]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+import saferace  # noqa: F401  - registers the tasks
+from saferace.agents.mpc import MPCExpert
+from saferace.agents.pid import PIDSpeedController
+from saferace.eval.agents import act
+from saferace.eval.tables import markdown_table
+from saferace.learning.agent import LearnedAgent, LearnedStateSource
+from saferace.learning.networks import DrivingNetwork, control_config, state_config
+from saferace.safety.filter import SafetyFilter
+
+TARGET_STEPS_PER_S = 50.0
+MC_SAMPLES = 10
+
+
+def networks(stereo: bool) -> tuple[DrivingNetwork, DrivingNetwork]:
+    torch.manual_seed(0)
+    made = []
+    for config in (control_config(stereo), state_config(stereo)):
+        made.append(DrivingNetwork(config).eval().to(memory_format=torch.channels_last))
+    return made[0], made[1]
+
+
+def step_times_ms(env: gym.Env, agent, steps: int) -> np.ndarray:
+    """Wall time of ``agent.act`` + ``env.step`` per step; a new episode when one ends."""
+    observation, info = env.reset(seed=0)
+    times = []
+    for _ in range(steps):
+        started = time.perf_counter()
+        observation, _, terminated, truncated, info = env.step(act(agent, observation, info))
+        times.append(time.perf_counter() - started)
+        if terminated or truncated:
+            observation, info = env.reset(seed=0)
+            agent.reset()
+    return np.array(times[10:]) * 1e3  # without the first steps' warm-up
+
+
+def learned_env(track: str, stereo: bool) -> tuple[gym.Env, LearnedAgent]:
+    control, state = networks(stereo)
+    env = gym.make("saferace/CenterLine-v0", track=track, stereo=stereo, max_laps=100)
+    env = SafetyFilter(env, state_source=LearnedStateSource(state, MC_SAMPLES, seed=0))
+    agent = LearnedAgent(control, PIDSpeedController(env.unwrapped.control_dt_s), MC_SAMPLES)
+    return env, agent
+
+
+def median_ms(run, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - started)
+    return float(np.median(times) * 1e3)
+
+
+def lever_times_ms(network: DrivingNetwork, image: np.ndarray, velocity: np.ndarray) -> list:
+    """One frame with ``MC_SAMPLES`` samples, each lever added to the one before."""
+    nchw = DrivingNetwork(network.config)  # weights in NCHW memory
+    nchw.load_state_dict(network.state_dict())
+    nchw.eval()
+    nchw_image = torch.from_numpy(image[None]).permute(0, 3, 1, 2).contiguous().permute(0, 2, 3, 1)
+    nhwc_image = torch.from_numpy(image[None])
+    v = torch.from_numpy(velocity[None]) if network.config.uses_velocity else None
+
+    def whole_network_per_sample() -> None:
+        for _ in range(MC_SAMPLES):
+            nchw.head(nchw.features(nchw_image), v, sample=True)
+
+    def shared_backbone(model: DrivingNetwork, images: torch.Tensor) -> None:
+        features = model.features(images).repeat_interleave(MC_SAMPLES, 0)
+        model.head(features, None if v is None else v.repeat_interleave(MC_SAMPLES, 0), True)
+
+    def in_inference_mode(model: DrivingNetwork, images: torch.Tensor) -> None:
+        with torch.inference_mode():
+            shared_backbone(model, images)
+
+    levers = [
+        ("whole network per sample, NCHW, autograd on", whole_network_per_sample),
+        (
+            "+ one backbone pass, head sampled in one batch",
+            lambda: shared_backbone(nchw, nchw_image),
+        ),
+        ("+ inference mode", lambda: in_inference_mode(nchw, nchw_image)),
+        ("+ channels-last (what predict() does)", lambda: in_inference_mode(network, nhwc_image)),
+    ]
+    return [(label, median_ms(run, 30)) for label, run in levers]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--track", default="lab")
+    args = parser.parse_args()
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+
+    expert_env = gym.make("saferace/CenterLine-v0", track=args.track, max_laps=100)
+    expert = MPCExpert.for_env(expert_env)
+    rows = [["expert MPC, ground truth (baseline)", step_times_ms(expert_env, expert, args.steps)]]
+    expert_env.close()
+    for stereo in (False, True):
+        env, agent = learned_env(args.track, stereo)
+        camera = "stereo 64x64x6" if stereo else "mono 64x64x3"
+        rows.append(
+            [f"learned, {camera}, perceived-state filter", step_times_ms(env, agent, args.steps)]
+        )
+        env.close()
+    baseline = np.median(rows[0][1])
+    table = []
+    for label, times in rows:
+        median = np.median(times)
+        table.append([label, median, np.percentile(times, 95), 1e3 / median, median / baseline])
+    print(markdown_table(["step", "median [ms]", "p95 [ms]", "steps/s", "x expert's time"], table))
+    mono_rate = table[1][3]
+    verdict = "meets" if mono_rate >= TARGET_STEPS_PER_S else "misses"
+    print(f"\nmono: {mono_rate:.0f} steps/s, {verdict} the target of {TARGET_STEPS_PER_S:.0f}\n")
+
+    velocity = np.array([3.0, 0.0, 0.5], np.float32)
+    for stereo in (False, True):
+        image = np.random.default_rng(0).integers(0, 256, (64, 64, 6 if stereo else 3), np.uint8)
+        control, _ = networks(stereo)
+        levers = lever_times_ms(control, image, velocity)
+        levers.append(one_thread_ms(control, image, velocity))
+        camera = "stereo 64x64x6" if stereo else "mono 64x64x3"
+        print(f"control network, one {camera} frame, {MC_SAMPLES} MC samples:")
+        first = levers[0][1]
+        lines = [[label, ms, first / ms] for label, ms in levers]
+        print(markdown_table(["lever", "median [ms]", "speed-up"], lines) + "\n")
+
+
+def one_thread_ms(network: DrivingNetwork, image: np.ndarray, velocity: np.ndarray) -> tuple:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        single = median_ms(lambda: network.predict(image, velocity, MC_SAMPLES), 30)
+    finally:
+        torch.set_num_threads(threads)
+    return f"(the same on 1 thread instead of {threads})", single
+
+
+if __name__ == "__main__":
+    main()

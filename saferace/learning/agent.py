@@ -1,0 +1,134 @@
+"""The learned driver and the perceived state: both networks plugged into the suite.
+
+:class:`LearnedAgent` drives from the observation alone (image and velocities; it never
+reads ``info``): the control network's MC-dropout mean steering and target speed, the
+target speed through the PID speed loop to ``accel_mps2``, handed to a safety filter as a
+:class:`~saferace.safety.filter.NominalAction` with the network's spread, so that the
+filter's QP bends the control the network is least sure of (paper's final QP).
+:class:`LearnedStateSource` gives the filter the state network's MC-dropout samples of
+``[e_y, e_psi, kappa]``: the perceived state (paper Sec. 3.4), from the image alone.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from saferace.agents.pid import PIDGains, PIDSpeedController
+from saferace.errors import SafeRaceError
+from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint
+from saferace.learning.networks import DrivingNetwork
+from saferace.safety.filter import NominalAction
+
+
+class LearnedAgent:
+    """The control network ``M_com`` with a PID speed loop; ``act(obs, info)`` ignores info."""
+
+    def __init__(
+        self,
+        network: DrivingNetwork,
+        speed_controller: PIDSpeedController,
+        mc_samples: int = 10,
+        seed: int = 0,
+        checkpoint: dict | None = None,
+    ) -> None:
+        self.network = network
+        self.speed_controller = speed_controller
+        self.mc_samples = mc_samples
+        self.checkpoint = checkpoint or {}
+        self._seed = seed
+        self._generator = torch.Generator()
+        self.reset()
+
+    def reset(self) -> None:
+        self.speed_controller.reset()
+        self._generator.manual_seed(self._seed)
+
+    def act(self, observation: dict[str, np.ndarray], info: Any = None) -> NominalAction:
+        velocity = observation["velocity"]
+        prediction = self.network.predict(
+            observation["image"], velocity, self.mc_samples, self._generator
+        )
+        (steer, target_speed), (steer_std, speed_std) = prediction.mean[0], prediction.std[0]
+        accel = self.speed_controller.command(target_speed, float(velocity[0]))
+        accel_std = self.speed_controller.gains.kp_per_s * speed_std
+        return NominalAction(
+            np.array([steer, accel], dtype=float), np.array([steer_std, accel_std], dtype=float)
+        )
+
+    def describe(self) -> dict:
+        """What a result row records: the checkpoint and the number of MC samples."""
+        return {**self.checkpoint, "mc_samples": self.mc_samples}
+
+
+class LearnedStateSource:
+    """The state network ``M_st``'s MC-dropout samples of ``[e_y, e_psi, kappa]``.
+
+    Implements :class:`~saferace.safety.state_sources.StateSource` from the image alone;
+    ``info`` is never read. Dropout masks come from a generator seeded at each reset, so
+    the same episode seed gives the same samples.
+    """
+
+    def __init__(
+        self,
+        network: DrivingNetwork,
+        n_samples: int = 10,
+        seed: int | None = None,
+        checkpoint: dict | None = None,
+    ) -> None:
+        if n_samples < 1:
+            raise SafeRaceError(f"n_samples must be at least 1, got {n_samples}")
+        self.network = network
+        self.n_samples = n_samples
+        self.checkpoint = checkpoint or {}
+        self._seed = seed
+        self._generator = torch.Generator()
+        self.reset(seed)
+
+    def reset(self, seed: int | None = None) -> None:
+        chosen = self._seed if seed is None else seed
+        self._generator.manual_seed(0 if chosen is None else chosen)
+
+    def samples(self, observation: dict[str, np.ndarray], info: Any = None) -> np.ndarray:
+        prediction = self.network.predict(
+            observation["image"], None, self.n_samples, self._generator
+        )
+        return prediction.samples[0].astype(float)
+
+    def describe(self) -> dict:
+        return {**self.checkpoint, "mc_samples": self.n_samples}
+
+
+def learned_agent(env: gym.Env, checkpoint: str | Path, mc_samples: int = 10) -> LearnedAgent:
+    """``learned:CHECKPOINT``: the checkpoint's control network driving ``env``."""
+    loaded = load_checkpoint(checkpoint)
+    check_observation_fits(loaded, env.observation_space["image"].shape)
+    base = env.unwrapped
+    low, high = base.action_space.low, base.action_space.high
+    gains = PIDGains(min_accel_mps2=float(low[1]), max_accel_mps2=float(high[1]))
+    controller = PIDSpeedController(base.control_dt_s, gains)
+    return LearnedAgent(loaded.control, controller, mc_samples, checkpoint=loaded.describe())
+
+
+def learned_state_source(
+    checkpoint: str | Path, n_samples: int = 10, seed: int | None = None
+) -> LearnedStateSource:
+    """``--state-source learned:CHECKPOINT``: the checkpoint's state network."""
+    loaded = load_checkpoint(checkpoint)
+    return LearnedStateSource(loaded.state, n_samples, seed, checkpoint=loaded.describe())
+
+
+def check_observation_fits(checkpoint: LearnedCheckpoint, image_shape: tuple[int, ...]) -> None:
+    """Raise unless the env's images have the shape the networks were trained on."""
+    trained = tuple(checkpoint.metadata.get("image_shape", ()))
+    if trained and tuple(image_shape) != trained:
+        hint = "add --stereo" if trained[-1] == 6 else "drop --stereo"
+        raise SafeRaceError(
+            f"checkpoint {checkpoint.path} was trained on images {trained}, the task gives "
+            f"{tuple(image_shape)}: use the same --image-size and camera ({hint} if only the "
+            "channels differ)"
+        )

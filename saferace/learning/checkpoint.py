@@ -1,0 +1,95 @@
+"""Checkpoints of the learned driver: both networks, their normalisation and their history.
+
+One file holds the control network and the state network (weights with their
+normalisation buffers, and each one's :class:`~saferace.learning.networks.NetworkConfig`)
+and metadata: the training configuration, the data rounds' manifests, the loss history,
+the validation table, the git revision and package versions. It is written to a temporary
+file and renamed into place, so an interrupted save never leaves a truncated checkpoint,
+and it loads with ``torch.load(weights_only=True)``: plain data only, no pickled code.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from saferace.errors import SafeRaceError
+from saferace.learning.networks import DrivingNetwork, NetworkConfig
+
+FORMAT = "saferace-learned-driver"
+FORMAT_VERSION = 1
+NETWORK_NAMES = ("control", "state")
+
+
+@dataclass
+class LearnedCheckpoint:
+    """The two networks (in eval mode) and the checkpoint's metadata."""
+
+    control: DrivingNetwork
+    state: DrivingNetwork
+    metadata: dict
+    path: Path | None = None
+    sha256: str | None = None
+
+    def describe(self) -> dict:
+        """What a result row records of this checkpoint."""
+        return {"path": str(self.path), "sha256": self.sha256}
+
+
+def save_checkpoint(
+    path: str | Path, control: DrivingNetwork, state: DrivingNetwork, metadata: dict
+) -> Path:
+    """Write both networks and ``metadata`` to ``path`` atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "networks": {
+            name: {"config": network.config.as_dict(), "weights": network.state_dict()}
+            for name, network in zip(NETWORK_NAMES, (control, state), strict=True)
+        },
+        "metadata": metadata,
+    }
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        with open(temporary, "wb") as handle:
+            torch.save(payload, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
+    """Both networks of a checkpoint written by :func:`save_checkpoint`, ready to predict."""
+    path = Path(path)
+    if not path.is_file():
+        raise SafeRaceError(f"no checkpoint at {path}: train one with saferace train ... --out")
+    raw = path.read_bytes()
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many kinds for a file that is not a checkpoint
+        raise SafeRaceError(f"{path} is not a SafeRace checkpoint: {exc}") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise SafeRaceError(f"{path} is not a SafeRace checkpoint (written by saferace train)")
+    if payload["version"] > FORMAT_VERSION:
+        raise SafeRaceError(
+            f"{path} has checkpoint format {payload['version']}; this SafeRace reads up to "
+            f"{FORMAT_VERSION}: upgrade SafeRace"
+        )
+    networks = [_network(payload["networks"][name]) for name in NETWORK_NAMES]
+    return LearnedCheckpoint(*networks, payload["metadata"], path, hashlib.sha256(raw).hexdigest())
+
+
+def _network(entry: dict) -> DrivingNetwork:
+    network = DrivingNetwork(NetworkConfig.from_dict(entry["config"]))
+    network.load_state_dict(entry["weights"])
+    network.eval()
+    return network.to(memory_format=torch.channels_last)

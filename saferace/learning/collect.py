@@ -1,0 +1,236 @@
+"""Record a collection round: any driver drives, the expert MPC labels every frame.
+
+Every frame carries the onboard image and velocities, what the driver did, the expert's
+label ``[steer_rad, target_speed_mps, accel_mps2]`` for the state the car is really in, and
+the true lane state, whoever drove (paper Sec. 2.3: the expert labels, the learner drives).
+A steering perturbation (DART, Laskey et al. 2017) makes the driver act with noise while the
+label stays the expert's, so that the data show recoveries from where the noise led.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import saferace
+from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
+from saferace.errors import SafeRaceError
+from saferace.eval.agents import Agent, act, make_agent
+from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.eval.runner import (
+    git_revision,
+    max_steps_for,
+    package_versions,
+    run_episode,
+    task_id,
+)
+from saferace.learning.rounds import FRAME_FIELDS, write_round
+from saferace.safety.filter import NominalAction, nominal_parts
+from saferace.safety.state_sources import true_lane_state
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """Steering noise added to the driver's action: an Ornstein-Uhlenbeck process.
+
+    ``steer_std_rad`` is its stationary standard deviation, ``correlation_time_s`` how long
+    a push lasts: correlated noise moves the car off its line far enough to need a
+    recovery, where white noise at the control rate would average out.
+    """
+
+    steer_std_rad: float = 0.0
+    correlation_time_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.steer_std_rad < 0.0 or self.correlation_time_s <= 0.0:
+            raise SafeRaceError(
+                "--perturb needs a non-negative steering std (rad) and a positive correlation "
+                f"time (s), got {self.steer_std_rad} and {self.correlation_time_s}"
+            )
+
+
+class SteeringNoise:
+    """Samples of a :class:`Perturbation` at the control period, from a seeded generator."""
+
+    def __init__(self, perturbation: Perturbation, dt_s: float, seed: int | None) -> None:
+        self.std = perturbation.steer_std_rad
+        self.decay = math.exp(-dt_s / perturbation.correlation_time_s)
+        self._seed = seed
+        self.reset()
+
+    def reset(self) -> None:
+        self._rng = np.random.default_rng(self._seed)
+        self._value = self.std * self._rng.standard_normal() if self.std else 0.0
+
+    def sample(self) -> float:
+        """The next value (rad); starts from the stationary distribution."""
+        if not self.std:
+            return 0.0
+        value = self._value
+        innovation = math.sqrt(1.0 - self.decay**2) * self.std * self._rng.standard_normal()
+        self._value = self.decay * value + innovation
+        return value
+
+
+class LabellingDriver:
+    """Drives with ``driver`` (or the expert itself) plus noise; records expert-labelled frames.
+
+    Pass it to :func:`~saferace.eval.runner.run_episode` as the agent and its
+    :meth:`after_step` as ``on_step``: a frame is recorded before each step and completed
+    with the action the car got (after any filter) once the step is done.
+    """
+
+    def __init__(
+        self,
+        expert: MPCExpert,
+        driver: Agent | None,
+        noise: SteeringNoise,
+        action_low: np.ndarray,
+        action_high: np.ndarray,
+    ) -> None:
+        self.expert, self.driver, self.noise = expert, driver, noise
+        self.action_low, self.action_high = action_low, action_high
+        self.frames: dict[str, list] = {name: [] for name in FRAME_FIELDS}
+        self.episode = 0
+
+    def reset(self) -> None:
+        self.expert.reset()
+        self.noise.reset()
+        if hasattr(self.driver, "reset"):
+            self.driver.reset()
+
+    def act(
+        self, observation: dict[str, np.ndarray], info: dict[str, Any]
+    ) -> np.ndarray | NominalAction:
+        expert_action = self.expert.act(observation, info)
+        label = (expert_action[0], self.expert.planned_speed_mps(), expert_action[1])
+        action = expert_action if self.driver is None else act(self.driver, observation, info)
+        mean, std = nominal_parts(action)
+        mean = mean.copy()
+        mean[0] += self.noise.sample()
+        frames = self.frames
+        frames["image"].append(observation["image"])
+        frames["velocity"].append(observation["velocity"])
+        frames["driver_action"].append(mean)
+        frames["expert"].append(label)
+        frames["state"].append(true_lane_state(info))
+        frames["s_m"].append(info["s_m"])
+        frames["time_s"].append(info["time_s"])
+        frames["episode"].append(self.episode)
+        return mean if std is None else NominalAction(mean, std)
+
+    def after_step(self, observation: dict, info: dict[str, Any], action: Any) -> None:
+        """Complete the last frame with the applied action and the filter's intervention."""
+        safety = info.get("safety")
+        if safety is None:
+            applied = np.clip(nominal_parts(action)[0], self.action_low, self.action_high)
+        else:
+            applied = np.asarray(safety["filtered_action"])
+        self.frames["applied_action"].append(applied)
+        self.frames["intervened"].append(bool(safety and safety["intervened"]))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: np.asarray(values) for name, values in self.frames.items()}
+
+
+@dataclass(frozen=True)
+class CollectionConfig:
+    """What one round records: driver, task, track, episodes, camera and noise."""
+
+    agent: str = "expert"
+    task: str = "CenterLine"
+    track: str = "lab"
+    seeds: tuple[int, ...] = (0,)
+    laps: int = 3
+    max_seconds: float | None = None
+    perturbation: Perturbation = Perturbation()
+    safety: FilterConfig = field(default_factory=FilterConfig)
+    expert_model: str = "dynamic"
+    image_size: tuple[int, int] = (64, 64)
+    stereo: bool = False
+    mc_samples: int = 10
+
+    def as_dict(self) -> dict:
+        values = asdict(self)
+        values["safety"] = self.safety.as_dict()
+        return values
+
+
+@dataclass(frozen=True)
+class CollectedRound:
+    """Where a round was written, its size and each episode's lap summary."""
+
+    path: Path
+    frame_count: int
+    episodes: list[dict]
+
+
+def collect_round(
+    dataset_dir: str | Path, config: CollectionConfig, progress: bool = True
+) -> CollectedRound:
+    """Drive one episode per seed, label every frame, write it all as the next round."""
+    if config.laps < 1:
+        raise SafeRaceError(f"laps must be at least 1, got {config.laps}")
+    frames: list[dict[str, np.ndarray]] = []
+    summaries = []
+    track_name = track_length = control_hz = None
+    for episode, seed in enumerate(config.seeds):
+        env = _make_env(config, seed)
+        try:
+            base = env.unwrapped
+            track_name, track_length = base.track.name, base.track.length_m
+            control_hz = 1.0 / base.control_dt_s
+            expert = MPCExpert.for_env(env, model=config.expert_model)
+            driver = (
+                None
+                if config.agent == "expert"
+                else make_agent(
+                    config.agent, env, model=config.expert_model, mc_samples=config.mc_samples
+                )
+            )
+            noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
+            labeller = LabellingDriver(
+                expert, driver, noise, base.action_space.low, base.action_space.high
+            )
+            labeller.episode = episode
+            result = run_episode(
+                env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
+            )
+        finally:
+            env.close()
+        frames.append(labeller.arrays())
+        summaries.append({"seed": seed, **result.summary, "terminated": result.terminated})
+    arrays = {name: np.concatenate([f[name] for f in frames]) for name in FRAME_FIELDS}
+    manifest_config = {
+        **config.as_dict(),
+        "track": track_name,
+        "track_argument": str(config.track),
+        "track_length_m": track_length,
+        "control_hz": control_hz,
+        "label_lookahead_s": TARGET_SPEED_LOOKAHEAD_S,
+        "episodes": summaries,
+        "saferace_version": saferace.__version__,
+        "git_revision": git_revision(),
+        "packages": package_versions(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    path = write_round(dataset_dir, arrays, manifest_config)
+    return CollectedRound(path, len(arrays["s_m"]), summaries)
+
+
+def _make_env(config: CollectionConfig, seed: int) -> gym.Env:
+    env = gym.make(
+        task_id(config.task),
+        track=config.track,
+        max_laps=config.laps,
+        max_steps=max_steps_for(config.max_seconds),
+        image_size=tuple(config.image_size),
+        stereo=config.stereo,
+    )
+    return apply_filter(env, config.safety, seed)

@@ -1,0 +1,114 @@
+"""GradCAM of every network output over the input image (paper Fig. 10), through Captum.
+
+For a regression output the paper takes the output value itself as GradCAM's target
+(Wang et al. 2018); we take its magnitude (the output times its sign at that frame), so a
+right turn's heat shows what drives the turn rather than what would undo it. Captum's
+``LayerGradCam`` weighs a ResNet stage's activations by their mean gradients, keeps the
+positive part, and the map is upsampled to the image. Stereo inputs stack two images along
+the channels, so one map is projected on both, as in the paper.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from captum.attr import LayerAttribution, LayerGradCam
+
+from saferace.errors import SafeRaceError
+from saferace.learning.networks import DrivingNetwork
+
+#: ResNet stages GradCAM can look at; at 64x64 they give maps of 16, 8, 4 and 2 cells.
+LAYERS = ("layer1", "layer2", "layer3", "layer4")
+HEAT_ALPHA = 0.5
+
+
+def gradcam_maps(
+    network: DrivingNetwork, image: np.ndarray, velocity: np.ndarray | None, layer: str
+) -> np.ndarray:
+    """``(outputs, H, W)`` GradCAM maps in ``[0, 1]`` of one frame, one per output."""
+    if layer not in LAYERS:
+        raise SafeRaceError(f"unknown layer {layer!r}: use one of {', '.join(LAYERS)}")
+    network.eval()
+    images = torch.as_tensor(image, dtype=torch.float32)[None]
+    extra = None if velocity is None else torch.as_tensor(velocity, dtype=torch.float32)[None]
+    with torch.no_grad():
+        signs = torch.sign(network(images, extra))[0]
+
+    def magnitude(batch: torch.Tensor, velocities: torch.Tensor | None) -> torch.Tensor:
+        return network(batch, velocities) * signs
+
+    cam = LayerGradCam(magnitude, getattr(network.backbone, layer))
+    height, width = image.shape[:2]
+    maps = []
+    for output in range(len(network.config.outputs)):
+        attribution = cam.attribute(
+            images, target=output, additional_forward_args=(extra,), relu_attributions=True
+        )
+        heat = LayerAttribution.interpolate(attribution, (height, width), "bilinear")[0, 0]
+        heat = heat.detach().numpy()
+        peak = heat.max()
+        maps.append(heat / peak if peak > 0 else heat)
+    return np.stack(maps)
+
+
+def overlay(image_rgb: np.ndarray, heat: np.ndarray) -> np.ndarray:
+    """``image_rgb`` (uint8) with ``heat`` in ``[0, 1]`` blended in as a jet colour map."""
+    coloured = cv2.applyColorMap(np.uint8(255 * np.clip(heat, 0, 1)), cv2.COLORMAP_JET)
+    coloured = cv2.cvtColor(coloured, cv2.COLOR_BGR2RGB)
+    return np.uint8((1 - HEAT_ALPHA) * image_rgb + HEAT_ALPHA * coloured)
+
+
+def gradcam_sheet(
+    networks: dict[str, DrivingNetwork],
+    image: np.ndarray,
+    velocity: np.ndarray,
+    layer: str,
+    scale: int = 3,
+) -> np.ndarray:
+    """One frame's sheet: a row per camera image (left and right for stereo), the image
+    and then one overlay per output of every network, each ``scale`` times enlarged."""
+    cameras = [image[..., i : i + 3] for i in range(0, image.shape[-1], 3)]
+    columns: list[list[np.ndarray]] = [cameras]
+    titles = ["camera"]
+    for name, network in networks.items():
+        uses_velocity = network.config.uses_velocity
+        maps = gradcam_maps(network, image, velocity if uses_velocity else None, layer)
+        for output, heat in zip(network.config.outputs, maps, strict=True):
+            columns.append([overlay(camera, heat) for camera in cameras])
+            titles.append(f"{name}: {output}")
+    rows = []
+    for row in range(len(cameras)):
+        tiles = [_enlarge(column[row], scale) for column in columns]
+        rows.append(np.concatenate(tiles, axis=1))
+    sheet = np.concatenate(rows, axis=0)
+    return _with_titles(sheet, titles, tiles[0].shape[1])
+
+
+def write_sheet(path: str | Path, sheet: np.ndarray) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def _enlarge(image: np.ndarray, scale: int) -> np.ndarray:
+    return cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+
+
+def _with_titles(sheet: np.ndarray, titles: list[str], tile_width: int) -> np.ndarray:
+    band = np.full((18, sheet.shape[1], 3), 255, np.uint8)
+    for index, title in enumerate(titles):
+        cv2.putText(
+            band,
+            title.replace("_", " "),
+            (index * tile_width + 3, 13),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.33,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
+    return np.concatenate([band, sheet], axis=0)

@@ -1,0 +1,237 @@
+"""The paper's two networks (Sec. 2.4 and 3.4): ResNet-18 features, a dropout head, MC dropout.
+
+Both take the onboard image, uint8 ``(N, H, W, C)`` with 3 channels (mono) or 6 (the stereo
+pair stacked, as on the paper's RC car), through torchvision's ResNet-18 without its
+classification layer (512 features). The control network ``M_com`` appends the measured
+``[v_x, v_y, r]`` and outputs ``[steer_rad, target_speed_mps]``; the state network ``M_st``
+outputs ``[e_y_m, e_psi_rad, kappa_radpm]`` from the image alone. Normalisation of every
+input and output lives in the network's buffers, so a checkpoint carries it.
+
+The head, as in the authors' code: dropout then ``Linear(512, 128)`` for the image,
+``Linear(3, 64)`` for the velocities, both through a ReLU, concatenated, dropout again, and a
+linear layer to the outputs. MC dropout (paper Sec. 3.4, Gal and Ghahramani 2016): the
+backbone runs once per frame with BatchNorm on its running statistics, the head is sampled
+``n`` times in one batch with dropout on, and the samples' mean and (population) standard
+deviation are the prediction and its spread.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torchvision
+from torch import nn
+from torch.nn import functional
+
+from saferace.errors import SafeRaceError
+
+CONTROL_OUTPUTS = ("steer_rad", "target_speed_mps")
+STATE_OUTPUTS = ("e_y_m", "e_psi_rad", "kappa_radpm")
+VELOCITY_INPUTS = ("v_x_mps", "v_y_mps", "yaw_rate_radps")
+FEATURES = 512  # ResNet-18's feature width
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """Shape of one network: its outputs, input channels and head."""
+
+    outputs: tuple[str, ...]
+    in_channels: int = 3
+    uses_velocity: bool = True
+    dropout: float = 0.2
+    hidden: int = 128
+    velocity_hidden: int = 64
+
+    def __post_init__(self) -> None:
+        if self.in_channels not in (3, 6):
+            raise SafeRaceError(
+                f"in_channels must be 3 (mono) or 6 (stereo), got {self.in_channels}"
+            )
+        if not 0.0 <= self.dropout < 1.0:
+            raise SafeRaceError(f"dropout must be in [0, 1), got {self.dropout}")
+        if not self.outputs:
+            raise SafeRaceError("a network needs at least one output")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> NetworkConfig:
+        return cls(**{**values, "outputs": tuple(values["outputs"])})
+
+
+def control_config(stereo: bool = False, dropout: float = 0.2) -> NetworkConfig:
+    """``M_com``: image and velocities to ``[steer_rad, target_speed_mps]``."""
+    return NetworkConfig(CONTROL_OUTPUTS, 6 if stereo else 3, uses_velocity=True, dropout=dropout)
+
+
+def state_config(stereo: bool = False, dropout: float = 0.2) -> NetworkConfig:
+    """``M_st``: image to ``[e_y_m, e_psi_rad, kappa_radpm]``."""
+    return NetworkConfig(STATE_OUTPUTS, 6 if stereo else 3, uses_velocity=False, dropout=dropout)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """MC-dropout prediction in physical units: ``mean`` and ``std`` ``(N, outputs)``,
+    ``samples`` ``(N, n, outputs)``."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    samples: np.ndarray
+
+
+def resnet18_features(in_channels: int) -> nn.Module:
+    """torchvision's ResNet-18 (random weights), ``in_channels`` in, 512 features out."""
+    backbone = torchvision.models.resnet18(weights=None)
+    if in_channels != 3:
+        backbone.conv1 = nn.Conv2d(in_channels, 64, kernel_size=7, stride=2, padding=3, bias=False)
+    backbone.fc = nn.Identity()
+    return backbone
+
+
+class DrivingNetwork(nn.Module):
+    """ResNet-18 features (+ velocities) -> dropout head -> ``config.outputs``.
+
+    ``forward`` gives normalised outputs (for training); :meth:`predict` gives physical
+    units with the MC-dropout spread.
+    """
+
+    def __init__(self, config: NetworkConfig) -> None:
+        super().__init__()
+        self.config = config
+        channels, outputs = config.in_channels, len(config.outputs)
+        self.backbone = resnet18_features(channels)
+        self.image_branch = nn.Linear(FEATURES, config.hidden)
+        width = config.hidden
+        if config.uses_velocity:
+            self.velocity_branch = nn.Linear(len(VELOCITY_INPUTS), config.velocity_hidden)
+            width += config.velocity_hidden
+        self.output_layer = nn.Linear(width, outputs)
+        self.register_buffer("image_mean", torch.full((channels,), 0.5))
+        self.register_buffer("image_std", torch.full((channels,), 0.25))
+        self.register_buffer("velocity_mean", torch.zeros(len(VELOCITY_INPUTS)))
+        self.register_buffer("velocity_std", torch.ones(len(VELOCITY_INPUTS)))
+        self.register_buffer("output_mean", torch.zeros(outputs))
+        self.register_buffer("output_std", torch.ones(outputs))
+
+    def set_normalisation(self, statistics: dict[str, np.ndarray]) -> None:
+        """Set the ``*_mean``/``*_std`` buffers from arrays of the training data."""
+        for name, values in statistics.items():
+            buffer = getattr(self, name)
+            buffer.copy_(torch.as_tensor(np.asarray(values), dtype=buffer.dtype))
+
+    def features(self, image: torch.Tensor) -> torch.Tensor:
+        """``(N, 512)`` backbone features of uint8 images ``(N, H, W, C)``."""
+        if image.ndim != 4 or image.shape[-1] != self.config.in_channels:
+            raise SafeRaceError(
+                f"expected images (N, H, W, {self.config.in_channels}), got {tuple(image.shape)}"
+            )
+        # NHWC -> NCHW as a view: channels-last memory, the fast layout for CPU convolutions.
+        x = image.permute(0, 3, 1, 2).float() / 255.0
+        x = (x - self.image_mean[:, None, None]) / self.image_std[:, None, None]
+        return self.backbone(x)
+
+    def head(
+        self,
+        features: torch.Tensor,
+        velocity: torch.Tensor | None,
+        sample: bool,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Normalised outputs from features; ``sample``: dropout on (training or MC)."""
+        x = functional.relu(self.image_branch(self._dropout(features, sample, generator)))
+        if self.config.uses_velocity:
+            if velocity is None:
+                raise SafeRaceError("the control network needs the velocities [v_x, v_y, r]")
+            v = (velocity.float() - self.velocity_mean) / self.velocity_std
+            x = torch.cat([x, functional.relu(self.velocity_branch(v))], dim=1)
+        return self.output_layer(self._dropout(x, sample, generator))
+
+    def forward(self, image: torch.Tensor, velocity: torch.Tensor | None = None) -> torch.Tensor:
+        return self.head(self.features(image), velocity, sample=self.training)
+
+    def normalise_outputs(self, values: torch.Tensor) -> torch.Tensor:
+        return (values - self.output_mean) / self.output_std
+
+    def denormalise_outputs(self, values: torch.Tensor) -> torch.Tensor:
+        return values * self.output_std + self.output_mean
+
+    @torch.inference_mode()
+    def predict(
+        self,
+        image: np.ndarray | torch.Tensor,
+        velocity: np.ndarray | torch.Tensor | None = None,
+        n_samples: int = 10,
+        generator: torch.Generator | None = None,
+    ) -> Prediction:
+        """Mean and spread of ``n_samples`` MC-dropout passes of the head.
+
+        ``image`` is ``(H, W, C)`` or ``(N, H, W, C)`` uint8. With ``n_samples=1`` or no
+        dropout the head runs once without dropout and the spread is exactly 0. Call
+        ``eval()`` first: BatchNorm must use its running statistics.
+        """
+        if self.training:
+            raise SafeRaceError("call eval() before predict(): MC dropout samples the head only")
+        if n_samples < 1:
+            raise SafeRaceError(f"n_samples must be at least 1, got {n_samples}")
+        image = torch.as_tensor(image)
+        if image.ndim == 3:
+            image = image[None]
+        if velocity is not None:
+            velocity = torch.as_tensor(velocity, dtype=torch.float32).reshape(len(image), -1)
+        features = self.features(image)
+        if n_samples == 1 or self.config.dropout == 0.0:
+            samples = self.head(features, velocity, sample=False)[:, None, :]
+        else:
+            repeated_velocity = (
+                None if velocity is None else velocity.repeat_interleave(n_samples, 0)
+            )
+            outputs = self.head(
+                features.repeat_interleave(n_samples, 0), repeated_velocity, True, generator
+            )
+            samples = outputs.reshape(len(image), n_samples, -1)
+        samples = self.denormalise_outputs(samples)
+        mean = samples.mean(dim=1)
+        std = torch.zeros_like(mean) if samples.shape[1] == 1 else samples.std(dim=1, correction=0)
+        return Prediction(mean.numpy(), std.numpy(), samples.numpy())
+
+    def _dropout(
+        self, x: torch.Tensor, sample: bool, generator: torch.Generator | None
+    ) -> torch.Tensor:
+        p = self.config.dropout
+        if not sample or p == 0.0:
+            return x
+        if generator is None:
+            return functional.dropout(x, p, training=True)
+        keep = torch.rand(x.shape, generator=generator) >= p  # seeded masks: repeatable samples
+        return x * keep / (1.0 - p)
+
+
+def load_torchvision_weights(network: DrivingNetwork, path: str | Path) -> None:
+    """Load a torchvision-format ResNet-18 state dict (e.g. ImageNet weights) into the backbone.
+
+    The classification layer (``fc.*``) is dropped. For 6 input channels the first
+    convolution's 3-channel kernel is used for both images, halved, so that a stereo pair of
+    two identical images gives the pretrained response.
+    """
+    try:
+        weights = torch.load(Path(path), map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise SafeRaceError(f"cannot read ResNet-18 weights from {path}: {exc}") from None
+    if not isinstance(weights, dict) or "conv1.weight" not in weights:
+        raise SafeRaceError(
+            f"{path} is not a torchvision ResNet-18 state dict (no 'conv1.weight'); save one "
+            "with torch.save(torchvision.models.resnet18(weights=...).state_dict(), path)"
+        )
+    weights = {k: v for k, v in weights.items() if not k.startswith("fc.")}
+    conv = weights["conv1.weight"]
+    channels = network.config.in_channels
+    if conv.shape[1] == 3 and channels == 6:
+        weights["conv1.weight"] = torch.cat([conv, conv], dim=1) / 2.0
+    try:
+        network.backbone.load_state_dict(weights)
+    except RuntimeError as exc:
+        raise SafeRaceError(f"{path} does not fit ResNet-18: {exc}") from None

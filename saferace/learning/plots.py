@@ -1,0 +1,95 @@
+"""Plots of training: loss curves, and predicted against true state along a lap."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from saferace.eval.track_plots import plt
+from saferace.learning.networks import STATE_OUTPUTS, Prediction
+from saferace.learning.rounds import FrameSet
+
+STATE_LABELS = {
+    "e_y_m": "lateral offset e_y [m]",
+    "e_psi_rad": "heading error e_psi [rad]",
+    "kappa_radpm": "curvature kappa [1/m]",
+}
+
+
+def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) -> None:
+    """Per network: the loss of every batch, and each epoch's training and validation loss."""
+    fig, axes = plt.subplots(1, len(history), figsize=(6 * len(history), 4), squeeze=False)
+    for ax, (name, losses) in zip(axes[0], history.items(), strict=True):
+        batches = np.asarray(losses["batch_loss"])
+        epochs = len(losses["train_loss"])
+        per_epoch = len(batches) / max(epochs, 1)
+        ax.plot(
+            np.arange(1, len(batches) + 1) / per_epoch, batches, color="0.75", lw=0.6, label="batch"
+        )
+        epoch_axis = np.arange(1, epochs + 1)
+        ax.plot(epoch_axis, losses["train_loss"], "o-", label="training (dropout on)")
+        if losses["val_loss"]:
+            ax.plot(epoch_axis, losses["val_loss"], "s-", label="held-out stretch")
+        ax.set_yscale("log")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel("MSE of normalised targets")
+        ax.set_title(f"{name} network")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def first_lap(frames: FrameSet) -> np.ndarray:
+    """Indices of the first episode's first lap (until ``s`` wraps round)."""
+    episode = np.flatnonzero(
+        (frames["episode"] == frames["episode"][0]) & (frames["round"] == frames["round"][0])
+    )
+    s = frames["s_m"][episode]
+    wraps = np.flatnonzero(np.diff(s) < -0.5 * frames["track_length_m"][0])
+    return episode[: wraps[0] + 1] if len(wraps) else episode
+
+
+def plot_state_along_lap(
+    frames: FrameSet,
+    prediction: Prediction,
+    path: str | Path,
+    title: str,
+    stretch: tuple[float, float] | None = None,
+) -> None:
+    """True state and the state network's mean with a band of two MC-dropout spreads,
+    against ``s`` over the first lap; ``stretch`` (fractions of the lap) is shaded."""
+    lap = first_lap(frames)
+    s = frames["s_m"][lap]
+    fig, axes = plt.subplots(len(STATE_OUTPUTS), 1, figsize=(11, 8), sharex=True)
+    for column, (ax, name) in enumerate(zip(axes, STATE_OUTPUTS, strict=True)):
+        mean, std = prediction.mean[lap, column], prediction.std[lap, column]
+        ax.fill_between(
+            s,
+            mean - 2 * std,
+            mean + 2 * std,
+            color="tab:blue",
+            alpha=0.25,
+            label="prediction +- 2 spreads",
+        )
+        ax.plot(s, mean, color="tab:blue", lw=1.2, label="state network (MC mean)")
+        ax.plot(s, frames["state"][lap, column], color="k", lw=1.2, label="true")
+        if stretch is not None:
+            length = float(frames["track_length_m"][0])
+            ax.axvspan(
+                stretch[0] * length,
+                stretch[1] * length,
+                color="tab:orange",
+                alpha=0.15,
+                label="held out of training",
+            )
+        ax.set_ylabel(STATE_LABELS[name])
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, loc="upper right", ncol=2)
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("centerline arc length s [m]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

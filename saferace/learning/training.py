@@ -1,0 +1,234 @@
+"""Train both networks on collection rounds: Adam on the MSE of normalised targets.
+
+The control network learns the expert's ``[steer_rad, target_speed_mps]`` from image and
+velocities, the state network the true ``[e_y_m, e_psi_rad, kappa_radpm]`` from the image.
+A contiguous stretch of the track (``val_stretch``, fractions of the lap) is held out for
+validation rather than random frames, which would sit next to near-identical training
+frames. Training is seeded and deterministic on the CPU; it can warm-start from a
+checkpoint (fine-tuning between DAgger iterations, as the authors did) or load a
+torchvision ResNet-18 state dict into both backbones.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch.nn import functional
+from tqdm import tqdm
+
+import saferace
+from saferace.errors import SafeRaceError
+from saferace.eval.runner import git_revision, package_versions
+from saferace.learning.checkpoint import load_checkpoint
+from saferace.learning.networks import (
+    DrivingNetwork,
+    control_config,
+    load_torchvision_weights,
+    state_config,
+)
+from saferace.learning.rounds import FrameSet
+
+LOG = logging.getLogger(__name__)
+#: Frames sampled to estimate the images' per-channel mean and spread.
+IMAGE_STATISTICS_FRAMES = 2000
+#: Floor of an output's or input's standard deviation (a constant curvature on an oval).
+MIN_STD = 1e-3
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation, hold-out and initialisation of one training run."""
+
+    epochs: int = 10
+    batch_size: int = 32
+    learning_rate: float = 1e-3
+    seed: int = 0
+    val_stretch: tuple[float, float] = (0.55, 0.7)
+    dropout: float = 0.2
+    init: str | None = None
+    backbone_weights: str | None = None
+
+    def __post_init__(self) -> None:
+        start, end = self.val_stretch
+        if not 0.0 <= start < end <= 1.0:
+            raise SafeRaceError(
+                f"val_stretch must be fractions of the lap 0 <= start < end <= 1, got "
+                f"{self.val_stretch}"
+            )
+        if self.epochs < 1 or self.batch_size < 1 or self.learning_rate <= 0.0:
+            raise SafeRaceError("epochs, batch_size and learning_rate must be positive")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class NetworkData:
+    """What one network trains on: images, velocities (or None), targets."""
+
+    images: np.ndarray
+    velocity: np.ndarray | None
+    targets: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+
+def held_out_mask(frames: FrameSet, stretch: tuple[float, float]) -> np.ndarray:
+    """Frames whose position on the lap lies in ``[start, end)`` of the lap."""
+    fraction = frames.lap_fraction
+    return (fraction >= stretch[0]) & (fraction < stretch[1])
+
+
+def network_data(frames: FrameSet) -> dict[str, NetworkData]:
+    """Inputs and targets of the control and the state network."""
+    return {
+        "control": NetworkData(frames["image"], frames["velocity"], frames["expert"][:, :2]),
+        "state": NetworkData(frames["image"], None, frames["state"]),
+    }
+
+
+def normalisation(data: NetworkData, seed: int) -> dict[str, np.ndarray]:
+    """Per-channel image statistics and per-component velocity and target statistics."""
+    rng = np.random.default_rng(seed)
+    count = min(len(data), IMAGE_STATISTICS_FRAMES)
+    sample = data.images[np.sort(rng.choice(len(data), count, replace=False))]
+    pixels = sample.reshape(-1, sample.shape[-1]).astype(np.float32) / 255.0
+    statistics = {
+        "image_mean": pixels.mean(axis=0),
+        "image_std": np.maximum(pixels.std(axis=0), MIN_STD),
+        "output_mean": data.targets.mean(axis=0),
+        "output_std": np.maximum(data.targets.std(axis=0), MIN_STD),
+    }
+    if data.velocity is not None:
+        statistics["velocity_mean"] = data.velocity.mean(axis=0)
+        statistics["velocity_std"] = np.maximum(data.velocity.std(axis=0), MIN_STD)
+    return statistics
+
+
+def fit(
+    network: DrivingNetwork,
+    train: NetworkData,
+    validation: NetworkData | None,
+    config: TrainConfig,
+    label: str,
+    progress: bool = True,
+) -> dict[str, list[float]]:
+    """Adam on the MSE of normalised targets; returns per-batch and per-epoch losses."""
+    network.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
+    generator = torch.Generator().manual_seed(config.seed)
+    targets = network.normalise_outputs(torch.as_tensor(train.targets, dtype=torch.float32))
+    batches = math.ceil(len(train) / config.batch_size)
+    history: dict[str, list[float]] = {"batch_loss": [], "train_loss": [], "val_loss": []}
+    bar = tqdm(
+        total=config.epochs * batches, desc=f"train {label}", unit="batch", disable=not progress
+    )
+    with bar:
+        for epoch in range(config.epochs):
+            network.train()
+            order = torch.randperm(len(train), generator=generator).numpy()
+            total = 0.0
+            for start in range(0, len(train), config.batch_size):
+                index = order[start : start + config.batch_size]
+                loss = functional.mse_loss(_forward(network, train, index), targets[index])
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                value = loss.item()
+                history["batch_loss"].append(value)
+                total += value * len(index)
+                bar.update()
+                bar.set_postfix(epoch=epoch + 1, loss=f"{value:.4f}")
+            history["train_loss"].append(total / len(train))
+            if validation is not None and len(validation):
+                history["val_loss"].append(validation_loss(network, validation, config.batch_size))
+                bar.set_postfix(epoch=epoch + 1, val=f"{history['val_loss'][-1]:.4f}")
+    network.eval()
+    return history
+
+
+@torch.inference_mode()
+def validation_loss(network: DrivingNetwork, data: NetworkData, batch_size: int) -> float:
+    """MSE of normalised targets with dropout off."""
+    network.eval()
+    targets = network.normalise_outputs(torch.as_tensor(data.targets, dtype=torch.float32))
+    total = 0.0
+    for start in range(0, len(data), batch_size):
+        index = np.arange(start, min(start + batch_size, len(data)))
+        error = _forward(network, data, index) - targets[index]
+        total += float((error**2).mean(dim=1).sum())
+    return total / len(data)
+
+
+def _forward(network: DrivingNetwork, data: NetworkData, index: np.ndarray) -> torch.Tensor:
+    velocity = None if data.velocity is None else torch.from_numpy(data.velocity[index])
+    return network(torch.from_numpy(data.images[index]), velocity)
+
+
+def train_networks(
+    frames: FrameSet, config: TrainConfig, progress: bool = True
+) -> tuple[DrivingNetwork, DrivingNetwork, dict]:
+    """Train the control and the state network; return them and the run's metadata."""
+    held_out = held_out_mask(frames, config.val_stretch)
+    if held_out.all() or not held_out.any():
+        raise SafeRaceError(
+            f"the validation stretch {config.val_stretch} of the lap holds "
+            f"{int(held_out.sum())} of {len(frames)} frames: choose --val-stretch so that "
+            "both training and validation frames remain"
+        )
+    train_frames, validation_frames = frames.subset(~held_out), frames.subset(held_out)
+    stereo = frames["image"].shape[-1] == 6
+    initial = load_checkpoint(config.init) if config.init else None
+    networks = {}
+    history = {}
+    started = time.perf_counter()
+    train_data, validation_data = network_data(train_frames), network_data(validation_frames)
+    for index, (name, make_config) in enumerate(
+        (("control", control_config), ("state", state_config))
+    ):
+        torch.manual_seed(config.seed + index)
+        network = DrivingNetwork(make_config(stereo, config.dropout))
+        if initial is not None:
+            source = getattr(initial, name)
+            if source.config != network.config:
+                raise SafeRaceError(
+                    f"--init {config.init} has a {name} network {source.config}, "
+                    f"the data need {network.config}"
+                )
+            network.load_state_dict(source.state_dict())  # its normalisation too
+        else:
+            if config.backbone_weights:
+                load_torchvision_weights(network, config.backbone_weights)
+            network.set_normalisation(normalisation(train_data[name], config.seed))
+        history[name] = fit(
+            network, train_data[name], validation_data[name], config, name, progress
+        )
+        networks[name] = network
+    metadata = {
+        "training": config.as_dict(),
+        "image_shape": list(frames["image"].shape[1:]),
+        "frames": {"train": len(train_frames), "validation": len(validation_frames)},
+        "data": [_round_summary(manifest) for manifest in frames.manifests],
+        "history": history,
+        "train_seconds": time.perf_counter() - started,
+        "saferace_version": saferace.__version__,
+        "git_revision": git_revision(),
+        "packages": package_versions(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    return networks["control"], networks["state"], metadata
+
+
+def _round_summary(manifest: dict) -> dict:
+    config = manifest["config"]
+    return {
+        "path": manifest["path"],
+        "frame_count": manifest["frame_count"],
+        **{key: config.get(key) for key in ("agent", "task", "track", "perturbation", "safety")},
+    }

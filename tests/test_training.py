@@ -1,0 +1,127 @@
+"""Training: it learns, it is deterministic, checkpoints round-trip, the commands write reports."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from saferace.errors import SafeRaceError
+from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
+from saferace.learning.networks import DrivingNetwork, state_config
+from saferace.learning.rounds import load_rounds
+from saferace.learning.training import (
+    TrainConfig,
+    fit,
+    held_out_mask,
+    network_data,
+    normalisation,
+    train_networks,
+)
+
+FEW = TrainConfig(epochs=1, batch_size=8, val_stretch=(0.05, 0.08))
+
+
+@pytest.fixture(scope="module")
+def frames(tiny_checkpoint):
+    return load_rounds([tiny_checkpoint()[1]])
+
+
+def test_overfits_a_tiny_dataset(frames):
+    data = network_data(frames.subset(np.arange(16)))["state"]
+    torch.manual_seed(0)
+    network = DrivingNetwork(state_config())
+    network.set_normalisation(normalisation(data, seed=0))
+    config = TrainConfig(epochs=30, batch_size=8)
+    history = fit(network, data, None, config, "state", progress=False)
+    assert history["train_loss"][-1] < history["train_loss"][0] / 10.0
+
+
+def test_same_seed_same_weights(frames):
+    few = frames.subset(np.arange(24))
+    first, _, _ = train_networks(few, FEW, progress=False)
+    again, _, _ = train_networks(few, FEW, progress=False)
+    other, _, _ = train_networks(few, replace(FEW, seed=1), progress=False)
+    for name, weights in first.state_dict().items():
+        assert torch.equal(weights, again.state_dict()[name]), name
+    assert not torch.equal(first.output_layer.weight, other.output_layer.weight)
+
+
+def test_checkpoint_gives_identical_outputs(frames, tmp_path: Path):
+    control, state, metadata = train_networks(frames.subset(np.arange(24)), FEW, progress=False)
+    path = save_checkpoint(tmp_path / "model.pt", control, state, metadata)
+    loaded = load_checkpoint(path)
+    images, velocity = frames["image"][:4], frames["velocity"][:4]
+    for before, after, extra in ((control, loaded.control, velocity), (state, loaded.state, None)):
+        expected = before.predict(images, extra, 10, torch.Generator().manual_seed(1))
+        actual = after.predict(images, extra, 10, torch.Generator().manual_seed(1))
+        assert np.array_equal(expected.samples, actual.samples)
+    assert loaded.metadata["training"] == FEW.as_dict()
+    assert loaded.metadata["image_shape"] == [64, 64, 3]
+    assert len(loaded.sha256) == 64
+    assert not list(tmp_path.glob(".*partial"))  # the temporary file was renamed into place
+
+
+def test_checkpoint_errors(tmp_path: Path):
+    with pytest.raises(SafeRaceError, match="no checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt")
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(2)}, other)
+    with pytest.raises(SafeRaceError, match="not a SafeRace checkpoint"):
+        load_checkpoint(other)
+    (tmp_path / "text.pt").write_text("hello")
+    with pytest.raises(SafeRaceError, match="not a SafeRace checkpoint"):
+        load_checkpoint(tmp_path / "text.pt")
+
+
+def test_validation_holds_out_a_contiguous_stretch(frames):
+    mask = held_out_mask(frames, (0.1, 0.2))
+    fraction = frames.lap_fraction
+    assert mask.any() and (~mask).any()
+    assert np.all((fraction[mask] >= 0.1) & (fraction[mask] < 0.2))
+    assert not np.any((fraction[~mask] >= 0.1) & (fraction[~mask] < 0.2))
+    with pytest.raises(SafeRaceError, match="validation stretch"):
+        train_networks(frames, replace(FEW, val_stretch=(0.9, 1.0)), progress=False)
+    with pytest.raises(SafeRaceError, match="val_stretch"):
+        TrainConfig(val_stretch=(0.5, 0.4))
+
+
+def test_warm_start_begins_at_the_checkpoint(frames, tiny_checkpoint):
+    checkpoint = load_checkpoint(tiny_checkpoint()[0])
+    tiny_steps = replace(FEW, init=str(tiny_checkpoint()[0]), learning_rate=1e-12)
+    control, state, _ = train_networks(frames.subset(np.arange(24)), tiny_steps, progress=False)
+    normalisation_buffers = ("image_mean", "image_std", "output_mean", "output_std")
+    for warm, start in ((control, checkpoint.control), (state, checkpoint.state)):
+        for name, weights in start.named_parameters():  # (BatchNorm's statistics move on)
+            assert torch.allclose(warm.get_parameter(name), weights, atol=1e-6), name
+        for name in normalisation_buffers:  # the checkpoint's normalisation is kept
+            assert torch.equal(getattr(warm, name), getattr(start, name)), name
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
+    )
+
+
+def test_train_and_validate_commands(tiny_checkpoint, tmp_path: Path):
+    data = tiny_checkpoint()[1]
+    checkpoint = tmp_path / "run.pt"
+    args = ("train", str(data), "--out", str(checkpoint), "--epochs", "1", "--samples", "3")
+    trained = run_cli(*args, "--val-stretch", "0.05", "0.08")
+    assert trained.returncode == 0, trained.stderr
+    for suffix in ("_loss.png", "_state_along_lap.png", "_validation.md", "_validation.csv"):
+        assert (tmp_path / f"run{suffix}").stat().st_size > 100, suffix
+    table = (tmp_path / "run_validation.md").read_text()
+    assert "held-out stretch: far half" in table and "e_y_m" in table
+    stereo_refused = run_cli(*args, "--stereo")
+    assert stereo_refused.returncode == 2 and "stereo" in stereo_refused.stderr
+    validated = run_cli("validate", str(checkpoint), str(data), "--out", str(tmp_path / "v"))
+    assert validated.returncode == 0, validated.stderr
+    assert (tmp_path / "v" / "validation.md").read_text().count("lab CenterLine") == 5
+    assert (tmp_path / "v" / "state_along_lap_0_lab.png").stat().st_size > 10_000
