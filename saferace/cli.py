@@ -1,13 +1,18 @@
-"""The ``saferace`` command line: ``saferace raceline TRACK ...``."""
+"""SafeRace's command line: racing lines, driving and evaluation, the safety filter's table,
+and the learned driver (collect, train, validate, gradcam)."""
 
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 from pathlib import Path
 
 from saferace.errors import SafeRaceError
+
+DEFAULT_STATE_NOISE = (0.05, 0.05)
+NOISY_SAMPLES, MC_SAMPLES = 20, 10  # the default state samples of noisy and learned sources
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -24,10 +29,23 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+class _HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default in its help, unless it has none (None or off)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="saferace", description=__doc__)
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
-    commands = parser.add_subparsers(required=True, metavar="COMMAND")
+    commands = parser.add_subparsers(
+        required=True,
+        metavar="COMMAND",
+        parser_class=functools.partial(argparse.ArgumentParser, formatter_class=_HelpWithDefaults),
+    )
 
     raceline = commands.add_parser(
         "raceline", help="minimum-curvature racing line and speed profiles of a track"
@@ -81,10 +99,16 @@ def _parser() -> argparse.ArgumentParser:
     collect.add_argument(
         "--perturb",
         type=float,
-        nargs="+",
-        metavar=("STEER_STD_RAD", "CORRELATION_S"),
-        help="DART-style steering noise on the driver: its std (rad) and correlation time "
-        "(s, default 0.5); the label stays the expert's",
+        default=0.0,
+        metavar="STEER_STD_RAD",
+        help="DART-style steering noise on the driver, its standard deviation (rad); the label "
+        "stays the expert's",
+    )
+    collect.add_argument(
+        "--perturb-correlation-s",
+        type=float,
+        default=0.5,
+        help="how long a push of the steering noise lasts (its correlation time)",
     )
     collect.add_argument(
         "--model",
@@ -92,7 +116,9 @@ def _parser() -> argparse.ArgumentParser:
         choices=["kinematic", "dynamic", "dynamic-paper"],
         help="vehicle model of the labelling expert MPC (and of an expert driver)",
     )
-    collect.add_argument("--max-seconds", type=float, help="end an episode after this long")
+    collect.add_argument(
+        "--max-seconds", type=float, help="end an episode after this much simulated time"
+    )
     collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
     _add_filter_arguments(collect)
     collect.set_defaults(command=_collect)
@@ -103,12 +129,18 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
     train.add_argument("--out", type=Path, required=True, help="checkpoint to write (NAME.pt)")
     train.add_argument(
-        "--stereo", action="store_true", help="insist that the rounds are stereo (6 channels)"
+        "--stereo",
+        action="store_true",
+        help="check that the rounds are stereo (the networks take the rounds' channels)",
     )
-    train.add_argument("--epochs", type=int, default=10)
-    train.add_argument("--batch-size", type=int, default=32)
+    train.add_argument(
+        "--epochs", type=int, default=10, help="passes over the training frames per network"
+    )
+    train.add_argument("--batch-size", type=int, default=32, help="frames per Adam step")
     train.add_argument("--lr", type=float, default=1e-3, help="Adam's learning rate")
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument(
+        "--seed", type=int, default=0, help="seeds the weights, the shuffling and the dropout"
+    )
     train.add_argument(
         "--val-stretch",
         type=float,
@@ -130,19 +162,24 @@ def _parser() -> argparse.ArgumentParser:
     validate = commands.add_parser(
         "validate", help="score a checkpoint's networks on rounds (e.g. of an unseen track)"
     )
-    validate.add_argument("checkpoint", type=Path)
+    validate.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
     validate.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
     validate.add_argument("--out", type=Path, required=True, help="folder for tables and plots")
     validate.add_argument("--samples", type=int, default=10, help="MC-dropout samples")
     validate.set_defaults(command=_validate)
 
     gradcam = commands.add_parser(
-        "gradcam", help="GradCAM heat maps of every network output on frames of a track"
+        "gradcam",
+        help="GradCAM heat maps of every network output on frames of a track",
+        description="The expert MPC laps the track on the checkpoint's camera; GradCAM maps of "
+        "both networks' outputs are drawn over frames spread over that lap.",
     )
-    gradcam.add_argument("checkpoint", type=Path)
+    gradcam.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
     gradcam.add_argument("--track", default="lab", help="built-in track name or track CSV path")
-    gradcam.add_argument("--task", default="CenterLine", choices=TASKS)
-    gradcam.add_argument("--frames", type=int, default=6, help="frames spread over one lap")
+    gradcam.add_argument(
+        "--task", default="CenterLine", choices=TASKS, help="the line the expert follows"
+    )
+    gradcam.add_argument("--frames", type=int, default=6, help="frames spread over the lap")
     gradcam.add_argument(
         "--layer",
         default="layer2",
@@ -211,18 +248,26 @@ TASKS = ("CenterLine", "RacingLine")
 
 def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -> None:
     """The arguments of one driven episode, shared by ``drive`` and ``eval``."""
-    parser.add_argument("--task", default="RacingLine", choices=TASKS)
+    parser.add_argument(
+        "--task", default="RacingLine", choices=TASKS, help="the reference line to follow"
+    )
     parser.add_argument(
         "--track", default="technical", help="built-in track name or track CSV path"
     )
     parser.add_argument(
         "--agent",
         default=default_agent,
-        help="expert, pure-pursuit, drift, weave, speeding or MODULE:FACTORY",
+        help="expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY",
     )
-    parser.add_argument("--laps", type=int, default=1)
+    parser.add_argument("--laps", type=int, default=1, help="laps per episode")
     parser.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
     parser.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
+    parser.add_argument(
+        "--mc-samples",
+        type=int,
+        default=MC_SAMPLES,
+        help="MC-dropout samples per step of a learned agent",
+    )
 
 
 FILTER_MODELS = ("kinematic", "dynamic", "dynamic-paper")
@@ -253,8 +298,8 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--samples",
         type=int,
-        help="state samples per step (default 20 for noisy state), MC-dropout samples of the "
-        "networks (default 10)",
+        help="state samples per step: of the noisy oracle (default 20), or the state network's "
+        "MC-dropout samples (default 10)",
     )
     parser.add_argument(
         "--deterministic",
@@ -271,10 +316,6 @@ def _add_gains_argument(parser: argparse.ArgumentParser) -> None:
         choices=FILTER_GAINS,
         help="the filter's class-K gains: the paper's, or those measured to cost the expert least",
     )
-
-
-DEFAULT_STATE_NOISE = (0.05, 0.05)
-NOISY_SAMPLES, MC_SAMPLES = 20, 10
 
 
 def _filter_config(args: argparse.Namespace):
@@ -376,6 +417,7 @@ def _drive(args: argparse.Namespace) -> int:
         seed=args.seed,
         image_size=(args.image_size, args.image_size),
         stereo=args.stereo,
+        mc_samples=args.mc_samples,
     )
     row = result_row(
         args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-", result
@@ -407,7 +449,7 @@ def _eval(args: argparse.Namespace) -> int:
             "stereo": args.stereo,
         },
         safety=safety,
-        mc_samples=args.samples or MC_SAMPLES,
+        mc_samples=args.mc_samples,
     )
     print(leaderboard_markdown(rows))
     print(f"{len(rows)} rows appended to {args.out}")
@@ -422,15 +464,15 @@ def _safety_table(args: argparse.Namespace) -> int:
     _check_laps(args.laps)
     if args.max_seconds <= 0 or args.samples < 2 or min(args.state_noise) < 0:
         raise SafeRaceError("need --max-seconds > 0, --samples >= 2, --state-noise >= 0")
+    if args.state_source is not None and not args.state_source.startswith("learned:"):
+        raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
+    if args.mc_samples < 1:
+        raise SafeRaceError(f"--mc-samples must be at least 1, got {args.mc_samples}")
     tracks = list(args.tracks) if args.tracks else list(builtin_track_names())
     for seed in args.random_tracks:
         path = args.out / "tracks" / f"random_{seed}.csv"
         write_random_track(path, seed, RANDOM_TRACK_RADIUS_M)
         tracks.append(str(path))
-    if args.state_source is not None and not args.state_source.startswith("learned:"):
-        raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
-    if args.mc_samples < 1:
-        raise SafeRaceError(f"--mc-samples must be at least 1, got {args.mc_samples}")
     run_table(
         tracks,
         args.out,
@@ -453,11 +495,7 @@ def _collect(args: argparse.Namespace) -> int:
     from saferace.learning.collect import CollectionConfig, Perturbation, collect_round
 
     _check_laps(args.laps)
-    perturbation = Perturbation()
-    if args.perturb:
-        if len(args.perturb) > 2:
-            raise SafeRaceError("--perturb takes STEER_STD_RAD and optionally CORRELATION_S")
-        perturbation = Perturbation(*args.perturb)
+    perturbation = Perturbation(args.perturb, args.perturb_correlation_s)
     config = CollectionConfig(
         agent=args.agent,
         task=args.task,
@@ -470,7 +508,7 @@ def _collect(args: argparse.Namespace) -> int:
         expert_model=args.model,
         image_size=(args.image_size, args.image_size),
         stereo=args.stereo,
-        mc_samples=args.samples or MC_SAMPLES,
+        mc_samples=args.mc_samples,
     )
     collected = collect_round(args.out, config)
     rows = [
@@ -482,9 +520,16 @@ def _collect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_samples(samples: int) -> None:
+    if samples < 1:
+        raise SafeRaceError(f"--samples must be at least 1, got {samples}")
+
+
 def _train(args: argparse.Namespace) -> int:
     from saferace.learning.commands import train_and_report
     from saferace.learning.training import TrainConfig
+
+    _check_samples(args.samples)
 
     config = TrainConfig(
         epochs=args.epochs,
@@ -504,6 +549,7 @@ def _train(args: argparse.Namespace) -> int:
 def _validate(args: argparse.Namespace) -> int:
     from saferace.learning.commands import validate_checkpoint
 
+    _check_samples(args.samples)
     _print_report(validate_checkpoint(args.checkpoint, args.data, args.out, args.samples))
     return 0
 

@@ -37,7 +37,9 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
     def make(stereo: bool = False) -> tuple[Path, Path]:
         if stereo not in made:
             folder = tmp_path_factory.mktemp("stereo" if stereo else "mono")
-            config = CollectionConfig(track="lab", laps=1, max_seconds=3.0, stereo=stereo)
+            config = CollectionConfig(
+                task="CenterLine", track="lab", laps=1, max_seconds=3.0, stereo=stereo
+            )
             collect_round(folder / "data", config, progress=False)
             checkpoint = folder / "tiny.pt"
             settings = TrainConfig(epochs=1, val_stretch=(0.05, 0.08))

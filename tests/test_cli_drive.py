@@ -2,19 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
+from cli_helpers import run_cli
 from rerun.chunk import RrdReader
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
-    )
 
 
 def test_drive_writes_video_and_rerun_recording(tmp_path: Path):

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
@@ -22,6 +21,7 @@ from saferace.learning.rounds import load_rounds
 
 
 def collect(tmp_path: Path, **settings) -> tuple:
+    settings.setdefault("task", "CenterLine")
     config = CollectionConfig(track="lab", laps=1, max_seconds=3.0, **settings)
     collected = collect_round(tmp_path / "data", config, progress=False)
     return collected, load_rounds([collected.path])
@@ -79,12 +79,6 @@ def test_steering_noise_is_stationary_and_correlated():
         Perturbation(-0.1)
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
-    )
-
-
 def test_collect_command_adds_rounds(tmp_path: Path):
     out = tmp_path / "data"
     args = ("collect", "--track", "lab", "--task", "RacingLine", "--max-seconds", "1")
@@ -98,5 +92,5 @@ def test_collect_command_adds_rounds(tmp_path: Path):
     assert stereo["episode"].tolist() == [0] * 20 + [1] * 20
     bytes_per_frame = (out / "round_0000" / "frames.npz").stat().st_size / 20
     assert bytes_per_frame < 5_000  # a 64x64 frame with its labels: well under 20 kB
-    bad = run_cli(*args, "--perturb", "0.1", "1", "2", "--out", str(out))
-    assert bad.returncode == 2 and "--perturb" in bad.stderr
+    bad = run_cli(*args, "--perturb", "-0.1", "--out", str(out))
+    assert bad.returncode == 2 and "--perturb needs a non-negative" in bad.stderr

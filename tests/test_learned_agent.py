@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.errors import SafeRaceError
@@ -48,6 +47,16 @@ def test_learned_agent_drives_from_the_observation_alone(tiny_checkpoint, env):
     assert np.array_equal(agent.act(observation, ForbiddenInfo()).mean, action.mean)  # seeded
 
 
+def test_episode_seed_draws_the_dropout_masks(tiny_checkpoint, env):
+    observation, _ = env.reset(seed=0)
+    spec = f"learned:{tiny_checkpoint()[0]}"
+    actions = [
+        make_agent(spec, env, mc_samples=5, seed=seed).act(observation, ForbiddenInfo()).mean
+        for seed in (1, 1, 2)
+    ]
+    assert np.array_equal(actions[0], actions[1]) and not np.array_equal(actions[0], actions[2])
+
+
 def test_learned_agent_turns_target_speed_into_acceleration(tiny_checkpoint, env):
     agent = make_agent(f"learned:{tiny_checkpoint()[0]}", env, mc_samples=1)
     observation, _ = env.reset(seed=0)
@@ -67,7 +76,7 @@ def test_learned_agent_turns_target_speed_into_acceleration(tiny_checkpoint, env
 
 
 def test_learned_state_source_gives_samples_from_the_image(tiny_checkpoint, env):
-    source = learned_state_source(tiny_checkpoint()[0], n_samples=8, seed=3)
+    source = learned_state_source(tiny_checkpoint()[0], (64, 64, 3), n_samples=8, seed=3)
     observation, _ = env.reset(seed=0)
     samples = source.samples(observation, ForbiddenInfo())
     assert samples.shape == (8, 3) and samples.std(axis=0).min() > 0
@@ -76,18 +85,15 @@ def test_learned_state_source_gives_samples_from_the_image(tiny_checkpoint, env)
 
 
 def test_checkpoint_must_match_the_camera(tiny_checkpoint):
+    checkpoint = tiny_checkpoint()[0]
     stereo_env = gym.make("saferace/CenterLine-v0", track="lab", stereo=True)
     try:
         with pytest.raises(SafeRaceError, match="drop --stereo"):
-            make_agent(f"learned:{tiny_checkpoint()[0]}", stereo_env)
+            make_agent(f"learned:{checkpoint}", stereo_env)
     finally:
         stereo_env.close()
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
-    )
+    with pytest.raises(SafeRaceError, match="trained on images"):
+        learned_state_source(checkpoint, (96, 96, 3))  # same channels, another size
 
 
 def test_eval_rows_record_checkpoint_and_state_source(tiny_checkpoint, tmp_path: Path):
@@ -95,14 +101,15 @@ def test_eval_rows_record_checkpoint_and_state_source(tiny_checkpoint, tmp_path:
     out = tmp_path / "rows.jsonl"
     result = run_cli(
         "eval", "--agent", f"learned:{checkpoint}", "--task", "CenterLine", "--track", "lab",
-        "--filter", "cbf", "--state-source", f"learned:{checkpoint}", "--samples", "4",
+        "--filter", "cbf", "--state-source", f"learned:{checkpoint}", "--samples", "3",
+        "--mc-samples", "4",
         "--max-seconds", "1", "--out", str(out),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     (row,) = read_jsonl(out)
     sha = load_checkpoint(checkpoint).sha256
     assert row["agent_checkpoint"] == {"path": str(checkpoint), "sha256": sha, "mc_samples": 4}
-    assert row["state_source"]["sha256"] == sha
+    assert row["state_source"] == {"path": str(checkpoint), "sha256": sha, "mc_samples": 3}
     assert row["filter"]["state_source"] == f"learned:{checkpoint}"
     assert row["summary"]["intervention_rate"] is not None
     refused = run_cli(

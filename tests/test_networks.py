@@ -131,3 +131,6 @@ def test_torchvision_weights_errors(tmp_path: Path):
         load_torchvision_weights(network("state"), not_weights)
     with pytest.raises(SafeRaceError, match="cannot read"):
         load_torchvision_weights(network("state"), tmp_path / "missing.pth")
+    (tmp_path / "junk.pth").write_bytes(b"not a state dict")
+    with pytest.raises(SafeRaceError, match="cannot read"):
+        load_torchvision_weights(network("state"), tmp_path / "junk.pth")

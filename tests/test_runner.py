@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 from saferace.eval.metrics import lap_metrics, summarize
 
@@ -47,12 +46,6 @@ def test_lap_metrics_by_hand():
 def test_no_steps_no_laps():
     empty = {name: np.array([]) for name in hand_made_steps()}
     assert lap_metrics(empty, [], DT) == []
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
-    )
 
 
 def test_eval_rows_and_leaderboard(tmp_path: Path):

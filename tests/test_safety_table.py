@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from cli_helpers import run_cli
 
 from saferace.eval.runner import read_jsonl
 from saferace.eval.safety_table import (
@@ -18,12 +17,6 @@ from saferace.eval.safety_table import (
 from saferace.safety.filter import GAIN_PRESETS
 from saferace.track import builtin_track_names
 from saferace.track.random_track import write_random_track
-
-
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
-    )
 
 
 def test_table_command_writes_tables_and_resumes(tmp_path: Path):

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
@@ -44,12 +43,13 @@ def test_overfits_a_tiny_dataset(frames):
 
 def test_same_seed_same_weights(frames):
     few = frames.subset(np.arange(24))
-    first, _, _ = train_networks(few, FEW, progress=False)
-    again, _, _ = train_networks(few, FEW, progress=False)
-    other, _, _ = train_networks(few, replace(FEW, seed=1), progress=False)
-    for name, weights in first.state_dict().items():
-        assert torch.equal(weights, again.state_dict()[name]), name
-    assert not torch.equal(first.output_layer.weight, other.output_layer.weight)
+    first = train_networks(few, FEW, progress=False)
+    again = train_networks(few, FEW, progress=False)
+    other = train_networks(few, replace(FEW, seed=1), progress=False)
+    for index in (0, 1):  # the control and the state network
+        for name, weights in first[index].state_dict().items():
+            assert torch.equal(weights, again[index].state_dict()[name]), name
+        assert not torch.equal(first[index].output_layer.weight, other[index].output_layer.weight)
 
 
 def test_checkpoint_gives_identical_outputs(frames, tmp_path: Path):
@@ -103,12 +103,6 @@ def test_warm_start_begins_at_the_checkpoint(frames, tiny_checkpoint):
             assert torch.equal(getattr(warm, name), getattr(start, name)), name
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "saferace", *args], capture_output=True, text=True, check=False
-    )
-
-
 def test_train_and_validate_commands(tiny_checkpoint, tmp_path: Path):
     data = tiny_checkpoint()[1]
     checkpoint = tmp_path / "run.pt"
@@ -125,3 +119,31 @@ def test_train_and_validate_commands(tiny_checkpoint, tmp_path: Path):
     assert validated.returncode == 0, validated.stderr
     assert (tmp_path / "v" / "validation.md").read_text().count("lab CenterLine") == 5
     assert (tmp_path / "v" / "state_along_lap_0_lab.png").stat().st_size > 10_000
+
+
+def test_an_interrupted_run_resumes_to_the_same_weights(
+    frames, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    few = frames.subset(np.arange(24))
+    config = replace(FEW, epochs=2)
+    expected = train_networks(few, config, progress=False)
+    calls = []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:  # the state network's second epoch: its first one is kept
+            raise KeyboardInterrupt
+        return 0.0
+
+    resume_file = tmp_path / "run.resume.pt"
+    with monkeypatch.context() as patch:
+        patch.setattr("saferace.learning.training.validation_loss", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            train_networks(few, config, progress=False, resume_file=resume_file)
+    assert resume_file.exists()
+    resumed = train_networks(few, config, progress=False, resume_file=resume_file)
+    for before, after in zip(expected[:2], resumed[:2], strict=True):
+        for name, weights in before.state_dict().items():
+            assert torch.equal(weights, after.state_dict()[name]), name
+    with pytest.raises(SafeRaceError, match="other settings"):
+        train_networks(few, replace(config, seed=3), progress=False, resume_file=resume_file)

@@ -106,6 +106,7 @@ class MPCExpert:
         self._plan_x: np.ndarray | None = None
         self._plan_u = np.zeros((self.settings.horizon, self.model.n_control))
         self._previous_u = np.zeros(self.model.n_control)
+        self._x0 = np.zeros(self.model.n_state)
 
     # ------------------------------------------------------------------ acting
     def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:

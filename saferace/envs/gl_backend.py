@@ -109,7 +109,12 @@ def load_llvm_users_before_mesa() -> None:
                 name,
             )
             return
-        importlib.import_module(name)
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # a broken install must not stop the simulator
+            logger.warning(
+                "could not load %s before Mesa (%s): the learned driver may crash", name, exc
+            )
 
 
 def renderer_error(exc: BaseException) -> RenderingUnavailableError:

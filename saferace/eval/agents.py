@@ -13,7 +13,7 @@ from saferace.errors import SafeRaceError
 RECKLESS_AGENT_NAMES = ("drift", "weave", "speeding")
 BUILTIN_AGENTS = ("expert", "pure-pursuit", *RECKLESS_AGENT_NAMES)
 #: Agents of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use (like
-#: gymnasium's entry points), ``FACTORY(env, ARGUMENT, mc_samples=N)``.
+#: gymnasium's entry points), ``FACTORY(env, ARGUMENT, mc_samples=N, seed=S)``.
 AGENT_KINDS = {"learned": "saferace.learning.agent:learned_agent"}
 
 
@@ -23,10 +23,13 @@ class Agent(Protocol):
     def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray: ...
 
 
-def make_agent(spec: str, env, model: str = "dynamic", mc_samples: int = 10) -> Agent | Callable:
+def make_agent(
+    spec: str, env, model: str = "dynamic", mc_samples: int = 10, seed: int | None = None
+) -> Agent | Callable:
     """``expert`` (MPC on ``model``), ``pure-pursuit``, a reckless test agent (``drift``,
     ``weave``, ``speeding``), ``learned:CHECKPOINT`` (the control network, ``mc_samples``
-    MC-dropout samples per step), or ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
+    MC-dropout samples per step, masks drawn from the episode ``seed``), or
+    ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
     if spec == "expert":
         from saferace.agents.mpc import MPCExpert
 
@@ -46,7 +49,8 @@ def make_agent(spec: str, env, model: str = "dynamic", mc_samples: int = 10) -> 
         )
     kind, argument = spec.split(":", 1)
     if kind in AGENT_KINDS:
-        return load_entry_point(AGENT_KINDS[kind])(env, argument, mc_samples=mc_samples)
+        factory = load_entry_point(AGENT_KINDS[kind])
+        return factory(env, argument, mc_samples=mc_samples, seed=seed)
     return load_entry_point(spec)(env)
 
 

@@ -22,9 +22,13 @@ def drive(
     video: str | Path | None = None,
     rerun: str | Path | None = None,
     seed: int = 0,
+    mc_samples: int = 10,
     **env_kwargs,
 ) -> EpisodeResult:
-    """Let ``agent`` drive ``laps`` laps; optionally record an MP4 and a Rerun ``.rrd``."""
+    """Let ``agent`` drive ``laps`` laps; optionally record an MP4 and a Rerun ``.rrd``.
+
+    ``mc_samples``: MC-dropout samples per step of a learned agent.
+    """
     env = gym.make(
         task_id(task),
         track=track,
@@ -50,7 +54,8 @@ def drive(
             recording.log_step(observation, info, action)
 
     try:
-        return run_episode(env, make_agent(agent, env), seed=seed, progress=True, on_step=on_step)
+        driver = make_agent(agent, env, mc_samples=mc_samples, seed=seed)
+        return run_episode(env, driver, seed=seed, progress=True, on_step=on_step)
     finally:
         if writer:
             writer.close()

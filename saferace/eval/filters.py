@@ -12,7 +12,8 @@ from saferace.safety.state_sources import NoisyOracleStateSource, OracleStateSou
 
 FILTER_KINDS = ("none", "cbf")
 #: State sources of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use,
-#: ``FACTORY(ARGUMENT, n_samples=N, seed=S)`` (the state network: ``learned:CHECKPOINT``).
+#: ``FACTORY(ARGUMENT, IMAGE_SHAPE, n_samples=N, seed=S)`` (the state network:
+#: ``learned:CHECKPOINT``).
 STATE_SOURCE_KINDS = {"learned": "saferace.learning.agent:learned_state_source"}
 
 
@@ -75,7 +76,8 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
     if config.state_source is not None:
         kind, argument = config.state_source.split(":", 1)
         factory = load_entry_point(STATE_SOURCE_KINDS[kind])
-        source = factory(argument, n_samples=config.samples, seed=seed)
+        image_shape = env.observation_space["image"].shape
+        source = factory(argument, image_shape, n_samples=config.samples, seed=seed)
     elif config.state_noise is None:
         source = OracleStateSource()
     else:

@@ -148,10 +148,9 @@ def evaluate(
     safety = safety or FilterConfig()
     rows = []
     for seed in seeds:
-        env = gym.make(task_id(task), track=track, max_laps=laps, **(env_kwargs or {}))
-        env = apply_filter(env, safety, seed)
+        env = make_task_env(task, track, laps, safety, seed, **(env_kwargs or {}))
         try:
-            agent = make_agent(agent_spec, env, model=model, mc_samples=mc_samples)
+            agent = make_agent(agent_spec, env, model=model, mc_samples=mc_samples, seed=seed)
             result = run_episode(env, agent, seed=seed, progress=progress)
             row = result_row(
                 agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result
@@ -173,6 +172,14 @@ def evaluate(
         if out is not None:
             append_jsonl(out, row)
     return rows
+
+
+def make_task_env(
+    task: str, track: str, laps: int, safety: FilterConfig, seed: int | None, **env_kwargs
+) -> gym.Env:
+    """A task's env for ``laps`` laps of ``track``, behind the filter ``safety`` asks for."""
+    env = gym.make(task_id(task), track=track, max_laps=laps, **env_kwargs)
+    return apply_filter(env, safety, seed)
 
 
 def result_row(

@@ -25,7 +25,6 @@ RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "Rac
 #: Size of generated test tracks: tight enough that 1.6x the racing line's speed exceeds
 #: the grip within a lap (on gentle tracks the car's 7 m/s top speed caps the agent).
 RANDOM_TRACK_RADIUS_M = 3.0
-CONTROL_HZ = 20.0
 
 
 @dataclass(frozen=True)
@@ -38,9 +37,8 @@ class Run:
     safety: FilterConfig
 
     @property
-    def key(self) -> tuple[str | None, ...]:
-        safety = self.safety
-        return (self.agent, self.task, self.track, safety.label, safety.gains, safety.state_source)
+    def key(self) -> tuple:
+        return run_key(self.agent, self.task, self.track, self.safety)
 
 
 def planned_runs(
@@ -92,7 +90,7 @@ def run_table(
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
     runs = planned_runs(tracks, noise, samples, model, gains, state_source, mc_samples)
     todo = [run for run in runs if run.key not in done]
-    env_kwargs = {"max_steps": max_steps_for(max_seconds, CONTROL_HZ), "control_hz": CONTROL_HZ}
+    env_kwargs = {"max_steps": max_steps_for(max_seconds)}
     for run in tqdm(todo, desc="safety table", unit="run", disable=None if progress else True):
         (row,) = evaluate(
             run.agent,
@@ -113,16 +111,13 @@ def run_table(
     return rows
 
 
-def _row_key(row: dict) -> tuple[str | None, ...]:
-    safety = row_filter(row)
-    return (
-        row["agent"],
-        row["task"],
-        row["track_arg"],
-        safety.label,
-        safety.gains,
-        safety.state_source,
-    )
+def run_key(agent: str, task: str, track: str, safety: FilterConfig) -> tuple:
+    """What makes a run of the table: a rerun skips the runs whose key it finds."""
+    return (agent, task, track, safety.label, safety.gains, safety.state_source, safety.samples)
+
+
+def _row_key(row: dict) -> tuple:
+    return run_key(row["agent"], row["task"], row["track_arg"], row_filter(row))
 
 
 def row_filter(row: dict) -> FilterConfig:

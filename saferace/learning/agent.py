@@ -24,18 +24,33 @@ from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint
 from saferace.learning.networks import DrivingNetwork
 from saferace.safety.filter import NominalAction
 
+#: Streams of dropout masks drawn from one episode seed: the agent's and the state source's.
+AGENT_STREAM, STATE_STREAM = 0, 1
+
+
+def dropout_seed(seed: int | None, stream: int) -> int:
+    """The seed of one stream of dropout masks for an episode seed (None: seed 0)."""
+    sequence = np.random.SeedSequence([0 if seed is None else seed, stream])
+    return int(sequence.generate_state(1)[0])
+
 
 class LearnedAgent:
-    """The control network ``M_com`` with a PID speed loop; ``act(obs, info)`` ignores info."""
+    """The control network ``M_com`` with a PID speed loop; ``act(obs, info)`` ignores info.
+
+    Its MC-dropout masks come from a generator seeded by the episode's ``seed`` at each
+    reset: the same seed gives the same episode.
+    """
 
     def __init__(
         self,
         network: DrivingNetwork,
         speed_controller: PIDSpeedController,
         mc_samples: int = 10,
-        seed: int = 0,
+        seed: int | None = None,
         checkpoint: dict | None = None,
     ) -> None:
+        if mc_samples < 1:
+            raise SafeRaceError(f"mc_samples must be at least 1, got {mc_samples}")
         self.network = network
         self.speed_controller = speed_controller
         self.mc_samples = mc_samples
@@ -46,7 +61,7 @@ class LearnedAgent:
 
     def reset(self) -> None:
         self.speed_controller.reset()
-        self._generator.manual_seed(self._seed)
+        self._generator.manual_seed(dropout_seed(self._seed, AGENT_STREAM))
 
     def act(self, observation: dict[str, np.ndarray], info: Any = None) -> NominalAction:
         velocity = observation["velocity"]
@@ -91,44 +106,51 @@ class LearnedStateSource:
 
     def reset(self, seed: int | None = None) -> None:
         chosen = self._seed if seed is None else seed
-        self._generator.manual_seed(0 if chosen is None else chosen)
+        self._generator.manual_seed(dropout_seed(chosen, STATE_STREAM))
 
     def samples(self, observation: dict[str, np.ndarray], info: Any = None) -> np.ndarray:
         prediction = self.network.predict(
             observation["image"], None, self.n_samples, self._generator
         )
-        return prediction.samples[0].astype(float)
+        return prediction.samples[0]
 
     def describe(self) -> dict:
         return {**self.checkpoint, "mc_samples": self.n_samples}
 
 
-def learned_agent(env: gym.Env, checkpoint: str | Path, mc_samples: int = 10) -> LearnedAgent:
+def learned_agent(
+    env: gym.Env, checkpoint: str | Path, mc_samples: int = 10, seed: int | None = None
+) -> LearnedAgent:
     """``learned:CHECKPOINT``: the checkpoint's control network driving ``env``."""
     loaded = load_checkpoint(checkpoint)
-    check_observation_fits(loaded, env.observation_space["image"].shape)
+    check_image_shape(loaded, env.observation_space["image"].shape)
     base = env.unwrapped
     low, high = base.action_space.low, base.action_space.high
     gains = PIDGains(min_accel_mps2=float(low[1]), max_accel_mps2=float(high[1]))
     controller = PIDSpeedController(base.control_dt_s, gains)
-    return LearnedAgent(loaded.control, controller, mc_samples, checkpoint=loaded.describe())
+    return LearnedAgent(loaded.control, controller, mc_samples, seed, loaded.describe())
 
 
 def learned_state_source(
-    checkpoint: str | Path, n_samples: int = 10, seed: int | None = None
+    checkpoint: str | Path,
+    image_shape: tuple[int, ...],
+    n_samples: int = 10,
+    seed: int | None = None,
 ) -> LearnedStateSource:
-    """``--state-source learned:CHECKPOINT``: the checkpoint's state network."""
+    """``--state-source learned:CHECKPOINT``: the checkpoint's state network, for a task
+    whose images have ``image_shape``."""
     loaded = load_checkpoint(checkpoint)
+    check_image_shape(loaded, image_shape)
     return LearnedStateSource(loaded.state, n_samples, seed, checkpoint=loaded.describe())
 
 
-def check_observation_fits(checkpoint: LearnedCheckpoint, image_shape: tuple[int, ...]) -> None:
-    """Raise unless the env's images have the shape the networks were trained on."""
-    trained = tuple(checkpoint.metadata.get("image_shape", ()))
-    if trained and tuple(image_shape) != trained:
+def check_image_shape(checkpoint: LearnedCheckpoint, image_shape: tuple[int, ...]) -> None:
+    """Raise unless images of ``image_shape`` are what the networks were trained on."""
+    trained = tuple(checkpoint.metadata["image_shape"])
+    if tuple(image_shape) != trained:
         hint = "add --stereo" if trained[-1] == 6 else "drop --stereo"
         raise SafeRaceError(
-            f"checkpoint {checkpoint.path} was trained on images {trained}, the task gives "
+            f"checkpoint {checkpoint.path} was trained on images {trained}, not "
             f"{tuple(image_shape)}: use the same --image-size and camera ({hint} if only the "
             "channels differ)"
         )

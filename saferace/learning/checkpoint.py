@@ -11,6 +11,7 @@ and it loads with ``torch.load(weights_only=True)``: plain data only, no pickled
 from __future__ import annotations
 
 import hashlib
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,8 +45,6 @@ def save_checkpoint(
     path: str | Path, control: DrivingNetwork, state: DrivingNetwork, metadata: dict
 ) -> Path:
     """Write both networks and ``metadata`` to ``path`` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
@@ -55,6 +54,13 @@ def save_checkpoint(
         },
         "metadata": metadata,
     }
+    return save_atomically(payload, path)
+
+
+def save_atomically(payload: dict, path: str | Path) -> Path:
+    """``torch.save`` to a temporary file beside ``path``, synced, then renamed into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
     try:
         with open(temporary, "wb") as handle:
@@ -72,9 +78,9 @@ def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
     path = Path(path)
     if not path.is_file():
         raise SafeRaceError(f"no checkpoint at {path}: train one with saferace train ... --out")
-    raw = path.read_bytes()
+    raw = path.read_bytes()  # read once: the hash and the weights are of the same bytes
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        payload = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many kinds for a file that is not a checkpoint
         raise SafeRaceError(f"{path} is not a SafeRace checkpoint: {exc}") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
@@ -84,7 +90,10 @@ def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
             f"{path} has checkpoint format {payload['version']}; this SafeRace reads up to "
             f"{FORMAT_VERSION}: upgrade SafeRace"
         )
-    networks = [_network(payload["networks"][name]) for name in NETWORK_NAMES]
+    try:
+        networks = [_network(payload["networks"][name]) for name in NETWORK_NAMES]
+    except (KeyError, RuntimeError, TypeError) as exc:
+        raise SafeRaceError(f"{path} holds damaged or mismatched networks: {exc}") from None
     return LearnedCheckpoint(*networks, payload["metadata"], path, hashlib.sha256(raw).hexdigest())
 
 

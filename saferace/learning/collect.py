@@ -22,13 +22,13 @@ import saferace
 from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
-from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import (
     git_revision,
+    make_task_env,
     max_steps_for,
     package_versions,
     run_episode,
-    task_id,
 )
 from saferace.learning.rounds import FRAME_FIELDS, write_round
 from saferace.safety.filter import NominalAction, nominal_parts
@@ -91,13 +91,13 @@ class LabellingDriver:
         expert: MPCExpert,
         driver: Agent | None,
         noise: SteeringNoise,
-        action_low: np.ndarray,
-        action_high: np.ndarray,
+        action_space: gym.spaces.Box,
+        episode: int = 0,
     ) -> None:
         self.expert, self.driver, self.noise = expert, driver, noise
-        self.action_low, self.action_high = action_low, action_high
+        self.action_low, self.action_high = action_space.low, action_space.high
         self.frames: dict[str, list] = {name: [] for name in FRAME_FIELDS}
-        self.episode = 0
+        self.episode = episode
 
     def reset(self) -> None:
         self.expert.reset()
@@ -144,8 +144,8 @@ class CollectionConfig:
     """What one round records: driver, task, track, episodes, camera and noise."""
 
     agent: str = "expert"
-    task: str = "CenterLine"
-    track: str = "lab"
+    task: str = "RacingLine"
+    track: str = "technical"
     seeds: tuple[int, ...] = (0,)
     laps: int = 3
     max_seconds: float | None = None
@@ -181,7 +181,16 @@ def collect_round(
     summaries = []
     track_name = track_length = control_hz = None
     for episode, seed in enumerate(config.seeds):
-        env = _make_env(config, seed)
+        env = make_task_env(
+            config.task,
+            config.track,
+            config.laps,
+            config.safety,
+            seed,
+            max_steps=max_steps_for(config.max_seconds),
+            image_size=tuple(config.image_size),
+            stereo=config.stereo,
+        )
         try:
             base = env.unwrapped
             track_name, track_length = base.track.name, base.track.length_m
@@ -190,15 +199,10 @@ def collect_round(
             driver = (
                 None
                 if config.agent == "expert"
-                else make_agent(
-                    config.agent, env, model=config.expert_model, mc_samples=config.mc_samples
-                )
+                else make_agent(config.agent, env, config.expert_model, config.mc_samples, seed)
             )
             noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
-            labeller = LabellingDriver(
-                expert, driver, noise, base.action_space.low, base.action_space.high
-            )
-            labeller.episode = episode
+            labeller = LabellingDriver(expert, driver, noise, base.action_space, episode)
             result = run_episode(
                 env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
             )
@@ -222,15 +226,3 @@ def collect_round(
     }
     path = write_round(dataset_dir, arrays, manifest_config)
     return CollectedRound(path, len(arrays["s_m"]), summaries)
-
-
-def _make_env(config: CollectionConfig, seed: int) -> gym.Env:
-    env = gym.make(
-        task_id(config.task),
-        track=config.track,
-        max_laps=config.laps,
-        max_steps=max_steps_for(config.max_seconds),
-        image_size=tuple(config.image_size),
-        stereo=config.stereo,
-    )
-    return apply_filter(env, config.safety, seed)

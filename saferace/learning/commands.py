@@ -1,9 +1,11 @@
 """What ``saferace train``, ``validate`` and ``gradcam`` do: train or load, score, plot, write.
 
-``train`` writes, next to the checkpoint ``NAME.pt``: ``NAME_loss.png`` (loss curves),
-``NAME_validation.md`` and ``.csv`` (errors and MC-dropout spreads on the training frames,
-the held-out stretch and its near and far halves) and ``NAME_state_along_lap.png`` (the
-state network along the first lap, held-out stretch shaded). ``validate`` writes the same
+``train`` keeps its progress in ``NAME.resume.pt`` (an interrupted run started again
+continues from its last epoch) and writes, next to the checkpoint ``NAME.pt``,
+``NAME_loss.png`` (loss curves), ``NAME_validation.md`` and ``.csv`` (errors and MC-dropout
+spreads on the training frames, the held-out stretch and its near and far halves) and
+``NAME_state_along_lap.png`` (the state network along the first lap, held-out stretch
+shaded). ``validate`` writes the same
 table and one state plot per data set for a checkpoint on rounds it may never have seen.
 ``gradcam`` lets the expert lap a track and writes GradCAM sheets of frames spread over it.
 """
@@ -20,6 +22,7 @@ import numpy as np
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.runner import run_episode, task_id
+from saferace.learning.agent import check_image_shape
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
 from saferace.learning.gradcam import gradcam_sheet, write_sheet
 from saferace.learning.plots import first_lap, plot_losses, plot_state_along_lap
@@ -56,13 +59,16 @@ def train_and_report(
     ``require_stereo``: refuse mono rounds (the command line's ``--stereo``).
     """
     out = Path(out)
+    if mc_samples < 1:
+        raise SafeRaceError(f"mc_samples must be at least 1, got {mc_samples}")
     frames = load_rounds(data_paths)
     if require_stereo and frames["image"].shape[-1] != 6:
         raise SafeRaceError(
             f"--stereo asks for stereo rounds, but {data_paths} hold mono images: collect "
             "them with saferace collect --stereo"
         )
-    control, state, metadata = train_networks(frames, config, progress)
+    resume_file = out.with_suffix(".resume.pt")
+    control, state, metadata = train_networks(frames, config, progress, resume_file)
     held_out = held_out_mask(frames, config.val_stretch)
     training = frames.subset(~held_out)
     splits = {
@@ -73,6 +79,7 @@ def train_and_report(
     rows, _ = validation_rows(networks, splits, training, HELD_OUT, mc_samples, config.seed)
     metadata["validation"] = rows
     save_checkpoint(out, control, state, metadata)
+    resume_file.unlink(missing_ok=True)
 
     stem = out.with_suffix("")
     loss_plot = stem.with_name(f"{stem.name}_loss.png")
@@ -104,7 +111,8 @@ def validate_checkpoint(
     splits: dict[str, FrameSet] = {}
     for path in data_paths:
         frames = load_rounds([path])
-        splits[f"{frames['track'][0]} {frames['task'][0]} ({Path(path).name})"] = frames
+        check_image_shape(loaded, frames["image"].shape[1:])
+        splits[f"{frames['track'][0]} {frames['task'][0]} ({path})"] = frames
     networks = {"control": loaded.control, "state": loaded.state}
     rows, predictions = validation_rows(networks, splits, n_samples=mc_samples, seed=seed)
     files = write_table(rows, out_dir / "validation")

@@ -35,10 +35,10 @@ def gradcam_maps(
     images = torch.as_tensor(image, dtype=torch.float32)[None]
     extra = None if velocity is None else torch.as_tensor(velocity, dtype=torch.float32)[None]
     with torch.no_grad():
-        signs = torch.sign(network(images, extra))[0]
+        signs = torch.sign(network.denormalise_outputs(network(images, extra)))[0]
 
     def magnitude(batch: torch.Tensor, velocities: torch.Tensor | None) -> torch.Tensor:
-        return network(batch, velocities) * signs
+        return network.denormalise_outputs(network(batch, velocities)) * signs
 
     cam = LayerGradCam(magnitude, getattr(network.backbone, layer))
     height, width = image.shape[:2]

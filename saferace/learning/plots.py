@@ -45,7 +45,7 @@ def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) ->
 def first_lap(frames: FrameSet) -> np.ndarray:
     """Indices of the first episode's first lap (until ``s`` wraps round)."""
     episode = np.flatnonzero(
-        (frames["episode"] == frames["episode"][0]) & (frames["round"] == frames["round"][0])
+        (frames["episode"] == frames["episode"][0]) & (frames["source"] == frames["source"][0])
     )
     s = frames["s_m"][episode]
     wraps = np.flatnonzero(np.diff(s) < -0.5 * frames["track_length_m"][0])

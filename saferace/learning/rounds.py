@@ -40,8 +40,6 @@ FRAME_FIELDS: dict[str, tuple[str, tuple[int, ...] | None]] = {
     "episode": ("int32", ()),  # which episode of the round (one per seed)
     "intervened": ("bool", ()),  # the safety filter changed the driver's action
 }
-#: Arrays :func:`load_rounds` adds from each round's manifest.
-ROUND_FIELDS = ("round", "track", "task", "track_length_m")
 FRAMES_FILE = "frames.npz"
 MANIFEST_FILE = "manifest.json"
 ROUND_NAME = re.compile(r"^round_(\d{4,})$")
@@ -51,7 +49,9 @@ FORMAT_VERSION = 1
 
 @dataclass
 class FrameSet:
-    """Frames of one or more rounds as aligned arrays (``FRAME_FIELDS`` + ``ROUND_FIELDS``)."""
+    """Frames of one or more rounds as aligned arrays: :data:`FRAME_FIELDS`, and from each
+    round's manifest ``round`` (its number in its dataset), ``source`` (its index in
+    ``manifests``, unique), ``track``, ``task`` and ``track_length_m``."""
 
     arrays: dict[str, np.ndarray]
     manifests: list[dict]
@@ -112,8 +112,11 @@ def write_round(dataset_dir: str | Path, arrays: dict[str, np.ndarray], config: 
 
 
 def next_round_index(dataset_dir: str | Path) -> int:
-    """One more than the highest complete round's number (0 for none)."""
-    numbers = [_round_number(path) for path in round_dirs(dataset_dir)]
+    """One more than the highest round number in use (0 for none); a damaged round folder
+    without a manifest keeps its number too."""
+    dataset_dir = Path(dataset_dir)
+    names = (p.name for p in dataset_dir.iterdir()) if dataset_dir.is_dir() else ()
+    numbers = [int(match.group(1)) for name in names if (match := ROUND_NAME.match(name))]
     return max(numbers, default=-1) + 1
 
 
@@ -140,11 +143,16 @@ def load_rounds(paths: Iterable[str | Path]) -> FrameSet:
                 f"no complete collection round at {path}: expected a dataset folder with "
                 "round_NNNN/ folders or one round folder (write them with saferace collect)"
             )
-        rounds += [p for p in found if p not in rounds]
+        rounds += [p.resolve() for p in found if p.resolve() not in rounds]
     parts: list[dict[str, np.ndarray]] = []
     manifests = []
-    for path in rounds:
+    for source, path in enumerate(rounds):
         manifest = json.loads((path / MANIFEST_FILE).read_text())
+        if manifest["format"] > FORMAT_VERSION:
+            raise SafeRaceError(
+                f"{path} is a round of format {manifest['format']}; this SafeRace reads up to "
+                f"{FORMAT_VERSION}: upgrade SafeRace"
+            )
         with np.load(path / FRAMES_FILE) as stored:
             frames = {name: stored[name] for name in FRAME_FIELDS}
         count = len(frames["s_m"])
@@ -154,6 +162,7 @@ def load_rounds(paths: Iterable[str | Path]) -> FrameSet:
             )
         config = manifest["config"]
         frames["round"] = np.full(count, _round_number(path), np.int32)
+        frames["source"] = np.full(count, source, np.int32)
         frames["track"] = np.full(count, config["track"])
         frames["task"] = np.full(count, config["task"])
         frames["track_length_m"] = np.full(count, config["track_length_m"], np.float32)
@@ -195,8 +204,8 @@ def _round_number(path: Path) -> int:
 def _remove_abandoned_partials(dataset_dir: Path) -> None:
     """Delete half-written rounds whose writer process no longer runs."""
     for partial in dataset_dir.glob(f"{PARTIAL_PREFIX}*"):
-        pid = int(partial.name[len(PARTIAL_PREFIX) :].split("-")[0])
-        if not _process_alive(pid):
+        pid = partial.name[len(PARTIAL_PREFIX) :].split("-")[0]
+        if pid.isdigit() and not _process_alive(int(pid)):
             LOG.warning("removing %s, a round left unfinished by an interrupted writer", partial)
             shutil.rmtree(partial, ignore_errors=True)
 

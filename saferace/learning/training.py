@@ -7,6 +7,11 @@ validation rather than random frames, which would sit next to near-identical tra
 frames. Training is seeded and deterministic on the CPU; it can warm-start from a
 checkpoint (fine-tuning between DAgger iterations, as the authors did) or load a
 torchvision ResNet-18 state dict into both backbones.
+
+With a ``resume_file`` the state of the run (weights, optimiser, random generators, losses)
+is written there atomically after every epoch; a run started again with the same
+configuration and data continues from the last finished epoch and ends with the weights
+an uninterrupted run would have.
 """
 
 from __future__ import annotations
@@ -14,7 +19,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -24,7 +31,7 @@ from tqdm import tqdm
 import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
-from saferace.learning.checkpoint import load_checkpoint
+from saferace.learning.checkpoint import load_checkpoint, save_atomically
 from saferace.learning.networks import (
     DrivingNetwork,
     control_config,
@@ -62,6 +69,10 @@ class TrainConfig:
             )
         if self.epochs < 1 or self.batch_size < 1 or self.learning_rate <= 0.0:
             raise SafeRaceError("epochs, batch_size and learning_rate must be positive")
+        if self.init and self.backbone_weights:
+            raise SafeRaceError(
+                "--init and --backbone-weights both set the starting weights: choose one"
+            )
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -118,19 +129,36 @@ def fit(
     config: TrainConfig,
     label: str,
     progress: bool = True,
+    resume: dict | None = None,
+    on_epoch: Callable[[dict], None] | None = None,
 ) -> dict[str, list[float]]:
-    """Adam on the MSE of normalised targets; returns per-batch and per-epoch losses."""
+    """Adam on the MSE of normalised targets; returns per-batch and per-epoch losses.
+
+    After each epoch ``on_epoch`` gets the state to continue from (weights, optimiser,
+    generators, losses, epochs done); ``resume`` is such a state.
+    """
     network.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
     generator = torch.Generator().manual_seed(config.seed)
+    history: dict[str, list[float]] = {"batch_loss": [], "train_loss": [], "val_loss": []}
+    first_epoch = 0
+    if resume is not None:
+        network.load_state_dict(resume["weights"])
+        optimizer.load_state_dict(resume["optimizer"])
+        generator.set_state(resume["generator"])
+        torch.set_rng_state(resume["torch_rng"])  # dropout's masks
+        history, first_epoch = resume["history"], resume["epochs_done"]
     targets = network.normalise_outputs(torch.as_tensor(train.targets, dtype=torch.float32))
     batches = math.ceil(len(train) / config.batch_size)
-    history: dict[str, list[float]] = {"batch_loss": [], "train_loss": [], "val_loss": []}
     bar = tqdm(
-        total=config.epochs * batches, desc=f"train {label}", unit="batch", disable=not progress
+        total=config.epochs * batches,
+        initial=first_epoch * batches,
+        desc=f"train {label}",
+        unit="batch",
+        disable=None if progress else True,  # None: a bar on a terminal, not in logs
     )
     with bar:
-        for epoch in range(config.epochs):
+        for epoch in range(first_epoch, config.epochs):
             network.train()
             order = torch.randperm(len(train), generator=generator).numpy()
             total = 0.0
@@ -149,6 +177,17 @@ def fit(
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
                 bar.set_postfix(epoch=epoch + 1, val=f"{history['val_loss'][-1]:.4f}")
+            if on_epoch is not None:
+                on_epoch(
+                    {
+                        "epochs_done": epoch + 1,
+                        "weights": network.state_dict(),
+                        "optimizer": optimizer.state_dict(),
+                        "generator": generator.get_state(),
+                        "torch_rng": torch.get_rng_state(),
+                        "history": history,
+                    }
+                )
     network.eval()
     return history
 
@@ -172,9 +211,15 @@ def _forward(network: DrivingNetwork, data: NetworkData, index: np.ndarray) -> t
 
 
 def train_networks(
-    frames: FrameSet, config: TrainConfig, progress: bool = True
+    frames: FrameSet,
+    config: TrainConfig,
+    progress: bool = True,
+    resume_file: str | Path | None = None,
 ) -> tuple[DrivingNetwork, DrivingNetwork, dict]:
-    """Train the control and the state network; return them and the run's metadata."""
+    """Train the control and the state network; return them and the run's metadata.
+
+    ``resume_file``: where to keep the run's state after every epoch, and to continue from.
+    """
     held_out = held_out_mask(frames, config.val_stretch)
     if held_out.all() or not held_out.any():
         raise SafeRaceError(
@@ -189,11 +234,22 @@ def train_networks(
     history = {}
     started = time.perf_counter()
     train_data, validation_data = network_data(train_frames), network_data(validation_frames)
+    fingerprint = {
+        "training": config.as_dict(),
+        "data": [(str(Path(m["path"]).resolve()), m["frame_count"]) for m in frames.manifests],
+    }
+    run = _resumed_run(resume_file, fingerprint)
     for index, (name, make_config) in enumerate(
         (("control", control_config), ("state", state_config))
     ):
         torch.manual_seed(config.seed + index)
         network = DrivingNetwork(make_config(stereo, config.dropout))
+        if name in run["done"]:
+            network.load_state_dict(run["done"][name]["weights"])
+            network.eval()
+            history[name] = run["done"][name]["history"]
+            networks[name] = network
+            continue
         if initial is not None:
             source = getattr(initial, name)
             if source.config != network.config:
@@ -206,9 +262,18 @@ def train_networks(
             if config.backbone_weights:
                 load_torchvision_weights(network, config.backbone_weights)
             network.set_normalisation(normalisation(train_data[name], config.seed))
+        current = run["current"] if run["current"].get("name") == name else None
+
+        def keep(state: dict, name: str = name) -> None:
+            run["current"] = {"name": name, **state}
+            if resume_file is not None:
+                save_atomically(run, resume_file)
+
         history[name] = fit(
-            network, train_data[name], validation_data[name], config, name, progress
-        )
+            network, train_data[name], validation_data[name], config, name, progress,
+            current, keep,
+        )  # fmt: skip
+        run["done"][name] = {"weights": network.state_dict(), "history": history[name]}
         networks[name] = network
     metadata = {
         "training": config.as_dict(),
@@ -223,6 +288,27 @@ def train_networks(
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     return networks["control"], networks["state"], metadata
+
+
+def _resumed_run(resume_file: str | Path | None, fingerprint: dict) -> dict:
+    """The state a previous, interrupted run left in ``resume_file``, or a fresh one."""
+    fresh = {"fingerprint": fingerprint, "done": {}, "current": {}}
+    if resume_file is None or not Path(resume_file).exists():
+        return fresh
+    try:
+        run = torch.load(resume_file, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many kinds for a damaged file
+        raise SafeRaceError(
+            f"cannot read the interrupted training run in {resume_file} ({exc}): delete it to "
+            "start over"
+        ) from None
+    if run["fingerprint"] != fingerprint:
+        raise SafeRaceError(
+            f"{resume_file} holds an interrupted training run with other settings or data "
+            f"({run['fingerprint']}); run it again with those, or delete the file to start over"
+        )
+    LOG.warning("resuming the interrupted training run in %s", resume_file)
+    return run
 
 
 def _round_summary(manifest: dict) -> dict:

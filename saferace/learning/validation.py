@@ -28,7 +28,7 @@ TABLE_COLUMNS = (
     "RMSE",
     "mean spread",
     "within 2 spreads",
-    "corr(spread, |error|)",
+    "rank corr. spread/error",
 )
 #: Training frames scored at most (a seeded sample): enough for the RMSE, and quick.
 MAX_SCORED_TRAIN_FRAMES = 1000
@@ -102,24 +102,30 @@ def validation_rows(
 ) -> tuple[list[dict], dict[str, dict[str, Prediction]]]:
     """Error rows of every network on every split (and the near and far halves of
     ``splits[held_out]`` when ``training`` is given); also the predictions by split."""
-    named = dict(splits)
-    if training is not None and held_out in splits:
-        distance = distance_to_training(training, splits[held_out])
-        near = distance <= np.median(distance)
-        named[f"{held_out}: near half"] = splits[held_out].subset(near)
-        named[f"{held_out}: far half"] = splits[held_out].subset(~near)
     rows: list[dict] = []
     predictions: dict[str, dict[str, Prediction]] = {}
-    for split, frames in named.items():
+    for split, frames in splits.items():
         if not len(frames):
             continue
         data = network_data(frames)
-        predictions[split] = {}
-        for name, network in networks.items():
-            prediction = predict_frames(network, data[name], n_samples, seed=seed)
-            predictions[split][name] = prediction
-            rows += error_rows(split, name, network, prediction, data[name].targets)
+        predictions[split] = {
+            name: predict_frames(network, data[name], n_samples, seed=seed)
+            for name, network in networks.items()
+        }
+        parts = {split: np.ones(len(frames), bool)}
+        if training is not None and split == held_out:
+            distance = distance_to_training(training, frames)
+            near = distance <= np.median(distance)
+            parts |= {f"{split}: near half": near, f"{split}: far half": ~near}
+        for part, mask in parts.items():
+            for name, network in networks.items():
+                prediction = _rows_of(predictions[split][name], mask)
+                rows += error_rows(part, name, network, prediction, data[name].targets[mask])
     return rows, predictions
+
+
+def _rows_of(prediction: Prediction, mask: np.ndarray) -> Prediction:
+    return Prediction(prediction.mean[mask], prediction.std[mask], prediction.samples[mask])
 
 
 def scored_training_frames(frames: FrameSet, seed: int = 0) -> FrameSet:
