@@ -149,6 +149,12 @@ def _parser() -> argparse.ArgumentParser:
         metavar=("START", "END"),
         help="the stretch of the lap held out for validation, as fractions of the lap",
     )
+    train.add_argument(
+        "--no-validation",
+        action="store_true",
+        help="hold nothing out: train on the whole lap (score the model with saferace validate "
+        "on other rounds)",
+    )
     train.add_argument("--dropout", type=float, default=0.2, help="dropout of the heads")
     train.add_argument("--init", type=Path, help="warm-start from this checkpoint")
     train.add_argument(
@@ -536,7 +542,7 @@ def _train(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         learning_rate=args.lr,
         seed=args.seed,
-        val_stretch=tuple(args.val_stretch),
+        val_stretch=None if args.no_validation else tuple(args.val_stretch),
         dropout=args.dropout,
         init=None if args.init is None else str(args.init),
         backbone_weights=None if args.backbone_weights is None else str(args.backbone_weights),

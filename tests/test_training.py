@@ -89,6 +89,10 @@ def test_validation_holds_out_a_contiguous_stretch(frames):
         train_networks(frames, replace(FEW, val_stretch=(0.9, 1.0)), progress=False)
     with pytest.raises(SafeRaceError, match="val_stretch"):
         TrainConfig(val_stretch=(0.5, 0.4))
+    everything = replace(FEW, val_stretch=None)
+    _, _, metadata = train_networks(frames.subset(np.arange(16)), everything, progress=False)
+    assert metadata["frames"] == {"train": 16, "validation": 0}
+    assert metadata["history"]["state"]["val_loss"] == []
 
 
 def test_warm_start_begins_at_the_checkpoint(frames, tiny_checkpoint):

@@ -4,9 +4,11 @@ The control network learns the expert's ``[steer_rad, target_speed_mps]`` from i
 velocities, the state network the true ``[e_y_m, e_psi_rad, kappa_radpm]`` from the image.
 A contiguous stretch of the track (``val_stretch``, fractions of the lap) is held out for
 validation rather than random frames, which would sit next to near-identical training
-frames. Training is seeded and deterministic on the CPU; it can warm-start from a
-checkpoint (fine-tuning between DAgger iterations, as the authors did) or load a
-torchvision ResNet-18 state dict into both backbones.
+frames; ``val_stretch=None`` trains on every frame (a final model that must know the whole
+lap, scored with ``saferace validate`` on other rounds). Training is seeded and
+deterministic on the CPU; it can warm-start from a checkpoint (fine-tuning between DAgger
+iterations, as the authors did) or load a torchvision ResNet-18 state dict into both
+backbones.
 
 With a ``resume_file`` the state of the run (weights, optimiser, random generators, losses)
 is written there atomically after every epoch; a run started again with the same
@@ -55,13 +57,13 @@ class TrainConfig:
     batch_size: int = 32
     learning_rate: float = 1e-3
     seed: int = 0
-    val_stretch: tuple[float, float] = (0.55, 0.7)
+    val_stretch: tuple[float, float] | None = (0.55, 0.7)
     dropout: float = 0.2
     init: str | None = None
     backbone_weights: str | None = None
 
     def __post_init__(self) -> None:
-        start, end = self.val_stretch
+        start, end = self.val_stretch or (0.0, 1.0)
         if not 0.0 <= start < end <= 1.0:
             raise SafeRaceError(
                 f"val_stretch must be fractions of the lap 0 <= start < end <= 1, got "
@@ -90,8 +92,10 @@ class NetworkData:
         return len(self.targets)
 
 
-def held_out_mask(frames: FrameSet, stretch: tuple[float, float]) -> np.ndarray:
-    """Frames whose position on the lap lies in ``[start, end)`` of the lap."""
+def held_out_mask(frames: FrameSet, stretch: tuple[float, float] | None) -> np.ndarray:
+    """Frames whose position on the lap lies in ``[start, end)`` of the lap (none: None)."""
+    if stretch is None:
+        return np.zeros(len(frames), bool)
     fraction = frames.lap_fraction
     return (fraction >= stretch[0]) & (fraction < stretch[1])
 
@@ -221,7 +225,7 @@ def train_networks(
     ``resume_file``: where to keep the run's state after every epoch, and to continue from.
     """
     held_out = held_out_mask(frames, config.val_stretch)
-    if held_out.all() or not held_out.any():
+    if held_out.all() or (config.val_stretch is not None and not held_out.any()):
         raise SafeRaceError(
             f"the validation stretch {config.val_stretch} of the lap holds "
             f"{int(held_out.sum())} of {len(frames)} frames: choose --val-stretch so that "
