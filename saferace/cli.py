@@ -412,7 +412,7 @@ def _drive(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import result_row
 
-    _check_laps(args.laps)
+    _check_count("--laps", args.laps)
     result = drive(
         args.task,
         args.track,
@@ -439,7 +439,7 @@ def _eval(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import evaluate, max_steps_for
 
-    _check_laps(args.laps)
+    _check_count("--laps", args.laps)
     safety = _filter_config(args)
     rows = evaluate(
         args.agent,
@@ -467,13 +467,12 @@ def _safety_table(args: argparse.Namespace) -> int:
     from saferace.track import builtin_track_names
     from saferace.track.random_track import write_random_track
 
-    _check_laps(args.laps)
+    _check_count("--laps", args.laps)
     if args.max_seconds <= 0 or args.samples < 2 or min(args.state_noise) < 0:
         raise SafeRaceError("need --max-seconds > 0, --samples >= 2, --state-noise >= 0")
     if args.state_source is not None and not args.state_source.startswith("learned:"):
         raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
-    if args.mc_samples < 1:
-        raise SafeRaceError(f"--mc-samples must be at least 1, got {args.mc_samples}")
+    _check_count("--mc-samples", args.mc_samples)
     tracks = list(args.tracks) if args.tracks else list(builtin_track_names())
     for seed in args.random_tracks:
         path = args.out / "tracks" / f"random_{seed}.csv"
@@ -500,7 +499,7 @@ def _collect(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.learning.collect import CollectionConfig, Perturbation, collect_round
 
-    _check_laps(args.laps)
+    _check_count("--laps", args.laps)
     perturbation = Perturbation(args.perturb, args.perturb_correlation_s)
     config = CollectionConfig(
         agent=args.agent,
@@ -526,16 +525,11 @@ def _collect(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_samples(samples: int) -> None:
-    if samples < 1:
-        raise SafeRaceError(f"--samples must be at least 1, got {samples}")
-
-
 def _train(args: argparse.Namespace) -> int:
     from saferace.learning.commands import train_and_report
     from saferace.learning.training import TrainConfig
 
-    _check_samples(args.samples)
+    _check_count("--samples", args.samples)
 
     config = TrainConfig(
         epochs=args.epochs,
@@ -555,7 +549,7 @@ def _train(args: argparse.Namespace) -> int:
 def _validate(args: argparse.Namespace) -> int:
     from saferace.learning.commands import validate_checkpoint
 
-    _check_samples(args.samples)
+    _check_count("--samples", args.samples)
     _print_report(validate_checkpoint(args.checkpoint, args.data, args.out, args.samples))
     return 0
 
@@ -563,8 +557,7 @@ def _validate(args: argparse.Namespace) -> int:
 def _gradcam(args: argparse.Namespace) -> int:
     from saferace.learning.commands import gradcam_report
 
-    if args.frames < 1:
-        raise SafeRaceError(f"--frames must be at least 1, got {args.frames}")
+    _check_count("--frames", args.frames)
     report = gradcam_report(
         args.checkpoint, args.track, args.out, args.task, args.frames, args.layer
     )
@@ -608,9 +601,9 @@ def _leaderboard(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_laps(laps: int) -> None:
-    if laps < 1:
-        raise SafeRaceError(f"--laps must be at least 1, got {laps}")
+def _check_count(flag: str, value: int) -> None:
+    if value < 1:
+        raise SafeRaceError(f"{flag} must be at least 1, got {value}")
 
 
 def _snapshots(args: argparse.Namespace) -> int:
