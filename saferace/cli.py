@@ -241,6 +241,82 @@ def _parser() -> argparse.ArgumentParser:
     )
     sysid.set_defaults(command=_sysid)
 
+    dagger = commands.add_parser(
+        "dagger",
+        help="DAgger: the expert drives, then the learned driver, the expert labels; resumable",
+    )
+    dagger.add_argument("--task", default="CenterLine", choices=TASKS, help="the reference line")
+    dagger.add_argument("--track", default="lab", help="built-in track name or track CSV path")
+    dagger.add_argument("--iterations", type=int, default=10, help="iterations after the expert's")
+    dagger.add_argument(
+        "--filter", default="none", choices=["none", "cbf"], help="drive through the filter"
+    )
+    dagger.add_argument(
+        "--filter-from",
+        type=int,
+        default=2,
+        metavar="K",
+        help="the iterations after K drive through the filter (the paper's k)",
+    )
+    dagger.add_argument(
+        "--state-source",
+        default="learned",
+        choices=["learned", "oracle"],
+        help="what feeds the filter the lane state: the state network (perceived) or the truth",
+    )
+    dagger.add_argument(
+        "--fork-of",
+        type=Path,
+        help="the unfiltered run to share iterations 0..K with (copied, not recomputed)",
+    )
+    dagger.add_argument("--epochs", type=int, default=9, help="training epochs per iteration")
+    dagger.add_argument("--batch-size", type=int, default=32, help="frames per Adam step")
+    dagger.add_argument(
+        "--from-scratch",
+        action="store_true",
+        help="retrain each iteration from random weights instead of fine-tuning the last ones",
+    )
+    dagger.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
+    dagger.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
+    dagger.add_argument(
+        "--train-fraction",
+        type=float,
+        default=0.7,
+        help="keep frames on this first part of the lap; the rest is scored, never trained on",
+    )
+    dagger.add_argument("--laps", type=int, default=1, help="laps per drive")
+    dagger.add_argument(
+        "--expert-perturb",
+        type=float,
+        default=0.0,
+        metavar="STEER_STD_RAD",
+        help="steering noise on the expert's iteration 0 (the paper's expert drove clean)",
+    )
+    dagger.add_argument(
+        "--beta-rampdown",
+        type=int,
+        default=0,
+        metavar="R",
+        help="the expert acts on a share 1 - i/R of iteration i's steps (0: never, as the paper)",
+    )
+    dagger.add_argument(
+        "--model",
+        default="dynamic",
+        choices=["kinematic", "dynamic", "dynamic-paper"],
+        help="vehicle model of the expert MPC",
+    )
+    dagger.add_argument(
+        "--filter-model", default="kinematic", choices=FILTER_MODELS, help="the filter's model"
+    )
+    _add_gains_argument(dagger)
+    dagger.add_argument("--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
+    dagger.add_argument(
+        "--max-seconds", type=float, default=60.0, help="end a drive after this much simulated time"
+    )
+    dagger.add_argument("--seed", type=int, default=0, help="seeds training and dropout masks")
+    dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
+    dagger.set_defaults(command=_dagger)
+
     shots = commands.add_parser("snapshots", help="PNGs of the onboard and chase views of tracks")
     shots.add_argument("--out", type=Path, default=Path("results/snapshots"))
     shots.add_argument("--tracks", nargs="*", help="track names or CSVs (default: all built-in)")
@@ -599,6 +675,51 @@ def _leaderboard(args: argparse.Namespace) -> int:
         plot_trajectories(rows, args.plot)
         print(f"plot written to {args.plot}")
     return 0
+
+
+def _dagger(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table
+    from saferace.learning.dagger import METRIC_COLUMNS, DaggerConfig, DaggerRun
+
+    _check_count("--laps", args.laps)
+    _check_count("--mc-samples", args.mc_samples)
+    if args.fork_of is not None and args.filter != "cbf":
+        raise SafeRaceError("--fork-of makes a filtered fork: add --filter cbf")
+    config = DaggerConfig(
+        task=args.task,
+        track=args.track,
+        iterations=args.iterations,
+        filter=args.filter,
+        filter_from=args.filter_from,
+        state_source=args.state_source,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        warm_start=not args.from_scratch,
+        stereo=args.stereo,
+        image_size=args.image_size,
+        train_fraction=args.train_fraction,
+        laps=args.laps,
+        expert_perturb=args.expert_perturb,
+        seed=args.seed,
+        expert_model=args.model,
+        filter_model=args.filter_model,
+        filter_gains=args.filter_gains,
+        mc_samples=args.mc_samples,
+        beta_rampdown=args.beta_rampdown,
+        max_seconds=args.max_seconds,
+    )
+    rows = DaggerRun(args.out, config, fork_of=args.fork_of).run()
+    print(
+        markdown_table(
+            METRIC_COLUMNS, [[_cell(row.get(c)) for c in METRIC_COLUMNS] for row in rows]
+        )
+    )
+    print(f"metrics written to {args.out / 'metrics.csv'} and metrics.jsonl")
+    return 0
+
+
+def _cell(value):
+    return "-" if value is None else value
 
 
 def _check_count(flag: str, value: int) -> None:

@@ -5,6 +5,9 @@ label ``[steer_rad, target_speed_mps, accel_mps2]`` for the state the car is rea
 the true lane state, whoever drove (paper Sec. 2.3: the expert labels, the learner drives).
 A steering perturbation (DART, Laskey et al. 2017) makes the driver act with noise while the
 label stays the expert's, so that the data show recoveries from where the noise led.
+DAgger's options (paper Sec. 2.3): ``train_fraction`` keeps only the frames on the first
+part of the lap (the rest of the lap is for testing), and ``beta`` lets the expert act in
+place of the driver on that share of the steps (a mixing schedule; the paper uses none).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import (
+    EpisodeResult,
     git_revision,
     make_task_env,
     max_steps_for,
@@ -93,15 +97,21 @@ class LabellingDriver:
         noise: SteeringNoise,
         action_space: gym.spaces.Box,
         episode: int = 0,
+        beta: float = 0.0,
+        seed: int | None = None,
     ) -> None:
         self.expert, self.driver, self.noise = expert, driver, noise
         self.action_low, self.action_high = action_space.low, action_space.high
         self.frames: dict[str, list] = {name: [] for name in FRAME_FIELDS}
         self.episode = episode
+        self.beta = beta
+        self._seed = seed
+        self.reset()
 
     def reset(self) -> None:
         self.expert.reset()
         self.noise.reset()
+        self._mixing = np.random.default_rng(self._seed)
         if hasattr(self.driver, "reset"):
             self.driver.reset()
 
@@ -110,7 +120,8 @@ class LabellingDriver:
     ) -> np.ndarray | NominalAction:
         expert_action = self.expert.act(observation, info)
         label = (expert_action[0], self.expert.planned_speed_mps(), expert_action[1])
-        action = expert_action if self.driver is None else act(self.driver, observation, info)
+        expert_drives = self.driver is None or (self.beta and self._mixing.random() < self.beta)
+        action = expert_action if expert_drives else act(self.driver, observation, info)
         mean, std = nominal_parts(action)
         mean = mean.copy()
         mean[0] += self.noise.sample()
@@ -155,6 +166,16 @@ class CollectionConfig:
     image_size: tuple[int, int] = (64, 64)
     stereo: bool = False
     mc_samples: int = 10
+    train_fraction: float = 1.0
+    beta: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.train_fraction <= 1.0:
+            raise SafeRaceError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
+        if not 0.0 <= self.beta <= 1.0:
+            raise SafeRaceError(f"beta must be in [0, 1], got {self.beta}")
+        if self.laps < 1:
+            raise SafeRaceError(f"laps must be at least 1, got {self.laps}")
 
     def as_dict(self) -> dict:
         values = asdict(self)
@@ -174,9 +195,11 @@ class CollectedRound:
 def collect_round(
     dataset_dir: str | Path, config: CollectionConfig, progress: bool = True
 ) -> CollectedRound:
-    """Drive one episode per seed, label every frame, write it all as the next round."""
-    if config.laps < 1:
-        raise SafeRaceError(f"laps must be at least 1, got {config.laps}")
+    """Drive one episode per seed, label every frame, write it all as the next round.
+
+    Each episode's summary holds its lap metrics, those of the part of the lap past
+    ``train_fraction`` (``held_out``, when it is below 1) and a downsampled trajectory.
+    """
     frames: list[dict[str, np.ndarray]] = []
     summaries = []
     track_name = track_length = control_hz = None
@@ -202,14 +225,20 @@ def collect_round(
                 else make_agent(config.agent, env, config.expert_model, config.mc_samples, seed)
             )
             noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
-            labeller = LabellingDriver(expert, driver, noise, base.action_space, episode)
+            labeller = LabellingDriver(
+                expert, driver, noise, base.action_space, episode, config.beta, seed
+            )
             result = run_episode(
                 env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
             )
         finally:
             env.close()
-        frames.append(labeller.arrays())
-        summaries.append({"seed": seed, **result.summary, "terminated": result.terminated})
+        episode_frames = labeller.arrays()
+        kept = np.mod(episode_frames["s_m"] / track_length, 1.0) < config.train_fraction
+        frames.append({name: values[kept] for name, values in episode_frames.items()})
+        summaries.append(
+            episode_summary(seed, result, track_length, config.train_fraction, base.control_dt_s)
+        )
     arrays = {name: np.concatenate([f[name] for f in frames]) for name in FRAME_FIELDS}
     manifest_config = {
         **config.as_dict(),
@@ -226,3 +255,34 @@ def collect_round(
     }
     path = write_round(dataset_dir, arrays, manifest_config)
     return CollectedRound(path, len(arrays["s_m"]), summaries)
+
+
+def episode_summary(
+    seed: int, result: EpisodeResult, track_length_m: float, train_fraction: float, dt_s: float
+) -> dict:
+    """What a round's manifest keeps of one episode: lap metrics, the held-out part's, and
+    the path driven (at most about 500 points)."""
+    steps = result.steps
+    summary = {"seed": seed, **result.summary, "terminated": result.terminated}
+    if train_fraction < 1.0:
+        held_out = np.mod(steps["s_m"] / track_length_m, 1.0) >= train_fraction
+        summary["held_out"] = part_metrics(steps, held_out, dt_s)
+    stride = max(1, len(steps["x_m"]) // 500)
+    summary["trajectory"] = {
+        name: steps[name][::stride].round(4).tolist() for name in ("x_m", "y_m", "s_m")
+    }
+    return summary
+
+
+def part_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, dt_s: float) -> dict:
+    """Deviation, time outside the lane and interventions over the steps ``mask`` selects."""
+    if not mask.any():
+        return {"steps": 0}
+    part = {
+        "steps": int(mask.sum()),
+        "mean_abs_deviation_m": float(np.mean(np.abs(steps["deviation_m"][mask]))),
+        "time_outside_lane_s": float(np.sum(steps["cost"][mask] > 0) * dt_s),
+    }
+    if "intervened" in steps:
+        part["intervention_rate"] = float(np.mean(steps["intervened"][mask]))
+    return part

@@ -1,0 +1,161 @@
+"""DAgger runs: iterations, the train split, the fork, refusal of other settings, resuming."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from saferace.errors import SafeRaceError
+from saferace.learning.checkpoint import load_checkpoint
+from saferace.learning.dagger import DaggerConfig, DaggerRun
+from saferace.learning.rounds import load_rounds
+
+#: Two iterations of 3 s drives on small images: every stage runs in seconds.
+TINY = DaggerConfig(
+    task="CenterLine",
+    track="lab",
+    iterations=2,
+    filter_from=1,
+    epochs=2,
+    image_size=32,
+    train_fraction=0.3,
+    max_seconds=3.0,
+    mc_samples=3,
+    expert_model="kinematic",
+)
+
+
+@pytest.fixture(scope="module")
+def unfiltered(tmp_path_factory: pytest.TempPathFactory) -> DaggerRun:
+    run = DaggerRun(tmp_path_factory.mktemp("dagger") / "none", TINY, progress=False)
+    run.run()
+    return run
+
+
+def rounds_equal(first: Path, second: Path) -> bool:
+    a, b = load_rounds([first]), load_rounds([second])
+    return len(a) == len(b) and all(
+        np.array_equal(a[name], b[name]) for name in ("image", "expert", "state", "applied_action")
+    )
+
+
+def weights_equal(first: Path, second: Path) -> bool:
+    a, b = load_checkpoint(first), load_checkpoint(second)
+    return all(
+        torch.equal(weights, getattr(b, name).state_dict()[key])
+        for name in ("control", "state")
+        for key, weights in getattr(a, name).state_dict().items()
+    )
+
+
+def test_iterations_rounds_and_metrics(unfiltered: DaggerRun):
+    rows = unfiltered.metrics()
+    assert [row["iteration"] for row in rows] == [0, 1, 2]
+    assert [row["driver"] for row in rows] == ["expert", "learned", "learned"]
+    assert not any(row["filtered"] for row in rows)
+    assert rows[0]["train_seconds"] is None and rows[1]["train_seconds"] > 0
+    assert rows[0]["held_out_mean_abs_deviation_m"] is not None  # the drive passed 0.3 L
+    for iteration in (1, 2):
+        checkpoint = load_checkpoint(unfiltered.checkpoint_path(iteration))
+        assert checkpoint.metadata["frames"]["train"] == sum(r["frames"] for r in rows[:iteration])
+    csv_lines = (unfiltered.out_dir / "metrics.csv").read_text().splitlines()
+    assert len(csv_lines) == 4 and csv_lines[0].startswith("iteration,driver,filtered")
+
+
+def test_the_train_split_keeps_no_frame_past_it(unfiltered: DaggerRun):
+    frames = load_rounds([unfiltered.data_dir])
+    assert frames.lap_fraction.max() < TINY.train_fraction
+    expert_round = load_rounds([unfiltered.round_path(0)])
+    drive_steps = unfiltered.metrics()[0]["trajectory"]["s_m"]
+    assert max(drive_steps) > TINY.train_fraction * 24.13  # it drove past, but kept none of it
+    assert len(expert_round) < 60
+
+
+def test_fork_shares_iterations_up_to_k_bit_for_bit(unfiltered: DaggerRun, tmp_path: Path):
+    filtered = replace(TINY, filter="cbf")
+    forked = DaggerRun(tmp_path / "fork", filtered, fork_of=unfiltered.out_dir, progress=False)
+    recomputed = DaggerRun(tmp_path / "alone", filtered, progress=False)
+    forked_rows, alone_rows = forked.run(), recomputed.run()
+    for iteration in range(TINY.filter_from + 1):
+        for run in (forked, recomputed):
+            assert rounds_equal(unfiltered.round_path(iteration), run.round_path(iteration))
+    for iteration in (1, 2):  # iteration K+1's networks are trained on 0..K too
+        assert weights_equal(
+            unfiltered.checkpoint_path(iteration), forked.checkpoint_path(iteration)
+        )
+        assert weights_equal(
+            unfiltered.checkpoint_path(iteration), recomputed.checkpoint_path(iteration)
+        )
+    assert [row["filtered"] for row in forked_rows] == [False, False, True]
+    assert forked_rows[2]["intervention_rate"] is not None
+    assert not rounds_equal(unfiltered.round_path(2), forked.round_path(2))  # filtered now
+    assert rounds_equal(forked.round_path(2), recomputed.round_path(2))
+    assert forked_rows[2]["lap_time_s"] == alone_rows[2]["lap_time_s"]
+
+
+def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
+    with pytest.raises(SafeRaceError, match="differing: epochs"):
+        DaggerRun(unfiltered.out_dir, replace(TINY, epochs=3), progress=False)
+    more = DaggerRun(unfiltered.out_dir, replace(TINY, iterations=2), progress=False)
+    assert len(more.run()) == 3  # the same run: nothing is redone
+
+
+RUNNER = """
+import sys
+sys.path.insert(0, {tests!r})
+from test_dagger import TINY
+from saferace.learning.dagger import DaggerRun
+DaggerRun({out!r}, TINY, progress=False).run()
+"""
+
+
+def start_run(out: Path) -> subprocess.Popen:
+    script = RUNNER.format(tests=str(Path(__file__).parent), out=str(out))
+    return subprocess.Popen([sys.executable, "-c", script])
+
+
+def kill_when(process: subprocess.Popen, ready, timeout_s: float = 300.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        assert process.poll() is None, "the run ended before the moment to kill it"
+        assert time.monotonic() < deadline, "the moment to kill the run never came"
+        time.sleep(0.01)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+
+
+def test_killed_while_driving_and_while_training_it_ends_with_the_same_rounds(
+    unfiltered: DaggerRun, tmp_path: Path
+):
+    out = tmp_path / "killed"
+    run = DaggerRun(out, TINY, progress=False)
+
+    def driving_iteration_1() -> bool:
+        return run.checkpoint_path(1).exists()
+
+    def training_iteration_2() -> bool:  # an epoch done, the networks not yet saved
+        return run.checkpoint_path(2).with_suffix(".resume.pt").exists()
+
+    kill_when(start_run(out), driving_iteration_1)
+    assert not run.round_path(1).exists()
+    kill_when(start_run(out), training_iteration_2)
+    assert not run.checkpoint_path(2).exists()
+    rows = run.run()
+    assert [row["iteration"] for row in rows] == [0, 1, 2]
+    for iteration in range(3):
+        assert rounds_equal(unfiltered.round_path(iteration), run.round_path(iteration))
+    assert weights_equal(unfiltered.checkpoint_path(2), run.checkpoint_path(2))
+    assert sorted(p.name for p in run.data_dir.iterdir()) == [
+        "round_0000",
+        "round_0001",
+        "round_0002",
+    ]
