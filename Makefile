@@ -41,6 +41,7 @@ demo: setup
 	$(BIN)/saferace eval --agent learned:results/learned/lab_mono.pt --task CenterLine \
 		--track lab --laps 3 --out results/learned/eval.jsonl
 	$(BIN)/saferace gradcam results/learned/lab_mono.pt --track lab --out results/learned/gradcam
+	$(BIN)/saferace paper-tables --preset quick --out results/paper
 
 test: setup
 	$(BIN)/ruff check .

@@ -68,6 +68,7 @@ def _parser() -> argparse.ArgumentParser:
     drive.add_argument("--seed", type=int, default=0)
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
+    _add_filter_arguments(drive)
     drive.set_defaults(command=_drive)
 
     evaluate = commands.add_parser(
@@ -309,6 +310,7 @@ def _parser() -> argparse.ArgumentParser:
         "--filter-model", default="kinematic", choices=FILTER_MODELS, help="the filter's model"
     )
     _add_gains_argument(dagger)
+    _add_map_curvature_argument(dagger)
     dagger.add_argument("--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
     dagger.add_argument(
         "--max-seconds", type=float, default=60.0, help="end a drive after this much simulated time"
@@ -316,6 +318,20 @@ def _parser() -> argparse.ArgumentParser:
     dagger.add_argument("--seed", type=int, default=0, help="seeds training and dropout masks")
     dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
     dagger.set_defaults(command=_dagger)
+
+    tables = commands.add_parser(
+        "paper-tables",
+        help="the paper's Tables 1-2 and trajectory figures: DAgger with and without the filter",
+    )
+    tables.add_argument(
+        "--preset",
+        default="quick",
+        choices=["quick", "full"],
+        help="quick: lab only, 3 iterations (minutes); full: both tables, 10 iterations (hours)",
+    )
+    tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
+    tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
+    tables.set_defaults(command=_paper_tables)
 
     shots = commands.add_parser("snapshots", help="PNGs of the onboard and chase views of tracks")
     shots.add_argument("--out", type=Path, default=Path("results/snapshots"))
@@ -388,7 +404,17 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="filter on the samples' mean instead of with chance constraints",
     )
+    _add_map_curvature_argument(parser)
     _add_gains_argument(parser)
+
+
+def _add_map_curvature_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--map-curvature",
+        action="store_true",
+        help="the filter takes the centerline's curvature from the map at the car's s instead "
+        "of from the state source (a state network judges it worst)",
+    )
 
 
 def _add_gains_argument(parser: argparse.ArgumentParser) -> None:
@@ -432,6 +458,7 @@ def _filter_config(args: argparse.Namespace):
         probabilistic=not args.deterministic,
         gains=args.filter_gains,
         state_source=source if learned else None,
+        map_curvature=args.map_curvature,
     )
 
 
@@ -500,6 +527,7 @@ def _drive(args: argparse.Namespace) -> int:
         image_size=(args.image_size, args.image_size),
         stereo=args.stereo,
         mc_samples=args.mc_samples,
+        safety=_filter_config(args),
     )
     row = result_row(
         args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-", result
@@ -704,6 +732,7 @@ def _dagger(args: argparse.Namespace) -> int:
         expert_model=args.model,
         filter_model=args.filter_model,
         filter_gains=args.filter_gains,
+        map_curvature=args.map_curvature,
         mc_samples=args.mc_samples,
         beta_rampdown=args.beta_rampdown,
         max_seconds=args.max_seconds,
@@ -715,6 +744,16 @@ def _dagger(args: argparse.Namespace) -> int:
         )
     )
     print(f"metrics written to {args.out / 'metrics.csv'} and metrics.jsonl")
+    return 0
+
+
+def _paper_tables(args: argparse.Namespace) -> int:
+    from saferace.learning.paper_tables import run_paper_tables
+
+    for path in run_paper_tables(args.preset, list(args.seeds), args.out):
+        if path.suffix == ".md":
+            print(path.read_text())
+        print(f"written: {path}")
     return 0
 
 

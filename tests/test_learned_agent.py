@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from cli_helpers import run_cli
+from rerun.chunk import RrdReader
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.errors import SafeRaceError
@@ -134,3 +135,25 @@ def test_gradcam_maps_and_command(tiny_checkpoint, tmp_path: Path, stereo: bool)
 
     height = cv2.imread(str(sheets[0])).shape[0]
     assert height == 18 + (2 if stereo else 1) * 64 * 3  # titles, then one row per camera
+
+
+def test_drive_records_what_the_filter_believed(tiny_checkpoint, tmp_path: Path):
+    checkpoint = tiny_checkpoint()[0]
+    recording = tmp_path / "filtered.rrd"
+    result = run_cli(
+        "drive", "--agent", f"learned:{checkpoint}", "--task", "CenterLine", "--track", "lab",
+        "--filter", "cbf", "--state-source", f"learned:{checkpoint}", "--samples", "3",
+        "--rerun", str(recording),
+    )  # fmt: skip
+    assert result.returncode in (0, 1), result.stderr  # 1: the tiny network missed the lap
+    entities = {str(path) for path in RrdReader(recording).store().schema().entity_paths()}
+    for entity in (
+        "/filter/e_y_m/true",
+        "/filter/e_y_m/believed",
+        "/filter/e_y_m/believed_plus_2sd",
+        "/filter/steer_rad/nominal",
+        "/filter/steer_rad/filtered",
+        "/filter/barriers/lane_left",
+        "/camera/onboard",
+    ):
+        assert entity in entities, entity

@@ -169,10 +169,11 @@ def test_failed_solves_fall_back_to_braking_toward_the_center(monkeypatch):
 
 def test_steering_is_bounded_to_the_tyres_grip():
     """``|tan delta| <= a_max L / v^2``: less steering the faster the car."""
-    bounded = SafetyFilter(make_env(), max_lateral_accel_mps2=2.0)
-    free = SafetyFilter(make_env())
+    tuned = GAIN_PRESETS["tuned"]  # the lane barriers leave the steering free enough to bind
+    bounded = SafetyFilter(make_env(), max_lateral_accel_mps2=2.0, **tuned)
+    free = SafetyFilter(make_env(), **tuned)
     clipped = 0
-    for speed in (2.0, 4.0, 6.0):
+    for speed in (1.0, 4.0, 6.0):
         options = {"start_speed_mps": speed}
         observation, info = bounded.reset(seed=0, options=options)
         free.reset(seed=0, options=options)
@@ -254,3 +255,53 @@ def test_noisy_oracle_samples_spread_and_miss_the_truth_alike():
     assert np.std(errors[:, 0]) == pytest.approx(0.05 * np.sqrt(1 + 1 / 20), rel=0.1)
     assert np.mean(np.std(draws[:, :, 0], axis=1)) == pytest.approx(0.05, rel=0.1)
     assert np.all(draws[:, :, 2] == 0.3)
+
+
+class _WrongCurvature:
+    """The truth, but with a curvature far from the track's (a state network's worst)."""
+
+    def reset(self, seed=None) -> None:
+        """Nothing to reset."""
+
+    def samples(self, observation, info):
+        return np.array([[info["e_y_m"], info["e_psi_rad"], -3.0]])
+
+
+def test_map_curvature_replaces_the_sources_curvature():
+    env = gym.make("saferace/CenterLine-v0", track="lab")
+    try:
+        decisions = {}
+        for name, source, from_map in (
+            ("oracle", None, False),
+            ("wrong", _WrongCurvature(), False),
+            ("wrong, map", _WrongCurvature(), True),
+        ):
+            wrapped = SafetyFilter(env, state_source=source, map_curvature=from_map)
+            wrapped.reset(seed=0)
+            for _ in range(40):  # into lab's first left-hand bend
+                *_, info = wrapped.step([0.25, 1.0])
+            decisions[name] = info["safety"]["filtered_action"]
+        assert decisions["wrong, map"] == pytest.approx(decisions["oracle"], abs=1e-9)
+        assert decisions["wrong"] != pytest.approx(decisions["oracle"], abs=1e-3)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("steer_rad", [0.6, -0.6])
+def test_relinearising_holds_an_agent_steering_hard_one_way(steer_rad: float):
+    """Full steering and throttle, always: linearised at that steering only, the filter's
+    constraints promise more turn than the car gets, and it rides over the line."""
+    summaries = {}
+    for passes in (1, 2):
+        filtered = SafetyFilter(
+            make_env(max_steps=300), linearisation_passes=passes, **GAIN_PRESETS["tuned"]
+        )
+        summaries[passes] = run_episode(
+            filtered, lambda observation, info: np.array([steer_rad, 4.0]), seed=0
+        ).summary
+        problem = filtered.last_problem
+        applied = np.asarray(filtered._info["safety"]["filtered_action"])
+        filtered.close()
+    assert summaries[2]["time_outside_lane_s"] == 0.0
+    assert summaries[2]["min_lane_barrier_m"] > summaries[1]["min_lane_barrier_m"] + 0.005
+    assert np.all(problem.b - problem.a @ applied > -1e-3)  # exact at the answer, no slack

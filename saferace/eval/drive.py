@@ -8,8 +8,9 @@ import cv2
 import gymnasium as gym
 
 from saferace.eval.agents import make_agent
+from saferace.eval.filters import FilterConfig
 from saferace.eval.recording import EpisodeRecording
-from saferace.eval.runner import EpisodeResult, run_episode, task_id
+from saferace.eval.runner import EpisodeResult, make_task_env, run_episode, task_id
 from saferace.eval.video import VideoWriter, side_by_side
 from saferace.track.raceline import center_line, racing_line
 
@@ -23,16 +24,21 @@ def drive(
     rerun: str | Path | None = None,
     seed: int = 0,
     mc_samples: int = 10,
+    safety: FilterConfig | None = None,
+    progress: bool = True,
     **env_kwargs,
 ) -> EpisodeResult:
     """Let ``agent`` drive ``laps`` laps; optionally record an MP4 and a Rerun ``.rrd``.
 
-    ``mc_samples``: MC-dropout samples per step of a learned agent.
+    ``mc_samples``: MC-dropout samples per step of a learned agent; ``safety``: the filter
+    between the agent and the car (none by default).
     """
-    env = gym.make(
-        task_id(task),
-        track=track,
-        max_laps=laps,
+    env = make_task_env(
+        task,
+        track,
+        laps,
+        safety or FilterConfig(),
+        seed,
         render_mode="rgb_array" if video else None,
         **env_kwargs,
     )
@@ -55,7 +61,7 @@ def drive(
 
     try:
         driver = make_agent(agent, env, mc_samples=mc_samples, seed=seed)
-        return run_episode(env, driver, seed=seed, progress=True, on_step=on_step)
+        return run_episode(env, driver, seed=seed, progress=progress, on_step=on_step)
     finally:
         if writer:
             writer.close()

@@ -25,7 +25,8 @@ class FilterConfig:
     deviations make it a noisy oracle with ``samples`` samples, or ``state_source`` names a
     learned one (``learned:CHECKPOINT``: the state network's ``samples`` MC-dropout samples,
     the perceived state); ``probabilistic=False`` filters deterministically on the samples'
-    mean. ``gains`` names an entry of :data:`~saferace.safety.filter.GAIN_PRESETS`.
+    mean. ``gains`` names an entry of :data:`~saferace.safety.filter.GAIN_PRESETS`;
+    ``map_curvature`` takes the curvature from the track map instead of the state source.
     """
 
     kind: str = "none"
@@ -36,6 +37,7 @@ class FilterConfig:
     eta: float = 0.95
     gains: str = "paper"
     state_source: str | None = None
+    map_curvature: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in FILTER_KINDS:
@@ -89,5 +91,6 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         model=config.model,
         eta=config.eta,
         probabilistic=config.probabilistic,
+        map_curvature=config.map_curvature,
         **GAIN_PRESETS[config.gains],
     )

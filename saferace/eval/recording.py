@@ -3,7 +3,10 @@
 Entities: ``camera/*`` onboard images; ``map/*`` a top-down map (y up) with the lane
 boundaries, the center and racing lines, the car's position over time and its whole
 path at the end; ``plots/*`` speed, reference speed, steering and lateral offsets over
-the ``sim_time`` timeline.
+the ``sim_time`` timeline. Behind a safety filter also ``filter/*``: the state the filter
+believed (the mean of its state source's samples and a band of two spreads) against the
+truth for ``e_y``, ``e_psi`` and ``kappa``, the nominal and filtered steering and
+acceleration, and the barrier values.
 """
 
 from __future__ import annotations
@@ -86,6 +89,22 @@ class EpisodeRecording:
             ("plots/deviation_m", info["deviation_m"]),
         ):
             stream.log(name, rr.Scalars(value))
+        if "safety" in info:
+            self._log_filter(info)
+
+    def _log_filter(self, info: dict[str, Any]) -> None:
+        safety, log = info["safety"], self.stream.log
+        for index, name in enumerate(("e_y_m", "e_psi_rad", "kappa_radpm")):
+            mean, spread = safety["state_mean"][index], safety["state_std"][index]
+            log(f"filter/{name}/true", rr.Scalars(info[name]))
+            log(f"filter/{name}/believed", rr.Scalars(mean))
+            log(f"filter/{name}/believed_minus_2sd", rr.Scalars(mean - 2.0 * spread))
+            log(f"filter/{name}/believed_plus_2sd", rr.Scalars(mean + 2.0 * spread))
+        for index, name in enumerate(("steer_rad", "accel_mps2")):
+            log(f"filter/{name}/nominal", rr.Scalars(safety["nominal_action"][index]))
+            log(f"filter/{name}/filtered", rr.Scalars(safety["filtered_action"][index]))
+        for name, value in safety["barriers"].items():
+            log(f"filter/barriers/{name}", rr.Scalars(value))
 
     def close(self) -> None:
         """Log the whole driven path and write the file."""

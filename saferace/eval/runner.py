@@ -79,8 +79,8 @@ def run_episode(
     Also recorded: the true lane barrier ``lane_barrier_m`` and, if ``env`` is wrapped in a
     :class:`~saferace.safety.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
     return a :class:`~saferace.safety.filter.NominalAction`; without a filter its mean is
-    applied. ``on_step(observation, info, action)`` is called after each step (videos,
-    recordings).
+    applied. ``on_step(observation, info, action)`` is called after each step with the
+    action applied (videos, recordings).
     """
     observation, info = env.reset(seed=seed)
     if hasattr(agent, "reset"):
@@ -110,7 +110,8 @@ def run_episode(
                 for name, value in safety_step_record(info["safety"]).items():
                     records[name].append(value)
             if on_step is not None:
-                on_step(observation, info, action)
+                applied = info["safety"]["filtered_action"] if filtered else action
+                on_step(observation, info, np.asarray(applied, dtype=float))
             bar.update()
             bar.set_postfix(lap=info["lap"], v=f"{info['v_x_mps']:.1f}m/s")
     steps = {name: np.asarray(values) for name, values in records.items()}

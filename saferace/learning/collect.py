@@ -263,7 +263,12 @@ def episode_summary(
     """What a round's manifest keeps of one episode: lap metrics, the held-out part's, and
     the path driven (at most about 500 points)."""
     steps = result.steps
-    summary = {"seed": seed, **result.summary, "terminated": result.terminated}
+    summary = {
+        "seed": seed,
+        **result.summary,
+        "terminated": result.terminated,
+        "duration_s": len(steps["s_m"]) * dt_s,
+    }
     if train_fraction < 1.0:
         held_out = np.mod(steps["s_m"] / track_length_m, 1.0) >= train_fraction
         summary["held_out"] = part_metrics(steps, held_out, dt_s)

@@ -49,6 +49,8 @@ RUN_FILE = "run.json"
 CHECKPOINT_NAME = re.compile(r"^iteration_\d+\.pt$")
 METRICS_FILE = "metrics.jsonl"
 STATE_SOURCES = ("learned", "oracle")
+#: Settings that only a filtered run uses.
+FILTER_SETTINGS = ("filter_from", "state_source", "filter_model", "filter_gains", "map_curvature")
 #: Columns of ``metrics.csv`` (the held-out part's are prefixed ``held_out_``).
 METRIC_COLUMNS = (
     "iteration",
@@ -56,6 +58,7 @@ METRIC_COLUMNS = (
     "filtered",
     "completed",
     "lap_time_s",
+    "duration_s",
     "mean_abs_deviation_m",
     "time_outside_lane_s",
     "intervention_rate",
@@ -73,7 +76,8 @@ class DaggerConfig:
 
     ``laps`` per drive (the first counts for the tables); ``expert_perturb``: steering noise
     (rad) on the expert's iteration 0, so that its frames show the car off its line (the
-    paper's expert drove clean).
+    paper's expert drove clean); ``map_curvature``: the filter takes the curvature from the
+    map rather than from the state network (see :class:`~saferace.safety.filter.SafetyFilter`).
     """
 
     task: str = "CenterLine"
@@ -95,6 +99,7 @@ class DaggerConfig:
     expert_model: str = "dynamic"
     filter_model: str = "kinematic"
     filter_gains: str = "paper"
+    map_curvature: bool = False
     mc_samples: int = 10
     beta_rampdown: int = 0
     max_seconds: float = 60.0
@@ -113,9 +118,13 @@ class DaggerConfig:
 
     @property
     def fingerprint(self) -> dict:
-        """What makes two runs the same run (the iterations may be extended)."""
+        """What makes two runs the same run: the iterations may be extended, and an
+        unfiltered run is the same whatever filter its forks will use."""
         values = asdict(self)
         del values["iterations"]
+        if self.filter == "none":
+            for name in FILTER_SETTINGS:
+                del values[name]
         return values
 
     def filtered(self, iteration: int) -> bool:
@@ -232,6 +241,7 @@ class DaggerRun:
                 gains=config.filter_gains,
                 samples=config.mc_samples,
                 state_source=f"learned:{checkpoint}" if learned else None,
+                map_curvature=config.map_curvature,
             )
         collection = CollectionConfig(
             agent="expert" if iteration == 0 else f"learned:{checkpoint}",
@@ -267,6 +277,7 @@ class DaggerRun:
             "filtered": self.config.filtered(iteration),
             "completed": episode["laps_completed"] >= self.config.laps,
             "lap_time_s": episode["mean_lap_time_s"],
+            "duration_s": episode["duration_s"],
             "mean_abs_deviation_m": episode["mean_abs_deviation_m"],
             "max_abs_deviation_m": episode["max_abs_deviation_m"],
             "time_outside_lane_s": episode["time_outside_lane_s"],

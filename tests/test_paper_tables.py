@@ -1,0 +1,135 @@
+"""The paper's tables from one command: a tiny preset end to end, and the quick one (slow)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from cli_helpers import run_cli
+from rerun.chunk import RrdReader
+
+from saferace.learning.paper_tables import (
+    CELL_NAMES,
+    RUN_KINDS,
+    TABLE_2,
+    TASKS,
+    Preset,
+    run_dir,
+    run_paper_tables,
+)
+
+#: Two iterations of 3 s drives on 32x32 images, the fork filtered in iteration 2.
+TINY = Preset(
+    name="tiny",
+    settings=(replace(TABLE_2, filter_from={"CenterLine": 1, "RacingLine": 1}),),
+    iterations=2,
+    epochs=1,
+    max_seconds=3.0,
+    image_size=32,
+    mc_samples=3,
+    unseen_tracks=("oval",),
+)
+SETTING = TINY.settings[0]
+
+
+@pytest.fixture(scope="module")
+def tables(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Path]]:
+    out = tmp_path_factory.mktemp("paper")
+    return out, run_paper_tables(TINY, [0], out, progress=False)
+
+
+def metrics(out: Path, task: str, kind: str) -> list[dict]:
+    path = run_dir(out, SETTING, task, 0, kind) / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_every_output_is_written(tables):
+    _, written = tables
+    names = {path.name for path in written}
+    assert names == {
+        "table2.md",
+        "table2.csv",
+        "table2_trajectories.png",
+        "table2_final_filtered_racingline.rrd",
+        "unseen_tracks.md",
+        "timings.md",
+    }
+    assert all(path.stat().st_size > 0 for path in written)
+
+
+def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
+    out, _ = tables
+    with open(out / "table2.csv") as handle:
+        header, *lines = list(csv.reader(handle))
+    assert header[:2] == ["iteration", "filter"]
+    assert len(header) == 2 + len(TASKS) * len(CELL_NAMES)
+    assert [line[:2] for line in lines] == [
+        ["0", "x"],
+        ["1", "x"],
+        ["2", "x"],
+        ["2", "v (perceived)"],
+        ["2", "v (true state)"],
+    ]
+    outside = 2 + CELL_NAMES.index("outside [s]")
+    for line, (kind, _, _) in zip(lines[2:], RUN_KINDS, strict=True):
+        for column, task in enumerate(TASKS):
+            row = metrics(out, task, kind)[2]
+            assert float(line[outside + column * len(CELL_NAMES)]) == pytest.approx(
+                row["time_outside_lane_s"], rel=1e-2, abs=1e-9
+            )
+    text = (out / "table2.md").read_text()
+    claims = [line for line in text.splitlines() if line.startswith("- ")]
+    assert len(claims) == len(TASKS) * len(RUN_KINDS)
+    assert sum("lane exits in filtered iterations" in claim for claim in claims) == 4
+
+
+def test_the_forks_share_the_unfiltered_iterations(tables):
+    out, _ = tables
+    for task in TASKS:
+        unfiltered = metrics(out, task, "none")
+        for kind in ("cbf", "oracle"):
+            forked = metrics(out, task, kind)
+            assert forked[:2] == unfiltered[:2]
+            assert forked[2]["filtered"] and not unfiltered[2]["filtered"]
+
+
+def test_unseen_tracks_timings_and_the_recording(tables):
+    out, _ = tables
+    unseen = [
+        line
+        for line in (out / "unseen_tracks.md").read_text().splitlines()
+        if line.startswith("| table2")
+    ]
+    assert len(unseen) == len(TASKS) * 2 * 2  # two policies, without and with the filter
+    assert all(line.split("|")[5].strip() == "oval" for line in unseen)
+    seconds = {
+        line.split("|")[1].strip(): float(line.split("|")[2])
+        for line in (out / "timings.md").read_text().splitlines()[4:]
+    }
+    assert set(seconds) == {"collection", "training", "unseen tracks", "recording"}
+    assert all(value > 0 for value in seconds.values())
+    recording = out / "table2_final_filtered_racingline.rrd"
+    entities = {str(path) for path in RrdReader(recording).store().schema().entity_paths()}
+    assert {"/filter/kappa_radpm/believed", "/filter/accel_mps2/filtered"} <= entities
+
+
+def test_a_second_call_resumes_and_redoes_nothing(tables):
+    out, _ = tables
+    before = {task: metrics(out, task, "none") for task in TASKS}
+    run_paper_tables(TINY, [0], out, progress=False)
+    assert {task: metrics(out, task, "none") for task in TASKS} == before
+
+
+@pytest.mark.slow
+def test_quick_preset_end_to_end(tmp_path: Path):
+    result = run_cli("paper-tables", "--preset", "quick", "--out", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert "# Table 2" in result.stdout
+    text = (tmp_path / "table2.md").read_text()
+    assert "v (perceived)" in text and "v (true state)" in text
+    rows = metrics(tmp_path, "CenterLine", "none")
+    assert rows[0]["completed"] and rows[0]["time_outside_lane_s"] == 0.0  # the expert
+    assert (tmp_path / "table2_trajectories.png").stat().st_size > 50_000
