@@ -109,9 +109,9 @@ PRESETS = {
     ),
     "full": Preset(
         name="full",
-        settings=(TABLE_1, TABLE_2),
+        settings=(TABLE_2, TABLE_1),
         iterations=10,
-        epochs=5,
+        epochs=3,
         unseen_tracks=("oval", "varying"),
         random_tracks=(11,),
     ),
