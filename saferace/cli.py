@@ -448,8 +448,12 @@ def _filter_config(args: argparse.Namespace):
         raise SafeRaceError(f"--samples must be at least 1, got {samples}")
     if noisy and min(noise) < 0:
         raise SafeRaceError(f"--state-noise must not be negative, got {noise}")
-    if args.filter == "none" and (noisy or args.deterministic or source != "oracle"):
-        raise SafeRaceError("--state-source, --state-noise and --deterministic need --filter cbf")
+    if args.filter == "none" and (
+        noisy or args.deterministic or source != "oracle" or args.map_curvature
+    ):
+        raise SafeRaceError(
+            "--state-source, --state-noise, --deterministic and --map-curvature need --filter cbf"
+        )
     return FilterConfig(
         kind=args.filter,
         model=args.filter_model,

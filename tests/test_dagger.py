@@ -108,7 +108,8 @@ def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
     more = DaggerRun(unfiltered.out_dir, replace(TINY, iterations=2), progress=False)
     assert len(more.run()) == 3  # the same run: nothing is redone
     other_forks = replace(TINY, filter_from=2, state_source="oracle", filter_gains="tuned")
-    DaggerRun(unfiltered.out_dir, other_forks, progress=False)  # unfiltered: no filter settings
+    same = DaggerRun(unfiltered.out_dir, other_forks, progress=False)  # no filter settings
+    assert same.run() == unfiltered.metrics()  # nothing driven or trained again
 
 
 RUNNER = """

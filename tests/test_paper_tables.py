@@ -73,17 +73,22 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
         ["2", "v (perceived)"],
         ["2", "v (true state)"],
     ]
-    outside = 2 + CELL_NAMES.index("outside [s]")
+    columns = {
+        "lap [s]": "duration_s",  # 3 s drives: each cell is the time driven, starred
+        "mean dev [m]": "mean_abs_deviation_m",
+        "outside [s]": "time_outside_lane_s",
+    }
     for line, (kind, _, _) in zip(lines[2:], RUN_KINDS, strict=True):
-        for column, task in enumerate(TASKS):
+        for group, task in enumerate(TASKS):
             row = metrics(out, task, kind)[2]
-            assert float(line[outside + column * len(CELL_NAMES)]) == pytest.approx(
-                row["time_outside_lane_s"], rel=1e-2, abs=1e-9
-            )
+            for cell, key in columns.items():
+                text = line[2 + group * len(CELL_NAMES) + CELL_NAMES.index(cell)]
+                assert float(text.rstrip("*")) == pytest.approx(row[key], rel=1e-2, abs=1e-9)
     text = (out / "table2.md").read_text()
     claims = [line for line in text.splitlines() if line.startswith("- ")]
     assert len(claims) == len(TASKS) * len(RUN_KINDS)
     assert sum("lane exits in filtered iterations" in claim for claim in claims) == 4
+    assert sum("laps completed in iterations 2-2: " in claim for claim in claims) == 4
 
 
 def test_the_forks_share_the_unfiltered_iterations(tables):
@@ -118,9 +123,12 @@ def test_unseen_tracks_timings_and_the_recording(tables):
 
 def test_a_second_call_resumes_and_redoes_nothing(tables):
     out, _ = tables
-    before = {task: metrics(out, task, "none") for task in TASKS}
+    runs = [(task, kind) for task in TASKS for kind, _, _ in RUN_KINDS]
+    stored = sorted(out.glob("table2/*/seed0/*/*/*"))  # rounds and checkpoints
+    before = {run: metrics(out, *run) for run in runs}, {p: p.stat().st_mtime_ns for p in stored}
     run_paper_tables(TINY, [0], out, progress=False)
-    assert {task: metrics(out, task, "none") for task in TASKS} == before
+    after = {run: metrics(out, *run) for run in runs}, {p: p.stat().st_mtime_ns for p in stored}
+    assert after == before
 
 
 @pytest.mark.slow

@@ -96,7 +96,7 @@ class EpisodeRecording:
         safety, log = info["safety"], self.stream.log
         for index, name in enumerate(("e_y_m", "e_psi_rad", "kappa_radpm")):
             mean, spread = safety["state_mean"][index], safety["state_std"][index]
-            log(f"filter/{name}/true", rr.Scalars(info[name]))
+            log(f"filter/{name}/true", rr.Scalars(safety["state_true"][index]))
             log(f"filter/{name}/believed", rr.Scalars(mean))
             log(f"filter/{name}/believed_minus_2sd", rr.Scalars(mean - 2.0 * spread))
             log(f"filter/{name}/believed_plus_2sd", rr.Scalars(mean + 2.0 * spread))

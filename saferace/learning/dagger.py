@@ -307,8 +307,8 @@ class DaggerRun:
             if stored["fingerprint"] != wanted["fingerprint"]:
                 differing = sorted(
                     key
-                    for key in wanted["fingerprint"]
-                    if stored["fingerprint"].get(key) != wanted["fingerprint"][key]
+                    for key in {*wanted["fingerprint"], *stored["fingerprint"]}
+                    if stored["fingerprint"].get(key) != wanted["fingerprint"].get(key)
                 )
                 raise SafeRaceError(
                     f"{self.out_dir} holds a DAgger run with other settings (differing: "

@@ -141,6 +141,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
 
 
 def run_dir(out_dir: Path, setting: TableSetting, task: str, seed: int, kind: str) -> Path:
+    """The folder of one DAgger run: ``OUT/SETTING/TASK/seedN/KIND``."""
     return out_dir / setting.name / task / f"seed{seed}" / kind
 
 
@@ -177,13 +178,15 @@ def table_lines(
                 continue
             line = [iteration, RUN_LABELS[kind]]
             for task in TASKS:
-                filtered_here = kind == "none" or iteration > setting.filter_from[task]
+                own_row = kind == "none" or iteration > setting.filter_from[task]
                 found = [
-                    runs[iteration]
+                    row
                     for (t, seed, k), runs in rows.items()
-                    if t == task and k == kind and seed in seeds and len(runs) > iteration
+                    if t == task and k == kind and seed in seeds
+                    for row in runs
+                    if row["iteration"] == iteration
                 ]
-                line += _cells(found) if filtered_here and found else ["-"] * len(CELL_NAMES)
+                line += _cells(found) if own_row and found else ["-"] * len(CELL_NAMES)
             lines.append(line)
     return lines
 
@@ -218,6 +221,7 @@ def _cells(found: list[dict]) -> list[str]:
 
 
 def _spread(values: list[float | None]) -> str:
+    """``a`` for one value, ``mean +- std`` for several, ``-`` for none."""
     values = [v for v in values if v is not None]
     if not values:
         return "-"
@@ -227,18 +231,29 @@ def _spread(values: list[float | None]) -> str:
 
 
 def claims(setting: TableSetting, rows: dict[tuple[str, int, str], list[dict]]) -> list[str]:
-    """The paper's claims, measured: first completed lap with and without the filter, lane
-    exits in filtered iterations, the final racing-line lap time against the expert's."""
+    """The paper's claims, measured: first completed lap with and without the filter, laps
+    completed in the filtered iterations against the unfiltered run's same iterations, lane
+    exits in filtered iterations, the final lap time against the expert's."""
     lines = []
-    for (task, seed, kind), runs in sorted(rows.items()):
+    order = [kind for kind, _, _ in RUN_KINDS]
+    for (task, seed, kind), runs in sorted(rows.items(), key=lambda item: (
+        item[0][0], item[0][1], order.index(item[0][2])
+    )):  # fmt: skip
         k = setting.filter_from[task]
         own = [row for row in runs if row["iteration"] >= 1 and (kind == "none" or row["filtered"])]
         first = next((row["iteration"] for row in own if row["completed"]), None)
         text = f"- {task}, seed {seed}, {RUN_LABELS[kind]}: first completed lap at iteration "
         text += f"{first}" if first is not None else "none"
         if kind != "none":
+            last = runs[-1]["iteration"]
+            unfiltered = [row for row in rows[(task, seed, "none")] if k < row["iteration"] <= last]
             exits = [row["iteration"] for row in own if row["time_outside_lane_s"] > 0]
-            text += f" (filtered from {k + 1}); lane exits in filtered iterations: "
+            text += (
+                f" (filtered from {k + 1}); laps completed in iterations {k + 1}-"
+                f"{runs[-1]['iteration']}: {sum(row['completed'] for row in own)}/{len(own)}, "
+                f"without the filter {sum(row['completed'] for row in unfiltered)}/"
+                f"{len(unfiltered)}; lane exits in filtered iterations: "
+            )
             text += ", ".join(map(str, exits)) if exits else "none"
         final, expert = runs[-1], runs[0]
         if final["completed"] and expert["completed"]:
@@ -406,7 +421,9 @@ def run_paper_tables(
         rows = run_lines(preset, setting, seeds, out_dir, progress)
         for (task, _, kind), runs in rows.items():
             shared = -1 if kind == "none" else setting.filter_from[task]
-            for row in runs[shared + 1 :]:  # a fork's shared rows are the unfiltered run's
+            for row in runs:
+                if row["iteration"] <= shared:
+                    continue  # a fork's shared rows are the unfiltered run's
                 timings["collection"] += row["collect_seconds"] or 0.0
                 timings["training"] += row["train_seconds"] or 0.0
         header = ["iteration", "filter"] + [
@@ -439,7 +456,7 @@ def run_paper_tables(
         timings["recording"] += time.perf_counter() - started
     unseen_path = out_dir / "unseen_tracks.md"
     unseen_path.write_text(
-        "# Final policies on tracks they never saw (1 lap, at most 60 s)\n\n"
+        f"# Final policies on tracks they never saw (1 lap, at most {preset.max_seconds:g} s)\n\n"
         + markdown_table(UNSEEN_COLUMNS, unseen)
         + "\n"
     )

@@ -48,7 +48,7 @@ GAIN_PRESETS: dict[str, dict[str, Any]] = {
 }
 #: A filtered action this close to the nominal one is not an intervention.
 INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2)
-RELINEARISE_TOL = 1e-3  # rad and m/s^2: a solution this close to the linearisation point is final
+RELINEARISE_TOL = 1e-3  # rad: a steering this close to the linearisation point is final
 
 
 @dataclass(frozen=True)
@@ -79,11 +79,13 @@ class SafetyDecision:
     the heading); ``constraints`` the HOCBF condition ``psi_m`` at the filtered action
     (mean over samples, ``>= 0`` holds); ``tightening`` the chance-constraint margin
     ``Phi^-1(eta) * std``; ``slacks`` what each constraint needed. ``state_mean`` and
-    ``state_std`` are the state source's ``[e_y, e_psi, kappa]``: what the filter believed.
+    ``state_std`` are the ``[e_y, e_psi, kappa]`` the filter believed (the curvature from the
+    map where it takes it from there), ``state_true`` the simulator's at the same moment.
     """
 
     nominal_action: list[float]
     filtered_action: list[float]
+    state_true: list[float]
     state_mean: list[float]
     state_std: list[float]
     barriers: dict[str, float]
@@ -135,8 +137,9 @@ class SafetyFilter(gym.Wrapper):
     riding ``h = 0`` would graze the line); ``linearisation_passes``: how often the QP is
     solved with the constraints linearised at the last answer (the first pass at ``u_ref``):
     against an agent steering hard one way, ``tan`` linearised at its steering promised
-    0.2 rad more turn than the car got and let it out of the lane for seconds; the second
-    pass makes the constraints exact at the answer. ``params``: vehicle parameters
+    0.2 rad more turn than the car got and let it out of the lane for seconds; a second pass
+    linearises at the first answer, close to the one applied (passes stop early once the
+    steering moves less than ``RELINEARISE_TOL``). ``params``: vehicle parameters
     (default: identified ones).
 
     Options beyond the paper, off by default (measured with ``saferace safety-table``'s
@@ -299,7 +302,7 @@ class SafetyFilter(gym.Wrapper):
             w_left_slope=w_left_slope,
             w_right_slope=w_right_slope,
         )
-        kappa = lane[:, 2]
+        kappa, kappa_std = lane[:, 2], float(samples[:, 2].std())
         if self.map_curvature:
             kappa = np.full(len(lane), self.track.centerline.curvature_scalar(float(info["s_m"])))
         lower, upper = self._action_box(float(observation["velocity"][0]))
@@ -319,8 +322,8 @@ class SafetyFilter(gym.Wrapper):
             if accepted is not None and not solution.solved:
                 break  # keep the last solved pass
             accepted = problem, statistics, h, solution
-            if not solution.solved or np.allclose(solution.u, linearised_at, atol=RELINEARISE_TOL):
-                break
+            if not solution.solved or abs(solution.u[0] - linearised_at[0]) < RELINEARISE_TOL:
+                break  # linearised in the steering only
             linearised_at = solution.u
         problem, statistics, h, solution = accepted
         self.last_problem = problem
@@ -339,8 +342,9 @@ class SafetyFilter(gym.Wrapper):
         return SafetyDecision(
             nominal_action=nominal.tolist(),
             filtered_action=filtered.tolist(),
-            state_mean=samples.mean(axis=0).tolist(),
-            state_std=samples.std(axis=0).tolist(),
+            state_true=[float(info[name]) for name in ("e_y_m", "e_psi_rad", "kappa_radpm")],
+            state_mean=[*samples[:, :2].mean(axis=0), float(np.mean(kappa))],
+            state_std=[*samples[:, :2].std(axis=0), 0.0 if self.map_curvature else kappa_std],
             barriers=self._by_name(h.mean(axis=0)),
             constraints=self._by_name(b_mean - a_mean @ filtered),
             tightening=self._by_name(self.z * spread_at_u),
