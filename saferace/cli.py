@@ -13,6 +13,7 @@ from saferace.errors import SafeRaceError
 
 DEFAULT_STATE_NOISE = (0.05, 0.05)
 NOISY_SAMPLES, MC_SAMPLES = 20, 10  # the default state samples of noisy and learned sources
+VEHICLE_MODELS = ("kinematic", "dynamic", "dynamic-paper")  # of the expert and the filter
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,7 +80,7 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--model",
         default="dynamic",
-        choices=["kinematic", "dynamic", "dynamic-paper"],
+        choices=VEHICLE_MODELS,
         help="vehicle model of the expert MPC",
     )
     evaluate.add_argument(
@@ -114,7 +115,7 @@ def _parser() -> argparse.ArgumentParser:
     collect.add_argument(
         "--model",
         default="dynamic",
-        choices=["kinematic", "dynamic", "dynamic-paper"],
+        choices=VEHICLE_MODELS,
         help="vehicle model of the labelling expert MPC (and of an expert driver)",
     )
     collect.add_argument(
@@ -216,7 +217,7 @@ def _parser() -> argparse.ArgumentParser:
         "--state-noise", type=float, nargs=2, default=[0.05, 0.05], metavar=("E_Y_M", "E_PSI_RAD")
     )
     table.add_argument("--samples", type=int, default=20)
-    table.add_argument("--filter-model", default="kinematic", choices=FILTER_MODELS)
+    table.add_argument("--filter-model", default="kinematic", choices=VEHICLE_MODELS)
     table.add_argument(
         "--state-source",
         metavar="learned:CKPT",
@@ -303,11 +304,11 @@ def _parser() -> argparse.ArgumentParser:
     dagger.add_argument(
         "--model",
         default="dynamic",
-        choices=["kinematic", "dynamic", "dynamic-paper"],
+        choices=VEHICLE_MODELS,
         help="vehicle model of the expert MPC",
     )
     dagger.add_argument(
-        "--filter-model", default="kinematic", choices=FILTER_MODELS, help="the filter's model"
+        "--filter-model", default="kinematic", choices=VEHICLE_MODELS, help="the filter's model"
     )
     _add_gains_argument(dagger)
     _add_map_curvature_argument(dagger)
@@ -368,7 +369,6 @@ def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) 
     )
 
 
-FILTER_MODELS = ("kinematic", "dynamic", "dynamic-paper")
 FILTER_GAINS = ("paper", "tuned")  # the keys of saferace.safety.filter.GAIN_PRESETS
 
 
@@ -377,7 +377,7 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
         "--filter", default="none", choices=["none", "cbf"], help="wrap the agent in a filter"
     )
     parser.add_argument(
-        "--filter-model", default="kinematic", choices=FILTER_MODELS, help="the filter's model"
+        "--filter-model", default="kinematic", choices=VEHICLE_MODELS, help="the filter's model"
     )
     parser.add_argument(
         "--state-noise",
