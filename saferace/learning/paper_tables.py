@@ -405,7 +405,8 @@ def run_paper_tables(
     preset: str | Preset, seeds: list[int], out_dir: str | Path, progress: bool = True
 ) -> list[Path]:
     """Run (or resume) everything the preset (a name of :data:`PRESETS` or one's own) asks
-    for and write the tables and figures; the paths written."""
+    for and write the tables and figures; the paths written. ``unseen_tracks.md`` and
+    ``timings.md`` are rewritten after each setting, so a long run shows what it has."""
     if isinstance(preset, str):
         preset = PRESETS[preset]
     out_dir = Path(out_dir)
@@ -426,34 +427,52 @@ def run_paper_tables(
                     continue  # a fork's shared rows are the unfiltered run's
                 timings["collection"] += row["collect_seconds"] or 0.0
                 timings["training"] += row["train_seconds"] or 0.0
-        header = ["iteration", "filter"] + [
-            f"{task}: {name}" for task in TASKS for name in CELL_NAMES
-        ]
-        lines = table_lines(setting, rows, seeds)
-        text = (
-            f"# {setting.title}\n\npreset {preset.name}, seeds {seeds}; k: "
-            + ", ".join(f"{t} {k}" for t, k in setting.filter_from.items())
-            + "; * did not complete the lap (its time is how long the car drove)\n\n"
-            + markdown_table(header, lines)
-            + "\n\n## Claims, measured\n\n"
-            + "\n".join(claims(setting, rows))
-            + "\n"
-        )
-        table_path = out_dir / f"{setting.name}.md"
-        table_path.write_text(text)
-        with open(out_dir / f"{setting.name}.csv", "w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(header)
-            writer.writerows(lines)
-        figure = out_dir / f"{setting.name}_trajectories.png"
-        plot_iterations(setting, rows, seeds[0], figure)
-        written += [table_path, out_dir / f"{setting.name}.csv", figure]
+        written += write_table(preset, setting, rows, seeds, out_dir)
         started = time.perf_counter()
         unseen += unseen_track_rows(preset, setting, seeds, out_dir, tracks)
         timings["unseen tracks"] += time.perf_counter() - started
         started = time.perf_counter()
         written.append(record_final_filtered_lap(preset, setting, seeds[0], out_dir))
         timings["recording"] += time.perf_counter() - started
+        summaries = write_summaries(preset, unseen, timings, out_dir)
+    return [*written, *summaries]
+
+
+def write_table(
+    preset: Preset,
+    setting: TableSetting,
+    rows: dict[tuple[str, int, str], list[dict]],
+    seeds: list[int],
+    out_dir: Path,
+) -> list[Path]:
+    """``{setting}.md`` with the claims, ``{setting}.csv`` and the trajectory figure."""
+    header = ["iteration", "filter"] + [f"{task}: {name}" for task in TASKS for name in CELL_NAMES]
+    lines = table_lines(setting, rows, seeds)
+    text = (
+        f"# {setting.title}\n\npreset {preset.name}, seeds {seeds}; k: "
+        + ", ".join(f"{t} {k}" for t, k in setting.filter_from.items())
+        + "; * did not complete the lap (its time is how long the car drove)\n\n"
+        + markdown_table(header, lines)
+        + "\n\n## Claims, measured\n\n"
+        + "\n".join(claims(setting, rows))
+        + "\n"
+    )
+    table_path = out_dir / f"{setting.name}.md"
+    table_path.write_text(text)
+    csv_path = out_dir / f"{setting.name}.csv"
+    with open(csv_path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(header)
+        writer.writerows(lines)
+    figure = out_dir / f"{setting.name}_trajectories.png"
+    plot_iterations(setting, rows, seeds[0], figure)
+    return [table_path, csv_path, figure]
+
+
+def write_summaries(
+    preset: Preset, unseen: list[list], timings: dict[str, float], out_dir: Path
+) -> list[Path]:
+    """``unseen_tracks.md`` and ``timings.md`` from what has been run so far."""
     unseen_path = out_dir / "unseen_tracks.md"
     unseen_path.write_text(
         f"# Final policies on tracks they never saw (1 lap, at most {preset.max_seconds:g} s)\n\n"
@@ -467,4 +486,4 @@ def run_paper_tables(
         + markdown_table(["stage", "seconds"], [[k, v] for k, v in timings.items()])
         + "\n"
     )
-    return [*written, unseen_path, timings_path]
+    return [unseen_path, timings_path]
