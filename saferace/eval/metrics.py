@@ -75,34 +75,40 @@ def lap_metrics(
     """
     lap_after = np.asarray(steps["lap"], dtype=int)
     lap_during = np.concatenate([[0], lap_after[:-1]]) if len(lap_after) else lap_after
-    steer = np.asarray(steps["steer_rad"], dtype=float)
-    steer_rate = np.diff(steer, prepend=steer[:1]) / control_dt_s if len(steer) else steer
     metrics = []
     for lap in range(int(lap_during.max()) + 1 if len(lap_during) else 0):
         mask = lap_during == lap
         if not mask.any():
             continue
-        deviation = np.abs(np.asarray(steps["deviation_m"])[mask])
         completed = lap < len(lap_times_s)
-        barrier = steps.get("lane_barrier_m")
-        safety = _safety_metrics(steps, mask) if "intervened" in steps else {}
         metrics.append(
             LapMetrics(
                 lap=lap,
                 completed=completed,
                 lap_time_s=float(lap_times_s[lap]) if completed else None,
-                mean_abs_deviation_m=float(deviation.mean()),
-                max_abs_deviation_m=float(deviation.max()),
-                time_outside_lane_s=float(
-                    np.sum(np.asarray(steps["cost"])[mask] > 0) * control_dt_s
-                ),
-                steering_rate_rms_radps=float(np.sqrt(np.mean(steer_rate[mask] ** 2))),
-                steps=int(mask.sum()),
-                min_lane_barrier_m=None if barrier is None else float(np.min(barrier[mask])),
-                **safety,
+                **span_metrics(steps, mask, control_dt_s),
             )
         )
     return metrics
+
+
+def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: float) -> dict:
+    """The :class:`LapMetrics` of the steps ``mask`` selects (a lap, or a stretch of the
+    track such as DAgger's held-out part), bar the lap number and time."""
+    steer = np.asarray(steps["steer_rad"], dtype=float)
+    steer_rate = np.diff(steer, prepend=steer[:1]) / control_dt_s
+    deviation = np.abs(np.asarray(steps["deviation_m"])[mask])
+    barrier = steps.get("lane_barrier_m")
+    safety = _safety_metrics(steps, mask) if "intervened" in steps else {}
+    return {
+        "mean_abs_deviation_m": float(deviation.mean()),
+        "max_abs_deviation_m": float(deviation.max()),
+        "time_outside_lane_s": float(np.sum(np.asarray(steps["cost"])[mask] > 0) * control_dt_s),
+        "steering_rate_rms_radps": float(np.sqrt(np.mean(steer_rate[mask] ** 2))),
+        "steps": int(mask.sum()),
+        "min_lane_barrier_m": None if barrier is None else float(np.min(barrier[mask])),
+        **safety,
+    }
 
 
 def _safety_metrics(steps: dict[str, np.ndarray], mask: np.ndarray) -> dict:

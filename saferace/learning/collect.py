@@ -26,6 +26,7 @@ from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.filters import FilterConfig
+from saferace.eval.metrics import span_metrics
 from saferace.eval.runner import (
     EpisodeResult,
     git_revision,
@@ -271,23 +272,11 @@ def episode_summary(
     }
     if train_fraction < 1.0:
         held_out = np.mod(steps["s_m"] / track_length_m, 1.0) >= train_fraction
-        summary["held_out"] = part_metrics(steps, held_out, dt_s)
+        summary["held_out"] = (
+            span_metrics(steps, held_out, dt_s) if held_out.any() else {"steps": 0}
+        )
     stride = max(1, len(steps["x_m"]) // 500)
     summary["trajectory"] = {
         name: steps[name][::stride].round(4).tolist() for name in ("x_m", "y_m", "s_m")
     }
     return summary
-
-
-def part_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, dt_s: float) -> dict:
-    """Deviation, time outside the lane and interventions over the steps ``mask`` selects."""
-    if not mask.any():
-        return {"steps": 0}
-    part = {
-        "steps": int(mask.sum()),
-        "mean_abs_deviation_m": float(np.mean(np.abs(steps["deviation_m"][mask]))),
-        "time_outside_lane_s": float(np.sum(steps["cost"][mask] > 0) * dt_s),
-    }
-    if "intervened" in steps:
-        part["intervention_rate"] = float(np.mean(steps["intervened"][mask]))
-    return part
