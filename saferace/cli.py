@@ -272,6 +272,13 @@ def _parser() -> argparse.ArgumentParser:
         help="the unfiltered run to share iterations 0..K with (copied, not recomputed)",
     )
     dagger.add_argument("--epochs", type=int, default=9, help="training epochs per iteration")
+    dagger.add_argument(
+        "--min-train-steps",
+        type=int,
+        default=0,
+        metavar="N",
+        help="at least N gradient steps per training, adding epochs while the frames are few",
+    )
     dagger.add_argument("--batch-size", type=int, default=32, help="frames per Adam step")
     dagger.add_argument(
         "--from-scratch",
@@ -312,6 +319,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_gains_argument(dagger)
     _add_map_curvature_argument(dagger)
+    dagger.add_argument(
+        "--calibrate-spread",
+        action="store_true",
+        help="widen the state network's MC-dropout spread by the factor that matches it to "
+        "its error on the previous round, which it never saw",
+    )
     dagger.add_argument("--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
     dagger.add_argument(
         "--max-seconds", type=float, default=60.0, help="end a drive after this much simulated time"
@@ -406,6 +419,14 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     )
     _add_map_curvature_argument(parser)
     _add_gains_argument(parser)
+    parser.add_argument(
+        "--spread-scale",
+        type=float,
+        nargs=3,
+        metavar=("E_Y", "E_PSI", "KAPPA"),
+        help="widen the state samples' spread about their mean by these factors (a calibration "
+        "of the state network's, see `saferace dagger --calibrate-spread`)",
+    )
 
 
 def _add_map_curvature_argument(parser: argparse.ArgumentParser) -> None:
@@ -448,12 +469,16 @@ def _filter_config(args: argparse.Namespace):
         raise SafeRaceError(f"--samples must be at least 1, got {samples}")
     if noisy and min(noise) < 0:
         raise SafeRaceError(f"--state-noise must not be negative, got {noise}")
+    scale = args.spread_scale
     if args.filter == "none" and (
-        noisy or args.deterministic or source != "oracle" or args.map_curvature
+        noisy or args.deterministic or source != "oracle" or args.map_curvature or scale
     ):
         raise SafeRaceError(
-            "--state-source, --state-noise, --deterministic and --map-curvature need --filter cbf"
+            "--state-source, --state-noise, --deterministic, --map-curvature and --spread-scale "
+            "need --filter cbf"
         )
+    if scale is not None and min(scale) <= 0.0:
+        raise SafeRaceError(f"--spread-scale needs 3 positive factors, got {scale}")
     return FilterConfig(
         kind=args.filter,
         model=args.filter_model,
@@ -463,6 +488,7 @@ def _filter_config(args: argparse.Namespace):
         gains=args.filter_gains,
         state_source=source if learned else None,
         map_curvature=args.map_curvature,
+        spread_scale=None if scale is None else tuple(scale),
     )
 
 
@@ -717,6 +743,8 @@ def _dagger(args: argparse.Namespace) -> int:
     _check_count("--mc-samples", args.mc_samples)
     if args.fork_of is not None and args.filter != "cbf":
         raise SafeRaceError("--fork-of makes a filtered fork: add --filter cbf")
+    if args.calibrate_spread and args.filter != "cbf":
+        raise SafeRaceError("--calibrate-spread widens what the filter believes: add --filter cbf")
     config = DaggerConfig(
         task=args.task,
         track=args.track,
@@ -725,6 +753,7 @@ def _dagger(args: argparse.Namespace) -> int:
         filter_from=args.filter_from,
         state_source=args.state_source,
         epochs=args.epochs,
+        min_train_steps=args.min_train_steps,
         batch_size=args.batch_size,
         warm_start=not args.from_scratch,
         stereo=args.stereo,
@@ -737,6 +766,7 @@ def _dagger(args: argparse.Namespace) -> int:
         filter_model=args.filter_model,
         filter_gains=args.filter_gains,
         map_curvature=args.map_curvature,
+        calibrate_spread=args.calibrate_spread,
         mc_samples=args.mc_samples,
         beta_rampdown=args.beta_rampdown,
         max_seconds=args.max_seconds,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -15,8 +16,9 @@ import pytest
 import torch
 
 from saferace.errors import SafeRaceError
+from saferace.learning.calibration import spread_scale
 from saferace.learning.checkpoint import load_checkpoint
-from saferace.learning.dagger import DaggerConfig, DaggerRun
+from saferace.learning.dagger import DaggerConfig, DaggerRun, spread_scale_path
 from saferace.learning.rounds import load_rounds
 
 #: Two iterations of 3 s drives on small images: every stage runs in seconds.
@@ -110,6 +112,28 @@ def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
     other_forks = replace(TINY, filter_from=2, state_source="oracle", filter_gains="tuned")
     same = DaggerRun(unfiltered.out_dir, other_forks, progress=False)  # no filter settings
     assert same.run() == unfiltered.metrics()  # nothing driven or trained again
+
+
+def test_a_calibrated_fork_widens_the_spread_it_fitted_on_the_last_round(
+    unfiltered: DaggerRun, tmp_path: Path
+):
+    calibrated = replace(TINY, filter="cbf", calibrate_spread=True)
+    rows = DaggerRun(tmp_path / "cbf", calibrated, fork_of=unfiltered.out_dir, progress=False).run()
+    record = json.loads(spread_scale_path(tmp_path / "cbf", 2).read_text())
+    assert (record["fitted_with"], record["fitted_on"]) == ("iteration_01.pt", "round_0001")
+    network = load_checkpoint(unfiltered.checkpoint_path(1)).state
+    frames = load_rounds([unfiltered.round_path(1)])
+    expected = spread_scale(network, frames, TINY.mc_samples, seed=TINY.seed)
+    assert record["spread_scale"] == pytest.approx(expected.tolist())
+    assert rows[2]["spread_scale_e_y"] == record["spread_scale"][0] >= 1.0
+    assert rows[1]["spread_scale_e_y"] is None  # unfiltered: nothing to calibrate
+    manifest = json.loads((tmp_path / "cbf/data/round_0002/manifest.json").read_text())
+    assert manifest["config"]["safety"]["spread_scale"] == record["spread_scale"]
+    oracle = replace(calibrated, state_source="oracle")
+    DaggerRun(tmp_path / "oracle", oracle, fork_of=unfiltered.out_dir, progress=False).run()
+    assert not spread_scale_path(tmp_path / "oracle", 2).exists()  # the truth has no spread
+    with pytest.raises(SafeRaceError, match="filter_from >= 1"):
+        replace(calibrated, filter_from=0)
 
 
 RUNNER = """

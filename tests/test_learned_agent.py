@@ -103,14 +103,19 @@ def test_eval_rows_record_checkpoint_and_state_source(tiny_checkpoint, tmp_path:
     result = run_cli(
         "eval", "--agent", f"learned:{checkpoint}", "--task", "CenterLine", "--track", "lab",
         "--filter", "cbf", "--state-source", f"learned:{checkpoint}", "--samples", "3",
-        "--mc-samples", "4",
+        "--mc-samples", "4", "--spread-scale", "3", "2", "1",
         "--max-seconds", "1", "--out", str(out),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     (row,) = read_jsonl(out)
     sha = load_checkpoint(checkpoint).sha256
     assert row["agent_checkpoint"] == {"path": str(checkpoint), "sha256": sha, "mc_samples": 4}
-    assert row["state_source"] == {"path": str(checkpoint), "sha256": sha, "mc_samples": 3}
+    assert row["state_source"] == {
+        "path": str(checkpoint),
+        "sha256": sha,
+        "mc_samples": 3,
+        "spread_scale": [3.0, 2.0, 1.0],
+    }
     assert row["filter"]["state_source"] == f"learned:{checkpoint}"
     assert row["summary"]["intervention_rate"] is not None
     refused = run_cli(

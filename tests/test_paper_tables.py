@@ -27,6 +27,7 @@ TINY = Preset(
     settings=(replace(TABLE_2, filter_from={"CenterLine": 1, "RacingLine": 1}),),
     iterations=2,
     epochs=1,
+    min_train_steps=4,
     max_seconds=3.0,
     image_size=32,
     mc_samples=3,

@@ -22,7 +22,11 @@ from saferace.safety.barriers import (
 from saferace.safety.filter import GAIN_PRESETS, NominalAction, SafetyFilter
 from saferace.safety.models import FrenetModel, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
-from saferace.safety.state_sources import NoisyOracleStateSource
+from saferace.safety.state_sources import (
+    NoisyOracleStateSource,
+    SpreadScaledStateSource,
+    true_lane_state,
+)
 from saferace.safety.vehicle_params import load_params
 
 LOWER, UPPER = np.array([-0.36, -4.0]), np.array([0.36, 4.0])
@@ -255,6 +259,50 @@ def test_noisy_oracle_samples_spread_and_miss_the_truth_alike():
     assert np.std(errors[:, 0]) == pytest.approx(0.05 * np.sqrt(1 + 1 / 20), rel=0.1)
     assert np.mean(np.std(draws[:, :, 0], axis=1)) == pytest.approx(0.05, rel=0.1)
     assert np.all(draws[:, :, 2] == 0.3)
+
+
+class _ShrunkTowardTheCentre:
+    """A state network's failure near the edges: ``e_y`` halved, spread 1 cm."""
+
+    def reset(self, seed=None) -> None:
+        self._rng = np.random.default_rng(0)
+
+    def samples(self, observation, info):
+        state = true_lane_state(info) * [0.5, 1.0, 1.0]
+        return state + self._rng.standard_normal((10, 3)) * [0.01, 0.01, 0.0]
+
+
+def test_a_widened_spread_keeps_a_centre_biased_belief_inside_the_lane():
+    source = _ShrunkTowardTheCentre()
+    source.reset()
+    widened = SpreadScaledStateSource(source, (10.0, 2.0, 1.0))
+    info = {"e_y_m": 0.2, "e_psi_rad": 0.1, "kappa_radpm": 0.5}
+    source.reset()
+    narrow = source.samples({}, info)
+    source.reset()
+    wide = widened.samples({}, info)
+    assert wide.mean(axis=0) == pytest.approx(narrow.mean(axis=0), abs=1e-12)
+    assert wide.std(axis=0) == pytest.approx(narrow.std(axis=0) * [10.0, 2.0, 1.0])
+    outside = {}
+    for name, state_source in (("narrow", _ShrunkTowardTheCentre()), ("widened", widened)):
+        filtered = SafetyFilter(
+            make_env(max_steps=300), state_source, map_curvature=True, **GAIN_PRESETS["tuned"]
+        )
+        result = run_episode(filtered, DriftAgent.for_env(filtered), seed=0)
+        outside[name] = result.summary["time_outside_lane_s"]
+        filtered.close()
+    assert outside["narrow"] > 1.0 and outside["widened"] == 0.0
+
+
+def test_the_filter_config_widens_the_spread():
+    config = FilterConfig(kind="cbf", state_noise=(0.05, 0.05), spread_scale=(3.0, 2.0, 1.0))
+    filtered = apply_filter(make_env(), config)
+    assert isinstance(filtered.state_source, SpreadScaledStateSource)
+    assert isinstance(filtered.state_source.source, NoisyOracleStateSource)
+    assert filtered.state_source.scale.tolist() == [3.0, 2.0, 1.0]
+    filtered.close()
+    with pytest.raises(ValueError, match="spread_scale"):
+        FilterConfig(kind="cbf", spread_scale=(1.0, 0.0, 1.0))
 
 
 class _WrongCurvature:

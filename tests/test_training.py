@@ -41,6 +41,19 @@ def test_overfits_a_tiny_dataset(frames):
     assert history["train_loss"][-1] < history["train_loss"][0] / 10.0
 
 
+def test_few_frames_train_for_at_least_min_steps(frames):
+    data = network_data(frames.subset(np.arange(20)))["state"]  # 3 batches of 8
+    network = DrivingNetwork(state_config())
+    network.set_normalisation(normalisation(data, seed=0))
+    config = TrainConfig(epochs=1, batch_size=8, min_steps=7)
+    history = fit(network, data, None, config, "state", progress=False)
+    assert len(history["train_loss"]) == 3  # ceil(7 / 3) epochs
+    assert len(history["batch_loss"]) == 9
+    assert replace(config, epochs=4).epochs_for(20) == 4  # enough steps already
+    with pytest.raises(SafeRaceError, match="min_steps"):
+        TrainConfig(min_steps=-1)
+
+
 def test_same_seed_same_weights(frames):
     few = frames.subset(np.arange(24))
     first = train_networks(few, FEW, progress=False)

@@ -8,7 +8,11 @@ import gymnasium as gym
 
 from saferace.eval.agents import load_entry_point
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.state_sources import NoisyOracleStateSource, OracleStateSource
+from saferace.safety.state_sources import (
+    NoisyOracleStateSource,
+    OracleStateSource,
+    SpreadScaledStateSource,
+)
 
 FILTER_KINDS = ("none", "cbf")
 #: State sources of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use,
@@ -26,7 +30,10 @@ class FilterConfig:
     learned one (``learned:CHECKPOINT``: the state network's ``samples`` MC-dropout samples,
     the perceived state); ``probabilistic=False`` filters deterministically on the samples'
     mean. ``gains`` names an entry of :data:`~saferace.safety.filter.GAIN_PRESETS`;
-    ``map_curvature`` takes the curvature from the track map instead of the state source.
+    ``map_curvature`` takes the curvature from the track map instead of the state source;
+    ``spread_scale`` ``(e_y, e_psi, kappa)`` widens the state source's samples about their
+    mean (a calibration of the MC-dropout spread, see
+    :class:`~saferace.safety.state_sources.SpreadScaledStateSource`).
     """
 
     kind: str = "none"
@@ -38,6 +45,7 @@ class FilterConfig:
     gains: str = "paper"
     state_source: str | None = None
     map_curvature: bool = False
+    spread_scale: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.kind not in FILTER_KINDS:
@@ -55,6 +63,12 @@ class FilterConfig:
                 )
             if self.state_noise is not None:
                 raise ValueError("a learned state source takes no state_noise")
+        if self.spread_scale is not None and (
+            len(self.spread_scale) != 3 or min(self.spread_scale) <= 0.0
+        ):
+            raise ValueError(
+                f"spread_scale is 3 positive factors (e_y, e_psi, kappa), got {self.spread_scale}"
+            )
 
     @property
     def label(self) -> str:
@@ -85,6 +99,8 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
     else:
         e_y_std, e_psi_std = config.state_noise
         source = NoisyOracleStateSource((e_y_std, e_psi_std, 0.0), config.samples, seed)
+    if config.spread_scale is not None:
+        source = SpreadScaledStateSource(source, config.spread_scale)
     return SafetyFilter(
         env,
         state_source=source,

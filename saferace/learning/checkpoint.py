@@ -13,8 +13,10 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import torch
 
@@ -59,12 +61,21 @@ def save_checkpoint(
 
 def save_atomically(payload: dict, path: str | Path) -> Path:
     """``torch.save`` to a temporary file beside ``path``, synced, then renamed into place."""
+    return _write_atomically(path, lambda handle: torch.save(payload, handle))
+
+
+def write_text_atomically(path: str | Path, text: str) -> Path:
+    """Write ``text`` as :func:`save_atomically` writes a checkpoint."""
+    return _write_atomically(path, lambda handle: handle.write(text.encode()))
+
+
+def _write_atomically(path: str | Path, write: Callable[[BinaryIO], object]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.partial")
     try:
         with open(temporary, "wb") as handle:
-            torch.save(payload, handle)
+            write(handle)
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(temporary, path)

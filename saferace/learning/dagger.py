@@ -40,7 +40,8 @@ from tqdm import tqdm
 import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
-from saferace.learning.checkpoint import save_checkpoint
+from saferace.learning.calibration import spread_scale
+from saferace.learning.checkpoint import load_checkpoint, save_checkpoint, write_text_atomically
 from saferace.learning.collect import CollectionConfig, Perturbation, collect_round
 from saferace.learning.rounds import load_rounds
 from saferace.learning.training import TrainConfig, train_networks
@@ -50,7 +51,14 @@ CHECKPOINT_NAME = re.compile(r"^iteration_\d+\.pt$")
 METRICS_FILE = "metrics.jsonl"
 STATE_SOURCES = ("learned", "oracle")
 #: Settings that only a filtered run uses.
-FILTER_SETTINGS = ("filter_from", "state_source", "filter_model", "filter_gains", "map_curvature")
+FILTER_SETTINGS = (
+    "filter_from",
+    "state_source",
+    "filter_model",
+    "filter_gains",
+    "map_curvature",
+    "calibrate_spread",
+)
 #: Columns of ``metrics.csv`` (the held-out part's are prefixed ``held_out_``).
 METRIC_COLUMNS = (
     "iteration",
@@ -62,6 +70,7 @@ METRIC_COLUMNS = (
     "mean_abs_deviation_m",
     "time_outside_lane_s",
     "intervention_rate",
+    "spread_scale_e_y",
     "held_out_mean_abs_deviation_m",
     "held_out_time_outside_lane_s",
     "frames",
@@ -87,6 +96,7 @@ class DaggerConfig:
     filter_from: int = 2
     state_source: str = "learned"
     epochs: int = 9
+    min_train_steps: int = 0
     batch_size: int = 32
     learning_rate: float = 1e-3
     warm_start: bool = True
@@ -100,6 +110,7 @@ class DaggerConfig:
     filter_model: str = "kinematic"
     filter_gains: str = "paper"
     map_curvature: bool = False
+    calibrate_spread: bool = False
     mc_samples: int = 10
     beta_rampdown: int = 0
     max_seconds: float = 60.0
@@ -115,6 +126,17 @@ class DaggerConfig:
             raise SafeRaceError("iterations, filter_from and beta_rampdown must not be negative")
         if self.max_seconds <= 0:
             raise SafeRaceError(f"max_seconds must be positive, got {self.max_seconds}")
+        if self.calibrates_spread and self.filter_from < 1:
+            raise SafeRaceError(
+                "calibrate_spread fits on a round driven by a learned network: it needs "
+                "filter_from >= 1"
+            )
+
+    @property
+    def calibrates_spread(self) -> bool:
+        """Whether the filtered drives widen the state network's spread (``calibrate_spread``
+        does nothing to the oracle state)."""
+        return self.calibrate_spread and self.filter == "cbf" and self.state_source == "learned"
 
     @property
     def fingerprint(self) -> dict:
@@ -211,6 +233,7 @@ class DaggerRun:
         init = self.checkpoint_path(iteration - 1) if config.warm_start and iteration > 1 else None
         training = TrainConfig(
             epochs=config.epochs,
+            min_steps=config.min_train_steps,
             batch_size=config.batch_size,
             learning_rate=config.learning_rate,
             seed=config.seed,
@@ -242,6 +265,11 @@ class DaggerRun:
                 samples=config.mc_samples,
                 state_source=f"learned:{checkpoint}" if learned else None,
                 map_curvature=config.map_curvature,
+                spread_scale=(
+                    spread_scale_of(self.out_dir, iteration, config.mc_samples, config.seed)
+                    if config.calibrates_spread
+                    else None
+                ),
             )
         collection = CollectionConfig(
             agent="expert" if iteration == 0 else f"learned:{checkpoint}",
@@ -282,6 +310,7 @@ class DaggerRun:
             "max_abs_deviation_m": episode["max_abs_deviation_m"],
             "time_outside_lane_s": episode["time_outside_lane_s"],
             "intervention_rate": episode.get("intervention_rate"),
+            "spread_scale_e_y": self._spread_scale_e_y(iteration),
             "held_out_mean_abs_deviation_m": held_out.get("mean_abs_deviation_m"),
             "held_out_time_outside_lane_s": held_out.get("time_outside_lane_s"),
             "frames": manifest["frame_count"],
@@ -296,6 +325,10 @@ class DaggerRun:
             writer = csv.DictWriter(handle, fieldnames=METRIC_COLUMNS, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
+
+    def _spread_scale_e_y(self, iteration: int) -> float | None:
+        path = spread_scale_path(self.out_dir, iteration)
+        return json.loads(path.read_text())["spread_scale"][0] if path.exists() else None
 
     # ------------------------------------------------------------------ folder
     def _claim_folder(self) -> None:
@@ -348,6 +381,36 @@ class DaggerRun:
             if row["iteration"] <= shared and row["iteration"] not in done:
                 with open(self.out_dir / METRICS_FILE, "a") as handle:
                     handle.write(json.dumps(row) + "\n")
+
+
+def spread_scale_path(run_dir: str | Path, iteration: int) -> Path:
+    return Path(run_dir, "checkpoints", f"iteration_{iteration:02d}.spread_scale.json")
+
+
+def spread_scale_of(
+    run_dir: str | Path, iteration: int, mc_samples: int, seed: int
+) -> tuple[float, float, float]:
+    """The calibration of the state network of a run's ``iteration``: fitted with the
+    network of iteration ``i-1`` on its own round, which it had never seen; written once
+    beside the checkpoint, read back afterwards."""
+    if iteration < 2:
+        raise SafeRaceError(
+            f"calibrating iteration {iteration}'s spread needs a round driven by a learned "
+            "network before it (iteration 2 or later)"
+        )
+    path = spread_scale_path(run_dir, iteration)
+    if not path.exists():
+        previous = Path(run_dir, "checkpoints", f"iteration_{iteration - 1:02d}.pt")
+        frames = load_rounds([Path(run_dir, "data", f"round_{iteration - 1:04d}")])
+        scale = spread_scale(load_checkpoint(previous).state, frames, mc_samples, seed=seed)
+        record = {
+            "spread_scale": scale.tolist(),
+            "fitted_with": previous.name,
+            "fitted_on": f"round_{iteration - 1:04d}",
+            "frames": len(frames),
+        }
+        write_text_atomically(path, json.dumps(record, indent=2) + "\n")
+    return tuple(json.loads(path.read_text())["spread_scale"])
 
 
 def episode_seed(seed: int, iteration: int) -> int:

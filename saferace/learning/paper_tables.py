@@ -25,7 +25,7 @@ from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import evaluate, max_steps_for
 from saferace.eval.tables import markdown_table
 from saferace.eval.track_plots import plot_track, plt
-from saferace.learning.dagger import DaggerConfig, DaggerRun, final_checkpoint
+from saferace.learning.dagger import DaggerConfig, DaggerRun, final_checkpoint, spread_scale_of
 from saferace.track import Track
 from saferace.track.random_track import write_random_track
 
@@ -61,6 +61,12 @@ class Preset:
     the paper's, an agent steering hard one way rode up to 4 cm over the line for 0.2-0.8 s);
     ``map_curvature`` takes the curvature from the map (the state network's is off by
     0.1-0.4 1/m, and a wrong curvature turns the lane barriers' steering the wrong way).
+    Two more, for the state network: every training takes at least ``min_train_steps``
+    gradient steps (three epochs of the first iterations' few hundred frames are a dozen
+    steps: on lab's racing line the networks of iterations 1-4 crashed within a second, and
+    the state network's heading error was 0.2-0.5 rad); ``calibrate_spread`` widens its
+    MC-dropout spread, 3 to 20 times smaller than its error, by the factor fitted on the
+    previous round (:mod:`saferace.learning.calibration`).
     """
 
     name: str
@@ -74,6 +80,8 @@ class Preset:
     image_size: int = 64
     mc_samples: int = 10
     map_curvature: bool = True
+    min_train_steps: int = 60
+    calibrate_spread: bool = True
     unseen_tracks: tuple[str, ...] = ()
     random_tracks: tuple[int, ...] = ()
 
@@ -126,6 +134,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
         iterations=preset.iterations,
         filter_from=setting.filter_from[task],
         epochs=preset.epochs,
+        min_train_steps=preset.min_train_steps,
         stereo=setting.stereo,
         laps=preset.laps,
         expert_perturb=preset.expert_perturb,
@@ -134,6 +143,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
         filter_model=setting.filter_model,
         filter_gains=preset.filter_gains,
         map_curvature=preset.map_curvature,
+        calibrate_spread=preset.calibrate_spread,
         max_seconds=preset.max_seconds,
         image_size=preset.image_size,
         mc_samples=preset.mc_samples,
@@ -305,16 +315,29 @@ def plot_iterations(
     plt.close(figure)
 
 
-def perceived_filter(preset: Preset, setting: TableSetting, checkpoint_spec: str) -> FilterConfig:
-    """The setting's filter fed the perceived state of ``learned:CHECKPOINT``."""
-    return FilterConfig(
+def final_policy(
+    preset: Preset, setting: TableSetting, run: Path, seed: int
+) -> tuple[str, FilterConfig]:
+    """The agent spec of a run's final networks, and the setting's filter fed their
+    perceived state (with the spread calibrated as in the run's filtered iterations)."""
+    checkpoint = final_checkpoint(run)
+    spec = f"learned:{checkpoint}"
+    iteration = int(checkpoint.stem.removeprefix("iteration_"))
+    scale = (
+        spread_scale_of(run, iteration, preset.mc_samples, seed)
+        if preset.calibrate_spread
+        else None
+    )
+    safety = FilterConfig(
         kind="cbf",
         model=setting.filter_model,
         gains=preset.filter_gains,
-        state_source=checkpoint_spec,
+        state_source=spec,
         samples=preset.mc_samples,
         map_curvature=preset.map_curvature,
+        spread_scale=scale,
     )
+    return spec, safety
 
 
 def env_settings(preset: Preset, setting: TableSetting) -> dict:
@@ -335,10 +358,10 @@ def unseen_track_rows(
     for task in TASKS:
         for seed in seeds:
             for kind in ("none", "cbf"):
-                checkpoint = final_checkpoint(run_dir(out_dir, setting, task, seed, kind))
-                spec = f"learned:{checkpoint}"
+                run = run_dir(out_dir, setting, task, seed, kind)
+                spec, perceived = final_policy(preset, setting, run, seed)
                 for track in tracks:
-                    for safety in (FilterConfig(), perceived_filter(preset, setting, spec)):
+                    for safety in (FilterConfig(), perceived):
                         (row,) = evaluate(
                             spec,
                             task,
@@ -372,7 +395,8 @@ def record_final_filtered_lap(
     """A Rerun recording of the final perceived-state racing-line policy's lap: what the
     filter believed against the truth, its corrections and its barriers."""
     task = "RacingLine"
-    spec = f"learned:{final_checkpoint(run_dir(out_dir, setting, task, seed, 'cbf'))}"
+    run = run_dir(out_dir, setting, task, seed, "cbf")
+    spec, perceived = final_policy(preset, setting, run, seed)
     path = out_dir / f"{setting.name}_final_filtered_racingline.rrd"
     drive(
         task,
@@ -381,7 +405,7 @@ def record_final_filtered_lap(
         rerun=path,
         seed=seed,
         mc_samples=preset.mc_samples,
-        safety=perceived_filter(preset, setting, spec),
+        safety=perceived,
         progress=False,
         **env_settings(preset, setting),
     )

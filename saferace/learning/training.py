@@ -51,9 +51,15 @@ MIN_STD = 1e-3
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimisation, hold-out and initialisation of one training run."""
+    """Optimisation, hold-out and initialisation of one training run.
+
+    ``min_steps``: at least this many gradient steps, by adding epochs when the data are few
+    (a DAgger run's first iterations train on a lap or two of frames: three epochs of them
+    are a dozen steps, and the networks learn next to nothing).
+    """
 
     epochs: int = 10
+    min_steps: int = 0
     batch_size: int = 32
     learning_rate: float = 1e-3
     seed: int = 0
@@ -71,6 +77,8 @@ class TrainConfig:
             )
         if self.epochs < 1 or self.batch_size < 1 or self.learning_rate <= 0.0:
             raise SafeRaceError("epochs, batch_size and learning_rate must be positive")
+        if self.min_steps < 0:
+            raise SafeRaceError(f"min_steps must not be negative, got {self.min_steps}")
         if self.init and self.backbone_weights:
             raise SafeRaceError(
                 "--init and --backbone-weights both set the starting weights: choose one"
@@ -78,6 +86,11 @@ class TrainConfig:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def epochs_for(self, frames: int) -> int:
+        """Epochs over ``frames`` training frames: ``epochs``, or more to reach ``min_steps``."""
+        batches = math.ceil(frames / self.batch_size)
+        return max(self.epochs, math.ceil(self.min_steps / batches))
 
 
 @dataclass(frozen=True)
@@ -154,15 +167,16 @@ def fit(
         history, first_epoch = resume["history"], resume["epochs_done"]
     targets = network.normalise_outputs(torch.as_tensor(train.targets, dtype=torch.float32))
     batches = math.ceil(len(train) / config.batch_size)
+    epochs = config.epochs_for(len(train))
     bar = tqdm(
-        total=config.epochs * batches,
+        total=epochs * batches,
         initial=first_epoch * batches,
         desc=f"train {label}",
         unit="batch",
         disable=None if progress else True,  # None: a bar on a terminal, not in logs
     )
     with bar:
-        for epoch in range(first_epoch, config.epochs):
+        for epoch in range(first_epoch, epochs):
             network.train()
             order = torch.randperm(len(train), generator=generator).numpy()
             total = 0.0

@@ -72,3 +72,31 @@ class NoisyOracleStateSource:
     def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
         estimate = true_lane_state(info) + self._rng.standard_normal(3) * self.std
         return estimate + self._rng.standard_normal((self.n_samples, 3)) * self.std
+
+
+class SpreadScaledStateSource:
+    """Another source's samples with their spread about the mean scaled per component.
+
+    An MC-dropout spread that is several times smaller than the network's real error makes
+    the chance constraints tighten too little; scaling it by a factor fitted on frames the
+    network never trained on (variance scaling, Laves et al. 2020; see
+    :mod:`saferace.learning.calibration`) makes the spread match the error on average.
+    """
+
+    def __init__(self, source: StateSource, scale: tuple[float, float, float]) -> None:
+        if len(scale) != 3 or min(scale) <= 0.0:
+            raise ValueError(f"scale must be 3 positive numbers (e_y, e_psi, kappa), got {scale}")
+        self.source = source
+        self.scale = np.asarray(scale, dtype=float)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.source.reset(seed)
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        samples = self.source.samples(observation, info)
+        mean = samples.mean(axis=0)
+        return mean + (samples - mean) * self.scale
+
+    def describe(self) -> dict:
+        inner = getattr(self.source, "describe", dict)()
+        return {**inner, "spread_scale": self.scale.tolist()}
