@@ -16,10 +16,11 @@ import pytest
 import torch
 
 from saferace.errors import SafeRaceError
-from saferace.learning.calibration import spread_scale
+from saferace.learning.calibration import inside_lane, spread_scale
 from saferace.learning.checkpoint import load_checkpoint
 from saferace.learning.dagger import DaggerConfig, DaggerRun, spread_scale_path
-from saferace.learning.rounds import load_rounds
+from saferace.learning.rounds import FrameSet, load_rounds
+from saferace.track import Track
 
 #: Two iterations of 3 s drives on small images: every stage runs in seconds.
 TINY = DaggerConfig(
@@ -114,26 +115,38 @@ def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
     assert same.run() == unfiltered.metrics()  # nothing driven or trained again
 
 
-def test_a_calibrated_fork_widens_the_spread_it_fitted_on_the_last_round(
+def test_a_calibrated_fork_widens_the_spread_fitted_on_the_held_out_part_of_the_lap(
     unfiltered: DaggerRun, tmp_path: Path
 ):
     calibrated = replace(TINY, filter="cbf", calibrate_spread=True)
-    rows = DaggerRun(tmp_path / "cbf", calibrated, fork_of=unfiltered.out_dir, progress=False).run()
-    record = json.loads(spread_scale_path(tmp_path / "cbf", 2).read_text())
-    assert (record["fitted_with"], record["fitted_on"]) == ("iteration_01.pt", "round_0001")
-    network = load_checkpoint(unfiltered.checkpoint_path(1)).state
-    frames = load_rounds([unfiltered.round_path(1)])
+    run = DaggerRun(tmp_path / "cbf", calibrated, fork_of=unfiltered.out_dir, progress=False)
+    rows = run.run()
+    record = json.loads(spread_scale_path(run.out_dir, 2).read_text())
+    fitted_on = next(i for i in (1, 0) if len(held_out_inside(unfiltered, i)) >= 20)
+    assert record["fitted_on"] == f"round_{fitted_on:04d} (held_out.npz)"
+    frames = held_out_inside(unfiltered, fitted_on)
+    assert frames.lap_fraction.min() >= TINY.train_fraction  # never trained on
+    network = load_checkpoint(run.checkpoint_path(2)).state  # the network about to drive
     expected = spread_scale(network, frames, TINY.mc_samples, seed=TINY.seed)
     assert record["spread_scale"] == pytest.approx(expected.tolist())
     assert rows[2]["spread_scale_e_y"] == record["spread_scale"][0] >= 1.0
     assert rows[1]["spread_scale_e_y"] is None  # unfiltered: nothing to calibrate
-    manifest = json.loads((tmp_path / "cbf/data/round_0002/manifest.json").read_text())
+    manifest = json.loads((run.round_path(2) / "manifest.json").read_text())
     assert manifest["config"]["safety"]["spread_scale"] == record["spread_scale"]
     oracle = replace(calibrated, state_source="oracle")
     DaggerRun(tmp_path / "oracle", oracle, fork_of=unfiltered.out_dir, progress=False).run()
     assert not spread_scale_path(tmp_path / "oracle", 2).exists()  # the truth has no spread
-    with pytest.raises(SafeRaceError, match="filter_from >= 1"):
-        replace(calibrated, filter_from=0)
+    with pytest.raises(SafeRaceError, match="train_fraction < 1"):
+        replace(calibrated, train_fraction=1.0)
+
+
+def held_out_inside(run: DaggerRun, iteration: int) -> FrameSet | list:
+    """The held-out frames of a round with the car inside the lane (none: an empty list)."""
+    manifest = json.loads((run.round_path(iteration) / "manifest.json").read_text())
+    if not manifest["held_out_frame_count"]:
+        return []
+    frames = load_rounds([run.round_path(iteration)], held_out=True)
+    return frames.subset(inside_lane(frames, Track.load(TINY.track)))
 
 
 RUNNER = """

@@ -58,6 +58,19 @@ def test_round_trip_with_per_frame_round_data(tmp_path: Path):
     assert len(only_second) == 7 and only_second["round"][0] == 1
 
 
+def test_held_out_frames_are_kept_apart_from_the_training_frames(tmp_path: Path):
+    train, held_out = fake_frames(5), fake_frames(3, seed=1)
+    write_round(tmp_path, train, config(), held_out)
+    write_round(tmp_path, fake_frames(4, seed=2), config())  # none held out
+    frames, apart = load_rounds([tmp_path]), load_rounds([tmp_path], held_out=True)
+    assert len(frames) == 9 and len(apart) == 3
+    assert np.array_equal(apart["image"], held_out["image"])
+    assert np.array_equal(frames["image"][:5], train["image"])
+    assert [m["held_out_frame_count"] for m in apart.manifests] == [3, 0]
+    with pytest.raises(SafeRaceError, match="no held-out frames"):
+        load_rounds([tmp_path / "round_0001"], held_out=True)
+
+
 def test_aggregates_folders_without_duplicates(tmp_path: Path):
     write_round(tmp_path / "a", fake_frames(3), config())
     write_round(tmp_path / "b", fake_frames(4), config(track="oval"))

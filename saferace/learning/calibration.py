@@ -7,8 +7,10 @@ tighten by centimetres where decimetres were needed. Variance scaling (Laves et 
 "Well-calibrated regression uncertainty in medical imaging with deep learning") fits one
 factor per output, ``s = sqrt(mean(((mean - truth) / spread)^2))`` over held-out frames,
 and widens the spread by it; it is floored at 1, so a calibration never narrows a spread.
-In DAgger the held-out frames are the latest round: the network that drove it had never
-seen them, and they lie where the learned driver goes.
+In DAgger the held-out frames are the part of the latest round's lap past the train
+fraction: the network about to drive never trained on any frame there. Only frames with the
+whole car inside its lane count: the filter needs the state right while it can still keep
+the car in, and a drive that left the lane ends with frames unlike any the network saw.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from saferace.learning.networks import DrivingNetwork
 from saferace.learning.rounds import FrameSet
 from saferace.learning.training import network_data
 from saferace.learning.validation import predict_frames
+from saferace.track import Track, VehicleEnvelope
 
 #: Floor of a frame's spread in the ratio (a constant output gives no spread at all).
 MIN_SPREAD = 1e-6
@@ -36,3 +39,13 @@ def spread_scale(
     prediction = predict_frames(state_network, data, n_samples, seed=seed)
     ratio = (prediction.mean - data.targets) / np.maximum(prediction.std, MIN_SPREAD)
     return np.maximum(np.sqrt(np.mean(ratio**2, axis=0)), 1.0)
+
+
+def inside_lane(
+    frames: FrameSet, track: Track, car_width_m: float = VehicleEnvelope.width_m
+) -> np.ndarray:
+    """Frames whose car (``car_width_m`` wide) lies wholly inside the lane of ``track``."""
+    e_y = frames["state"][:, 0]
+    w_right, w_left = track.widths(frames["s_m"])
+    half = 0.5 * car_width_m
+    return (e_y + half <= w_left) & (e_y - half >= -w_right)

@@ -6,8 +6,10 @@ the true lane state, whoever drove (paper Sec. 2.3: the expert labels, the learn
 A steering perturbation (DART, Laskey et al. 2017) makes the driver act with noise while the
 label stays the expert's, so that the data show recoveries from where the noise led.
 DAgger's options (paper Sec. 2.3): ``train_fraction`` keeps only the frames on the first
-part of the lap (the rest of the lap is for testing), and ``beta`` lets the expert act in
-place of the driver on that share of the steps (a mixing schedule; the paper uses none).
+part of the lap for training (the rest of the lap is for testing: its frames go to the
+round's held-out file, for scoring and calibrating the networks, never for training), and
+``beta`` lets the expert act in place of the driver on that share of the steps (a mixing
+schedule; the paper uses none).
 """
 
 from __future__ import annotations
@@ -202,6 +204,7 @@ def collect_round(
     ``train_fraction`` (``held_out``, when it is below 1) and a downsampled trajectory.
     """
     frames: list[dict[str, np.ndarray]] = []
+    held_out: list[dict[str, np.ndarray]] = []
     summaries = []
     track_name = track_length = control_hz = None
     for episode, seed in enumerate(config.seeds):
@@ -237,10 +240,14 @@ def collect_round(
         episode_frames = labeller.arrays()
         kept = np.mod(episode_frames["s_m"] / track_length, 1.0) < config.train_fraction
         frames.append({name: values[kept] for name, values in episode_frames.items()})
+        held_out.append({name: values[~kept] for name, values in episode_frames.items()})
         summaries.append(
             episode_summary(seed, result, track_length, config.train_fraction, base.control_dt_s)
         )
-    arrays = {name: np.concatenate([f[name] for f in frames]) for name in FRAME_FIELDS}
+    arrays, held_out_arrays = (
+        {name: np.concatenate([f[name] for f in parts]) for name in FRAME_FIELDS}
+        for parts in (frames, held_out)
+    )
     manifest_config = {
         **config.as_dict(),
         "track": track_name,
@@ -254,7 +261,7 @@ def collect_round(
         "packages": package_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    path = write_round(dataset_dir, arrays, manifest_config)
+    path = write_round(dataset_dir, arrays, manifest_config, held_out_arrays)
     return CollectedRound(path, len(arrays["s_m"]), summaries)
 
 

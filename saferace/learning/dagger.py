@@ -16,8 +16,11 @@ that first part of the lap, and each iteration is also scored on the rest of it.
 A run lives in one folder::
 
     run.json                      the settings (a run with other settings is refused)
-    data/round_NNNN/              iteration N's round (saferace.learning.rounds)
+    data/round_NNNN/              iteration N's round (saferace.learning.rounds), its frames
+                                  past the train fraction apart in held_out.npz
     checkpoints/iteration_NN.pt   the networks that drove iteration N
+    checkpoints/iteration_NN.spread_scale.json
+                                  their state network's calibration (calibrate_spread)
     metrics.jsonl, metrics.csv    one row per iteration, written as soon as it exists
 
 Every round and checkpoint is written atomically and training keeps its progress per epoch,
@@ -40,15 +43,18 @@ from tqdm import tqdm
 import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
-from saferace.learning.calibration import spread_scale
+from saferace.learning.calibration import inside_lane, spread_scale
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint, write_text_atomically
 from saferace.learning.collect import CollectionConfig, Perturbation, collect_round
-from saferace.learning.rounds import load_rounds
+from saferace.learning.rounds import HELD_OUT_FILE, load_rounds
 from saferace.learning.training import TrainConfig, train_networks
+from saferace.track import Track
 
 RUN_FILE = "run.json"
 CHECKPOINT_NAME = re.compile(r"^iteration_\d+\.pt$")
 METRICS_FILE = "metrics.jsonl"
+#: Held-out frames a state network's spread is calibrated on, at least.
+MIN_CALIBRATION_FRAMES = 20
 STATE_SOURCES = ("learned", "oracle")
 #: Settings that only a filtered run uses.
 FILTER_SETTINGS = (
@@ -126,10 +132,10 @@ class DaggerConfig:
             raise SafeRaceError("iterations, filter_from and beta_rampdown must not be negative")
         if self.max_seconds <= 0:
             raise SafeRaceError(f"max_seconds must be positive, got {self.max_seconds}")
-        if self.calibrates_spread and self.filter_from < 1:
+        if self.calibrates_spread and self.train_fraction >= 1.0:
             raise SafeRaceError(
-                "calibrate_spread fits on a round driven by a learned network: it needs "
-                "filter_from >= 1"
+                "calibrate_spread fits on the part of the lap no network trained on: it needs "
+                "train_fraction < 1"
             )
 
     @property
@@ -390,24 +396,35 @@ def spread_scale_path(run_dir: str | Path, iteration: int) -> Path:
 def spread_scale_of(
     run_dir: str | Path, iteration: int, mc_samples: int, seed: int
 ) -> tuple[float, float, float]:
-    """The calibration of the state network of a run's ``iteration``: fitted with the
-    network of iteration ``i-1`` on its own round, which it had never seen; written once
+    """The calibration of the state network of a run's ``iteration``, fitted on the held-out
+    frames (the part of the lap it never trained on, with the car inside its lane) of the
+    latest round that has at least :data:`MIN_CALIBRATION_FRAMES` of them; written once
     beside the checkpoint, read back afterwards."""
-    if iteration < 2:
-        raise SafeRaceError(
-            f"calibrating iteration {iteration}'s spread needs a round driven by a learned "
-            "network before it (iteration 2 or later)"
-        )
     path = spread_scale_path(run_dir, iteration)
     if not path.exists():
-        previous = Path(run_dir, "checkpoints", f"iteration_{iteration - 1:02d}.pt")
-        frames = load_rounds([Path(run_dir, "data", f"round_{iteration - 1:04d}")])
-        scale = spread_scale(load_checkpoint(previous).state, frames, mc_samples, seed=seed)
+        checkpoint = Path(run_dir, "checkpoints", f"iteration_{iteration:02d}.pt")
+        network = load_checkpoint(checkpoint).state
+        for previous in range(iteration - 1, -1, -1):
+            round_dir = Path(run_dir, "data", f"round_{previous:04d}")
+            manifest = json.loads((round_dir / "manifest.json").read_text())
+            if manifest.get("held_out_frame_count", 0) < MIN_CALIBRATION_FRAMES:
+                continue
+            frames = load_rounds([round_dir], held_out=True)
+            track = Track.load(manifest["config"]["track_argument"])
+            inside = inside_lane(frames, track)
+            if inside.sum() >= MIN_CALIBRATION_FRAMES:
+                break
+        else:
+            raise SafeRaceError(
+                f"no round of {run_dir} holds {MIN_CALIBRATION_FRAMES} held-out frames with "
+                "the car inside its lane to calibrate the state network on (is the train "
+                "fraction below 1?)"
+            )
+        scale = spread_scale(network, frames.subset(inside), mc_samples, seed=seed)
         record = {
             "spread_scale": scale.tolist(),
-            "fitted_with": previous.name,
-            "fitted_on": f"round_{iteration - 1:04d}",
-            "frames": len(frames),
+            "fitted_on": f"{round_dir.name} ({HELD_OUT_FILE})",
+            "frames": int(inside.sum()),
         }
         write_text_atomically(path, json.dumps(record, indent=2) + "\n")
     return tuple(json.loads(path.read_text())["spread_scale"])

@@ -65,8 +65,8 @@ class Preset:
     gradient steps (three epochs of the first iterations' few hundred frames are a dozen
     steps: on lab's racing line the networks of iterations 1-4 crashed within a second, and
     the state network's heading error was 0.2-0.5 rad); ``calibrate_spread`` widens its
-    MC-dropout spread, 3 to 20 times smaller than its error, by the factor fitted on the
-    previous round (:mod:`saferace.learning.calibration`).
+    MC-dropout spread, 3 to 20 times smaller than its error, by the factor that matches it
+    to its error on the part of the lap it never trained on (:mod:`saferace.learning.calibration`).
     """
 
     name: str

@@ -41,6 +41,9 @@ FRAME_FIELDS: dict[str, tuple[str, tuple[int, ...] | None]] = {
     "intervened": ("bool", ()),  # the safety filter changed the driver's action
 }
 FRAMES_FILE = "frames.npz"
+#: Frames a round keeps apart: driven, never trained on (DAgger's part of the lap past its
+#: ``train_fraction``), for scoring and calibrating the networks.
+HELD_OUT_FILE = "held_out.npz"
 MANIFEST_FILE = "manifest.json"
 ROUND_NAME = re.compile(r"^round_(\d{4,})$")
 PARTIAL_PREFIX = ".partial-"
@@ -72,22 +75,36 @@ class FrameSet:
         return np.mod(self["s_m"] / self["track_length_m"], 1.0)
 
 
-def write_round(dataset_dir: str | Path, arrays: dict[str, np.ndarray], config: dict) -> Path:
-    """Write one round atomically as the next ``round_NNNN`` of ``dataset_dir``; its path."""
+def write_round(
+    dataset_dir: str | Path,
+    arrays: dict[str, np.ndarray],
+    config: dict,
+    held_out: dict[str, np.ndarray] | None = None,
+) -> Path:
+    """Write one round atomically as the next ``round_NNNN`` of ``dataset_dir``; its path.
+
+    ``held_out``: frames to keep apart from the training frames (none: no such file).
+    """
     dataset_dir = Path(dataset_dir)
     arrays = _checked_frames(arrays)
+    held_out_count = 0 if held_out is None else len(held_out["s_m"])
+    held_out = _checked_frames(held_out) if held_out_count else None
     dataset_dir.mkdir(parents=True, exist_ok=True)
     _remove_abandoned_partials(dataset_dir)
     partial = dataset_dir / f"{PARTIAL_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:8]}"
     partial.mkdir()
     try:
-        with open(partial / FRAMES_FILE, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
+        for name, part in ((FRAMES_FILE, arrays), (HELD_OUT_FILE, held_out)):
+            if part is None:
+                continue
+            with open(partial / name, "wb") as handle:
+                np.savez_compressed(handle, **part)
+                handle.flush()
+                os.fsync(handle.fileno())
         manifest = {
             "format": FORMAT_VERSION,
             "frame_count": len(arrays["s_m"]),
+            "held_out_frame_count": held_out_count,
             "image_shape": list(arrays["image"].shape[1:]),
             "config": config,
         }
@@ -133,8 +150,9 @@ def round_dirs(path: str | Path) -> list[Path]:
     )
 
 
-def load_rounds(paths: Iterable[str | Path]) -> FrameSet:
-    """All frames of the rounds at ``paths`` (round folders or dataset folders), in order."""
+def load_rounds(paths: Iterable[str | Path], held_out: bool = False) -> FrameSet:
+    """All frames of the rounds at ``paths`` (round folders or dataset folders), in order;
+    ``held_out=True``: their held-out frames instead (a round without any adds none)."""
     rounds: list[Path] = []
     for path in paths:
         found = round_dirs(path)
@@ -146,6 +164,9 @@ def load_rounds(paths: Iterable[str | Path]) -> FrameSet:
         rounds += [p.resolve() for p in found if p.resolve() not in rounds]
     parts: list[dict[str, np.ndarray]] = []
     manifests = []
+    file_name, count_key = (
+        (HELD_OUT_FILE, "held_out_frame_count") if held_out else (FRAMES_FILE, "frame_count")
+    )
     for source, path in enumerate(rounds):
         manifest = json.loads((path / MANIFEST_FILE).read_text())
         if manifest["format"] > FORMAT_VERSION:
@@ -153,13 +174,15 @@ def load_rounds(paths: Iterable[str | Path]) -> FrameSet:
                 f"{path} is a round of format {manifest['format']}; this SafeRace reads up to "
                 f"{FORMAT_VERSION}: upgrade SafeRace"
             )
-        with np.load(path / FRAMES_FILE) as stored:
+        manifests.append({**manifest, "path": str(path)})
+        expected = manifest.get(count_key, 0)
+        if not expected:
+            continue
+        with np.load(path / file_name) as stored:
             frames = {name: stored[name] for name in FRAME_FIELDS}
         count = len(frames["s_m"])
-        if count != manifest["frame_count"]:
-            raise SafeRaceError(
-                f"{path} holds {count} frames but its manifest says {manifest['frame_count']}"
-            )
+        if count != expected:
+            raise SafeRaceError(f"{path / file_name} holds {count} frames, its manifest {expected}")
         config = manifest["config"]
         frames["round"] = np.full(count, _round_number(path), np.int32)
         frames["source"] = np.full(count, source, np.int32)
@@ -167,12 +190,16 @@ def load_rounds(paths: Iterable[str | Path]) -> FrameSet:
         frames["task"] = np.full(count, config["task"])
         frames["track_length_m"] = np.full(count, config["track_length_m"], np.float32)
         parts.append(frames)
-        manifests.append({**manifest, "path": str(path)})
     shapes = {tuple(m["image_shape"]) for m in manifests}
     if len(shapes) > 1:
         raise SafeRaceError(
             f"rounds with different image shapes cannot be mixed: {sorted(shapes)} "
             f"(mono and stereo, or different --image-size)"
+        )
+    if not parts:
+        raise SafeRaceError(
+            f"the rounds at {', '.join(map(str, paths))} hold no held-out frames (a drive "
+            "keeps some only when it passes the train fraction of the lap)"
         )
     arrays = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
     return FrameSet(arrays, manifests)
