@@ -51,18 +51,16 @@ def _parser() -> argparse.ArgumentParser:
     raceline = commands.add_parser(
         "raceline", help="minimum-curvature racing line and speed profiles of a track"
     )
-    raceline.add_argument("track", help="built-in track name or track CSV path")
+    _add_track_arguments(raceline)
     raceline.add_argument("--out", type=Path, help="write the racing line CSV here")
-    raceline.add_argument(
-        "--car-width-m", type=float, default=None, help="car width (default 0.30)"
-    )
-    raceline.add_argument(
-        "--margin-m", type=float, default=None, help="extra clearance (default 0.10)"
-    )
-    raceline.add_argument(
-        "--plot", type=Path, help="draw the track, both lines and speeds to a PNG"
-    )
     raceline.set_defaults(command=_raceline)
+
+    info = commands.add_parser(
+        "track-info",
+        help="a track's length, lane widths, tightest turn, narrowed points, racing-line gain",
+    )
+    _add_track_arguments(info)
+    info.set_defaults(command=_track_info)
 
     drive = commands.add_parser("drive", help="a driver laps a track; video and Rerun recording")
     _add_episode_arguments(drive, default_agent="pure-pursuit")
@@ -492,12 +490,27 @@ def _filter_config(args: argparse.Namespace):
     )
 
 
-def _raceline(args: argparse.Namespace) -> int:
+def _add_track_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("track", help="built-in track name or track CSV path")
+    parser.add_argument("--car-width-m", type=float, default=None, help="car width (default 0.30)")
+    parser.add_argument(
+        "--margin-m", type=float, default=None, help="extra clearance (default 0.10)"
+    )
+    parser.add_argument("--plot", type=Path, help="draw the track, both lines and speeds to a PNG")
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse a track whose turns are tighter than its half width instead of narrowing it",
+    )
+
+
+def _track_report(args: argparse.Namespace):
+    """The track of ``args`` and its report, as ``_add_track_arguments`` asked."""
     from dataclasses import replace
 
-    from saferace.eval.tables import markdown_table
     from saferace.track import Track, VehicleEnvelope
-    from saferace.track.raceline import RacingLineSettings, center_line, racing_line
+    from saferace.track.raceline import RacingLineSettings
+    from saferace.track.report import track_report
 
     envelope = VehicleEnvelope()
     if args.car_width_m is not None:
@@ -509,10 +522,20 @@ def _raceline(args: argparse.Namespace) -> int:
         if args.margin_m < 0:
             raise SafeRaceError(f"--margin-m must not be negative, got {args.margin_m}")
         settings = replace(settings, margin_m=args.margin_m)
+    track = Track.load(args.track, car_width_m=envelope.width_m, strict=args.strict)
+    report = track_report(track, envelope, settings)
+    if args.plot:
+        from saferace.eval.track_plots import plot_reference_lines
 
-    track = Track.load(args.track, car_width_m=envelope.width_m)
-    center = center_line(track, envelope, settings.step_m)
-    racing = racing_line(track, envelope, settings)
+        plot_reference_lines(track, report.center, report.racing, args.plot)
+    return report
+
+
+def _raceline(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table
+
+    report = _track_report(args)
+    track = report.track
     rows = [
         [
             line.name,
@@ -521,7 +544,7 @@ def _raceline(args: argparse.Namespace) -> int:
             line.lap_time_s,
             float(line.vx_mps.max()),
         ]
-        for line in (center, racing)
+        for line in (report.center, report.racing)
     ]
     print(f"track {track.name}: {track.length_m:.2f} m, {track.point_count} points")
     print(
@@ -530,12 +553,20 @@ def _raceline(args: argparse.Namespace) -> int:
         )
     )
     if args.out:
-        racing.to_csv(args.out)
+        report.racing.to_csv(args.out)
         print(f"racing line written to {args.out}")
     if args.plot:
-        from saferace.eval.track_plots import plot_reference_lines
+        print(f"plot written to {args.plot}")
+    return 0
 
-        plot_reference_lines(track, center, racing, args.plot)
+
+def _track_info(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table
+
+    report = _track_report(args)
+    print(f"track {report.track.name}")
+    print(markdown_table(["quantity", "value"], report.rows()))
+    if args.plot:
         print(f"plot written to {args.plot}")
     return 0
 

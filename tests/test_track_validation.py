@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import run_cli
 
 from saferace.errors import TrackError
 from saferace.track import Track
@@ -96,7 +98,7 @@ BAD_FILES = {
 def test_bad_file_is_rejected_with_a_specific_message(tmp_path: Path, case: str):
     lines, pattern = BAD_FILES[case]
     with pytest.raises(TrackError, match=pattern):
-        Track.load(write(tmp_path, lines))
+        Track.load(write(tmp_path, lines), strict=True)
 
 
 def figure_eight(count: int = 80) -> tuple[np.ndarray, np.ndarray]:
@@ -122,6 +124,68 @@ def test_overlapping_boundaries_are_rejected():
         Track.from_arrays(x, y, 0.5, 0.5)
 
 
+def hairpin(radius_m: float, count: int = 240) -> tuple[np.ndarray, np.ndarray]:
+    """A 30 m stadium whose right-hand end is a semicircle of ``radius_m``, the left one 4 m."""
+    s = np.linspace(0.0, 1.0, count, endpoint=False)
+    theta = 2.0 * np.pi * s
+    x = np.where(np.cos(theta) > 0.0, 12.0 + radius_m * np.cos(theta), -12.0 + 4.0 * np.cos(theta))
+    y = np.where(np.cos(theta) > 0.0, radius_m * np.sin(theta), 4.0 * np.sin(theta))
+    points = np.column_stack([x, y])
+    step = np.hypot(*np.diff(np.vstack([points, points[:1]]), axis=0).T)
+    arc = np.concatenate([[0.0], np.cumsum(step)])  # resample evenly along the outline
+    even = np.linspace(0.0, arc[-1], count, endpoint=False)
+    return np.interp(even, arc, np.append(x, x[0])), np.interp(even, arc, np.append(y, y[0]))
+
+
+def test_a_hairpin_tighter_than_the_half_width_is_narrowed_with_one_warning(caplog):
+    x, y = hairpin(radius_m=0.8)
+    with pytest.raises(TrackError, match="the left boundary folds over itself"):
+        Track.from_arrays(x, y, 1.0, 1.0, strict=True)
+    with caplog.at_level(logging.WARNING, logger="saferace.track.track"):
+        track = Track.from_arrays(x, y, 1.0, 1.0, name="hairpin")
+    (warning,) = caplog.records
+    assert f"narrowed the lane at {track.narrowing.points} of 240 points" in warning.message
+    assert 0.0 < track.narrowing.max_m < 1.0
+    s = track.centerline.knot_s_m[:-1]
+    kappa = track.centerline.curvature(s)
+    w_right, w_left = track.widths(s)
+    assert np.all(w_left * np.maximum(kappa, 0.0) < 1.0)  # the inner boundary no longer folds
+    assert np.max(w_left * kappa) > 0.9  # and is not narrowed much further than that
+    assert np.all(w_right == 1.0)  # the outer boundary is left alone
+    far = np.abs(track.centerline.position(s)[:, 0]) < 5.0  # the straights keep their width
+    assert np.all(w_left[far] == 1.0)
+    assert track.narrowing.points < 60
+
+
+def test_a_track_that_does_not_fold_is_not_narrowed(caplog):
+    with caplog.at_level(logging.WARNING, logger="saferace.track.track"):
+        track = Track.from_arrays(*hairpin(radius_m=1.5), 1.0, 1.0)
+    assert track.narrowing.points == 0 and not caplog.records
+
+
+def test_track_info_reports_the_narrowing_and_the_racing_lines_gain(tmp_path: Path):
+    path, plot = tmp_path / "hairpin.csv", tmp_path / "hairpin.png"
+    write_track_csv(path, *hairpin(radius_m=0.8), 1.0, 1.0)
+    result = run_cli("track-info", str(path), "--plot", str(plot))
+    assert result.returncode == 0, result.stderr
+    values = {
+        cells[1].strip(): cells[2].strip()
+        for line in result.stdout.splitlines()
+        if len(cells := line.split("|")) == 4
+    }
+    track = Track.load(path)
+    assert int(values["points narrowed (turns tighter than the half width)"]) == (
+        track.narrowing.points
+    )
+    assert float(values["most narrowed [m]"]) == pytest.approx(track.narrowing.max_m, abs=1e-3)
+    radius = float(values["tightest centre-line radius [m]"])
+    assert radius == pytest.approx(track.min_turn_radius_m(), abs=1e-3) and radius < 1.0
+    assert float(values["racing line: faster by [%]"]) > 0.0
+    assert plot.stat().st_size > 10_000
+    refused = run_cli("track-info", str(path), "--strict")
+    assert refused.returncode != 0 and "folds over itself" in refused.stderr
+
+
 def test_missing_file_and_unknown_name():
     with pytest.raises(TrackError, match="cannot read track file"):
         Track.load("does/not/exist.csv")
@@ -134,7 +198,7 @@ def test_cli_reports_one_line_without_traceback(tmp_path: Path, case: str):
     lines, _ = BAD_FILES[case]
     path = write(tmp_path, lines)
     result = subprocess.run(
-        [sys.executable, "-m", "saferace", "raceline", str(path)],
+        [sys.executable, "-m", "saferace", "raceline", str(path), "--strict"],
         capture_output=True,
         text=True,
         check=False,

@@ -25,6 +25,13 @@ def plot_track(ax: plt.Axes, track: Track) -> None:
         ax.plot(closed[:, 0], closed[:, 1], color="k", lw=1.0)
     start = np.vstack([left[0], right[0]])
     ax.plot(start[:, 0], start[:, 1], color="tab:red", lw=2.0, label="start/finish")
+    if track.narrowing.points:
+        narrowed = track.centerline.position(track.point_s_m[list(track.narrowing.indices)])
+        ax.scatter(
+            narrowed[:, 0], narrowed[:, 1], s=8, color="tab:orange", zorder=3,
+            label=f"lane narrowed ({track.narrowing.points} points, "
+            f"up to {track.narrowing.max_m:.2f} m)",
+        )  # fmt: skip
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

@@ -7,6 +7,7 @@ and raises :class:`~saferace.errors.TrackError` with the offending row.
 
 from __future__ import annotations
 
+import logging
 from importlib import resources
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from saferace.track.periodic import PeriodicInterpolator
 from saferace.track.track_io import read_track_csv
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
+LOG = logging.getLogger(__name__)
 TRACKS_PACKAGE = "saferace.assets.tracks"
 #: Samples used to check the boundaries for crossings, at most.
 _MAX_CHECK_SAMPLES = 2000
@@ -42,6 +44,7 @@ class Track:
 
     ``s`` is the centerline arc length in metres, starting at the first point of the
     file and increasing in the order of the points. ``e_y`` is positive to the left.
+    ``narrowing`` says where the loader narrowed the lane so that no boundary folds.
     """
 
     def __init__(
@@ -50,30 +53,43 @@ class Track:
         centerline: ClosedPath,
         w_right_m: np.ndarray,
         w_left_m: np.ndarray,
+        narrowing: validation.Narrowing = validation.NOT_NARROWED,
     ) -> None:
         self.name = name
         self.centerline = centerline
+        self.narrowing = narrowing
         self._point_s = centerline.point_s_m
         self._w_right = PeriodicInterpolator(self._point_s, w_right_m, centerline.length_m)
         self._w_left = PeriodicInterpolator(self._point_s, w_left_m, centerline.length_m)
 
     # ------------------------------------------------------------------ loading
     @classmethod
-    def load(cls, name_or_path: str | Path, car_width_m: float = VehicleEnvelope.width_m) -> Track:
-        """A built-in track by name, or a track CSV by path."""
+    def load(
+        cls,
+        name_or_path: str | Path,
+        car_width_m: float = VehicleEnvelope.width_m,
+        strict: bool = False,
+    ) -> Track:
+        """A built-in track by name, or a track CSV by path (``strict``: see
+        :meth:`from_arrays`)."""
         text = str(name_or_path)
         if text in builtin_track_names():
-            return cls.from_csv(builtin_track_path(text), car_width_m=car_width_m, name=text)
+            path = builtin_track_path(text)
+            return cls.from_csv(path, car_width_m=car_width_m, name=text, strict=strict)
         path = Path(text)
         if path.suffix.lower() == ".csv" or path.exists():
-            return cls.from_csv(path, car_width_m=car_width_m)
+            return cls.from_csv(path, car_width_m=car_width_m, strict=strict)
         raise TrackError(
             f"unknown track {text!r}: give a CSV path or one of {', '.join(builtin_track_names())}"
         )
 
     @classmethod
     def from_csv(
-        cls, path: str | Path, car_width_m: float = VehicleEnvelope.width_m, name: str | None = None
+        cls,
+        path: str | Path,
+        car_width_m: float = VehicleEnvelope.width_m,
+        name: str | None = None,
+        strict: bool = False,
     ) -> Track:
         """Read and validate a track file (see :mod:`saferace.track.track_io`)."""
         table = read_track_csv(path)
@@ -91,6 +107,7 @@ class Track:
                 name=name or Path(path).stem,
                 car_width_m=car_width_m,
                 row_name=row,
+                strict=strict,
             )
         except TrackError as exc:
             message = str(exc)
@@ -108,8 +125,14 @@ class Track:
         name: str = "custom",
         car_width_m: float = VehicleEnvelope.width_m,
         row_name: validation.RowName = validation.default_row_name,
+        strict: bool = False,
     ) -> Track:
-        """Build and validate a track from centerline points and widths (scalars broadcast)."""
+        """Build and validate a track from centerline points and widths (scalars broadcast).
+
+        Where a turn is tighter than its inner half width, the lane is narrowed there so that
+        the boundary does not fold (:func:`~saferace.track.validation.narrow_folding_widths`,
+        one warning says how much); ``strict=True`` refuses such a track instead.
+        """
         x_m = np.asarray(x_m, dtype=float).ravel()
         y_m = np.asarray(y_m, dtype=float).ravel()
         w_right_m = np.broadcast_to(np.asarray(w_right_m, dtype=float), x_m.shape).copy()
@@ -117,8 +140,30 @@ class Track:
         if len(x_m) > 1 and np.hypot(x_m[-1] - x_m[0], y_m[-1] - y_m[0]) < 1e-6:
             x_m, y_m, w_right_m, w_left_m = x_m[:-1], y_m[:-1], w_right_m[:-1], w_left_m[:-1]
         validation.check_points(x_m, y_m, w_right_m, w_left_m, row_name)
+        centerline = ClosedPath(np.column_stack([x_m, y_m]))
+        narrowing = validation.NOT_NARROWED
+        if not strict:
+            knots = centerline.knot_s_m[:-1]
+            segment = np.searchsorted(centerline.point_s_m, knots, side="right") - 1
+            w_right_m, w_left_m, narrowing = validation.narrow_folding_widths(
+                centerline.curvature(knots),
+                segment,
+                centerline.point_s_m,
+                centerline.length_m,
+                w_right_m,
+                w_left_m,
+            )
+            if narrowing.points:
+                LOG.warning(
+                    "%s: narrowed the lane at %d of %d points, by up to %.3f m, where turns are "
+                    "tighter than the half width (Track.load(..., strict=True) refuses instead)",
+                    name,
+                    narrowing.points,
+                    len(x_m),
+                    narrowing.max_m,
+                )
         validation.check_lane_width(w_right_m, w_left_m, car_width_m, row_name)
-        track = cls(name, ClosedPath(np.column_stack([x_m, y_m])), w_right_m, w_left_m)
+        track = cls(name, centerline, w_right_m, w_left_m, narrowing)
         track._validate_geometry(row_name)
         return track
 
@@ -152,6 +197,11 @@ class Track:
     def length_m(self) -> float:
         """Centerline length of one lap."""
         return self.centerline.length_m
+
+    @property
+    def point_s_m(self) -> np.ndarray:
+        """Centerline arc length of each point the track was given with."""
+        return self._point_s
 
     @property
     def point_count(self) -> int:

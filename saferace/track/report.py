@@ -1,0 +1,66 @@
+"""What a user wants to know about a track before driving it: ``saferace track-info``.
+
+Length, lane width range, the tightest turn, where the loader narrowed the lane so that no
+boundary folds, and what the minimum-curvature racing line gains over the centre line (its
+integral of kappa^2 ds and the estimated lap times of both, from the same speed profile).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from saferace.track.raceline import RacingLineSettings, ReferenceLine, center_line, racing_line
+from saferace.track.track import Track
+from saferace.track.vehicle_envelope import VehicleEnvelope
+
+
+@dataclass(frozen=True)
+class TrackReport:
+    """A track's numbers and its two reference lines."""
+
+    track: Track
+    center: ReferenceLine
+    racing: ReferenceLine
+
+    @property
+    def lane_width_range_m(self) -> tuple[float, float]:
+        s = self.track.centerline.knot_s_m[:-1]
+        w_right, w_left = self.track.widths(s)
+        width = w_right + w_left
+        return float(width.min()), float(width.max())
+
+    def rows(self) -> list[list]:
+        """``[quantity, value]`` rows of the report."""
+        track, center, racing = self.track, self.center, self.racing
+        narrowest, widest = self.lane_width_range_m
+        kappa_gain = 1.0 - racing.curvature_squared_integral / center.curvature_squared_integral
+        return [
+            ["length [m]", track.length_m],
+            ["points", track.point_count],
+            ["lane width [m]", f"{narrowest:.3f} - {widest:.3f}"],
+            ["tightest centre-line radius [m]", track.min_turn_radius_m()],
+            ["points narrowed (turns tighter than the half width)", track.narrowing.points],
+            ["most narrowed [m]", track.narrowing.max_m],
+            ["int kappa^2 ds, centre line [1/m]", center.curvature_squared_integral],
+            ["int kappa^2 ds, racing line [1/m]", racing.curvature_squared_integral],
+            ["racing line: less kappa^2 [%]", 100.0 * kappa_gain],
+            ["estimated lap, centre line [s]", center.lap_time_s],
+            ["estimated lap, racing line [s]", racing.lap_time_s],
+            ["racing line: faster by [%]", 100.0 * (1.0 - racing.lap_time_s / center.lap_time_s)],
+            ["top speed, racing line [m/s]", float(np.max(racing.vx_mps))],
+        ]
+
+
+def track_report(
+    track: Track,
+    envelope: VehicleEnvelope | None = None,
+    settings: RacingLineSettings | None = None,
+) -> TrackReport:
+    """Both reference lines of ``track`` and the numbers that describe it."""
+    envelope = envelope or VehicleEnvelope()
+    settings = settings or RacingLineSettings()
+    return TrackReport(
+        track, center_line(track, envelope, settings.step_m), racing_line(track, envelope, settings)
+    )
