@@ -58,7 +58,7 @@ def main() -> None:
     center_s = best_of(3, lambda: center_line(track, envelope, settings.step_m))
 
     center_s_m = track.centerline.sample(settings.step_m)
-    P, q = curvature_qp(track, center_s_m, np.zeros(len(center_s_m)))
+    P, q, _ = curvature_qp(track, center_s_m, np.zeros(len(center_s_m)))
     lower, upper = offset_bounds(track, center_s_m, envelope.width_m, settings.margin_m)
     alpha = cp.Variable(len(center_s_m))
     problem = cp.Problem(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +17,7 @@ from saferace.track.raceline import (
     CSV_COLUMNS,
     RacingLineSettings,
     center_line,
+    min_curvature_offsets,
     offset_bounds,
     racing_line,
 )
@@ -46,6 +48,22 @@ def test_racing_line_beats_center_line_on_builtin_tracks(builtin_track: Track):
 
 def test_racing_line_beats_center_line_on_unseen_tracks(unseen_track_csv: Path):
     assert_better_line_inside_lane(Track.load(unseen_track_csv))
+
+
+def test_the_racing_line_says_why_it_stopped(caplog):
+    track = Track.load("technical")
+    with caplog.at_level(logging.WARNING, logger="saferace.track.raceline"):
+        converged = min_curvature_offsets(track, track.centerline.sample(0.1), 0.3,
+                                          RacingLineSettings())  # fmt: skip
+    assert not caplog.records
+    capped = RacingLineSettings(max_iterations=1)
+    with caplog.at_level(logging.WARNING, logger="saferace.track.raceline"):
+        first = min_curvature_offsets(track, track.centerline.sample(0.1), 0.3, capped)
+    (warning,) = caplog.records
+    moved = float(np.max(np.abs(first)))  # the first step, from the centre line
+    assert "not converged after 1 iterations: offsets still move by" in warning.message
+    assert f"{moved:.2e} m" in warning.message
+    assert np.max(np.abs(converged - first)) > 1e-3  # capping it did change the line
 
 
 def test_oval_racing_line_is_symmetric():

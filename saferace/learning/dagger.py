@@ -333,8 +333,10 @@ class DaggerRun:
             writer.writerows(rows)
 
     def _spread_scale_e_y(self, iteration: int) -> float | None:
-        path = spread_scale_path(self.out_dir, iteration)
-        return json.loads(path.read_text())["spread_scale"][0] if path.exists() else None
+        """The factor on ``e_y``'s spread that ``iteration``'s drive used, if any."""
+        if not (self.config.calibrates_spread and self.config.filtered(iteration)):
+            return None
+        return json.loads(spread_scale_path(self.out_dir, iteration).read_text())["spread_scale"][0]
 
     # ------------------------------------------------------------------ folder
     def _claim_folder(self) -> None:

@@ -50,12 +50,16 @@ CSV_COLUMNS = ("s_m", "x_m", "y_m", "psi_rad", "kappa_radpm", "vx_mps", "ax_mps2
 
 @dataclass(frozen=True)
 class RacingLineSettings:
-    """Discretisation and stopping rule of the minimum-curvature optimisation."""
+    """Discretisation and stopping rule of the minimum-curvature optimisation: stop when no
+    offset moves by ``tolerance_m`` or the integral of kappa^2 changes by less than
+    ``curvature_tolerance`` of itself; at ``max_iterations`` the warning says how far it was
+    from either."""
 
     margin_m: float = 0.10
     step_m: float = 0.1
-    max_iterations: int = 10
+    max_iterations: int = 50
     tolerance_m: float = 1e-4
+    curvature_tolerance: float = 1e-4
 
 
 @dataclass(frozen=True)
@@ -189,8 +193,9 @@ def offset_bounds(
 
 def curvature_qp(
     track: Track, center_s_m: np.ndarray, offsets_m: np.ndarray
-) -> tuple[sp.csc_matrix, np.ndarray]:
-    """``P, q`` of ``min 1/2 a^T P a + q^T a``: integral of kappa^2 linearised at ``offsets_m``."""
+) -> tuple[sp.csc_matrix, np.ndarray, float]:
+    """``P, q`` of ``min 1/2 a^T P a + q^T a``: integral of kappa^2 linearised at ``offsets_m``;
+    also that integral at ``offsets_m`` (finite differences)."""
     count = len(center_s_m)
     h = track.length_m / count
     r = track.centerline.position(center_s_m)
@@ -215,7 +220,8 @@ def curvature_qp(
     ds = sp.diags(speed * h)  # integrate kappa^2 over the shifted path's own arc length
     P = 2.0 * (kappa_matrix.T @ ds @ kappa_matrix)
     q = 2.0 * (kappa_matrix.T @ (ds @ kappa_constant))
-    return sp.csc_matrix(P), q
+    kappa = kappa_matrix @ offsets_m + kappa_constant
+    return sp.csc_matrix(P), q, float(np.sum(kappa**2 * speed * h))
 
 
 def min_curvature_offsets(
@@ -226,8 +232,23 @@ def min_curvature_offsets(
     count = len(center_s_m)
     offsets = np.zeros(count)
     solver = None
-    for iteration in range(1, settings.max_iterations + 1):
-        P, q = curvature_qp(track, center_s_m, offsets)
+    change = relative = previous_integral = np.inf
+    for iteration in range(1, settings.max_iterations + 2):
+        P, q, integral = curvature_qp(track, center_s_m, offsets)
+        if iteration > 1:
+            relative = abs(integral - previous_integral) / integral
+            logger.debug(
+                "racing line iteration %d: max offset change %.2e m, integral of kappa^2 "
+                "%.6f 1/m (relative change %.1e)",
+                iteration - 1,
+                change,
+                integral,
+                relative,
+            )
+            if change < settings.tolerance_m or relative < settings.curvature_tolerance:
+                return offsets
+            if iteration > settings.max_iterations:
+                break
         if solver is None:
             solver = osqp.OSQP()
             solver.setup(
@@ -248,16 +269,17 @@ def min_curvature_offsets(
             )
         change = float(np.max(np.abs(result.x - offsets)))
         offsets = np.clip(result.x, lower, upper)
-        logger.debug("racing line iteration %d: max offset change %.2e m", iteration, change)
-        if change < settings.tolerance_m:
-            break
-    else:
-        logger.warning(
-            "racing line on %s stopped after %d iterations (last change %.2e m)",
-            track.name,
-            settings.max_iterations,
-            change,
-        )
+        previous_integral = integral
+    logger.warning(
+        "racing line on %s not converged after %d iterations: offsets still move by %.2e m "
+        "(tolerance %.0e m) and the integral of kappa^2 by %.1e of itself (tolerance %.0e)",
+        track.name,
+        settings.max_iterations,
+        change,
+        settings.tolerance_m,
+        relative,
+        settings.curvature_tolerance,
+    )
     return offsets
 
 
