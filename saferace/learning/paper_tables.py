@@ -51,8 +51,9 @@ class TableSetting:
 
 @dataclass(frozen=True)
 class Preset:
-    """How much to run: settings, iterations, epochs, laps and seconds per drive, image size,
-    MC-dropout samples, the unseen tracks the final policies are scored on.
+    """How much to run: settings, iterations, epochs, laps, the part of the lap trained on,
+    seconds per drive, image size, MC-dropout samples, the unseen tracks the final policies
+    are scored on.
 
     Three departures from the paper, each measured on ``lab``: the expert's iteration 0
     drives with ``expert_perturb`` rad of steering noise (from one clean lap the state
@@ -74,6 +75,7 @@ class Preset:
     iterations: int
     epochs: int
     laps: int = 1
+    train_fraction: float = 0.7
     expert_perturb: float = 0.05
     filter_gains: str = "tuned"
     max_seconds: float = 60.0
@@ -137,6 +139,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
         min_train_steps=preset.min_train_steps,
         stereo=setting.stereo,
         laps=preset.laps,
+        train_fraction=preset.train_fraction,
         expert_perturb=preset.expert_perturb,
         seed=seed,
         expert_model=setting.expert_model,
