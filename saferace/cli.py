@@ -60,6 +60,11 @@ def _parser() -> argparse.ArgumentParser:
         help="a track's length, lane widths, tightest turn, narrowed points, racing-line gain",
     )
     _add_track_arguments(info)
+    info.add_argument(
+        "--save-track",
+        type=Path,
+        help="write the lane as loaded (smoothed, narrowed) as a track CSV, to drive it anywhere",
+    )
     info.set_defaults(command=_track_info)
 
     drive = commands.add_parser("drive", help="a driver laps a track; video and Rerun recording")
@@ -502,10 +507,17 @@ def _add_track_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="refuse a track whose turns are tighter than its half width instead of narrowing it",
     )
+    parser.add_argument(
+        "--smooth-rms-m",
+        type=float,
+        help="smooth a noisy centre line: a spline within this RMS distance of its points "
+        "(e.g. 0.02; boundaries kept in place)",
+    )
 
 
-def _track_report(args: argparse.Namespace):
-    """The track of ``args`` and its report, as ``_add_track_arguments`` asked."""
+def _track_report(args: argparse.Namespace, smooth_rms_m: float | None):
+    """The track of ``args`` (smoothed within ``smooth_rms_m``) and its report, as
+    ``_add_track_arguments`` asked."""
     from dataclasses import replace
 
     from saferace.track import Track, VehicleEnvelope
@@ -522,19 +534,24 @@ def _track_report(args: argparse.Namespace):
         if args.margin_m < 0:
             raise SafeRaceError(f"--margin-m must not be negative, got {args.margin_m}")
         settings = replace(settings, margin_m=args.margin_m)
-    track = Track.load(args.track, car_width_m=envelope.width_m, strict=args.strict)
-    report = track_report(track, envelope, settings)
+    track = Track.load(
+        args.track, car_width_m=envelope.width_m, strict=args.strict, smooth_rms_m=smooth_rms_m
+    )
+    return track_report(track, envelope, settings)
+
+
+def _plot_track_report(args: argparse.Namespace, report) -> None:
     if args.plot:
         from saferace.eval.track_plots import plot_reference_lines
 
-        plot_reference_lines(track, report.center, report.racing, args.plot)
-    return report
+        plot_reference_lines(report.track, report.center, report.racing, args.plot)
+        print(f"plot written to {args.plot}")
 
 
 def _raceline(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table
 
-    report = _track_report(args)
+    report = _track_report(args, args.smooth_rms_m)
     track = report.track
     rows = [
         [
@@ -555,19 +572,25 @@ def _raceline(args: argparse.Namespace) -> int:
     if args.out:
         report.racing.to_csv(args.out)
         print(f"racing line written to {args.out}")
-    if args.plot:
-        print(f"plot written to {args.plot}")
+    _plot_track_report(args, report)
     return 0
 
 
 def _track_info(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table
 
-    report = _track_report(args)
+    report = _track_report(args, args.smooth_rms_m)
     print(f"track {report.track.name}")
-    print(markdown_table(["quantity", "value"], report.rows()))
-    if args.plot:
-        print(f"plot written to {args.plot}")
+    if args.smooth_rms_m is None:
+        print(markdown_table(["quantity", "value"], report.rows()))
+    else:
+        given = dict(_track_report(args, None).rows())
+        rows = [[name, given.get(name, "-"), value] for name, value in report.rows()]
+        print(markdown_table(["quantity", "as given", "smoothed"], rows))
+    if args.save_track:
+        report.track.to_csv(args.save_track)
+        print(f"track written to {args.save_track}")
+    _plot_track_report(args, report)
     return 0
 
 

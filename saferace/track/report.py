@@ -1,8 +1,9 @@
 """What a user wants to know about a track before driving it: ``saferace track-info``.
 
 Length, lane width range, the tightest turn, where the loader narrowed the lane so that no
-boundary folds, and what the minimum-curvature racing line gains over the centre line (its
-integral of kappa^2 ds and the estimated lap times of both, from the same speed profile).
+boundary folds, how far smoothing moved the centre line, and what the minimum-curvature
+racing line gains over the centre line (its integral of kappa^2 ds and the estimated lap
+times of both, from the same speed profile).
 """
 
 from __future__ import annotations
@@ -36,7 +37,14 @@ class TrackReport:
         track, center, racing = self.track, self.center, self.racing
         narrowest, widest = self.lane_width_range_m
         kappa_gain = 1.0 - racing.curvature_squared_integral / center.curvature_squared_integral
+        rows = []
+        if track.smoothing:
+            rows += [
+                ["centre line smoothed: most moved [m]", track.smoothing.max_shift_m],
+                ["centre line smoothed: RMS moved [m]", track.smoothing.rms_shift_m],
+            ]
         return [
+            *rows,
             ["length [m]", track.length_m],
             ["points", track.point_count],
             ["lane width [m]", f"{narrowest:.3f} - {widest:.3f}"],

@@ -18,7 +18,8 @@ from saferace.track import validation
 from saferace.track.frenet import FrenetProjector
 from saferace.track.path import ClosedPath
 from saferace.track.periodic import PeriodicInterpolator
-from saferace.track.track_io import read_track_csv
+from saferace.track.smoothing import Smoothing, smooth_centerline
+from saferace.track.track_io import read_track_csv, write_track_csv
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
 LOG = logging.getLogger(__name__)
@@ -44,7 +45,8 @@ class Track:
 
     ``s`` is the centerline arc length in metres, starting at the first point of the
     file and increasing in the order of the points. ``e_y`` is positive to the left.
-    ``narrowing`` says where the loader narrowed the lane so that no boundary folds.
+    ``narrowing`` says where the loader narrowed the lane so that no boundary folds,
+    ``smoothing`` how far a smoothed centre line moved (None: as given).
     """
 
     def __init__(
@@ -54,10 +56,12 @@ class Track:
         w_right_m: np.ndarray,
         w_left_m: np.ndarray,
         narrowing: validation.Narrowing = validation.NOT_NARROWED,
+        smoothing: Smoothing | None = None,
     ) -> None:
         self.name = name
         self.centerline = centerline
         self.narrowing = narrowing
+        self.smoothing = smoothing
         self._point_s = centerline.point_s_m
         self._w_right = PeriodicInterpolator(self._point_s, w_right_m, centerline.length_m)
         self._w_left = PeriodicInterpolator(self._point_s, w_left_m, centerline.length_m)
@@ -69,16 +73,17 @@ class Track:
         name_or_path: str | Path,
         car_width_m: float = VehicleEnvelope.width_m,
         strict: bool = False,
+        smooth_rms_m: float | None = None,
     ) -> Track:
-        """A built-in track by name, or a track CSV by path (``strict``: see
-        :meth:`from_arrays`)."""
+        """A built-in track by name, or a track CSV by path (``strict``, ``smooth_rms_m``:
+        see :meth:`from_arrays`)."""
         text = str(name_or_path)
+        options = {"car_width_m": car_width_m, "strict": strict, "smooth_rms_m": smooth_rms_m}
         if text in builtin_track_names():
-            path = builtin_track_path(text)
-            return cls.from_csv(path, car_width_m=car_width_m, name=text, strict=strict)
+            return cls.from_csv(builtin_track_path(text), name=text, **options)
         path = Path(text)
         if path.suffix.lower() == ".csv" or path.exists():
-            return cls.from_csv(path, car_width_m=car_width_m, strict=strict)
+            return cls.from_csv(path, **options)
         raise TrackError(
             f"unknown track {text!r}: give a CSV path or one of {', '.join(builtin_track_names())}"
         )
@@ -90,6 +95,7 @@ class Track:
         car_width_m: float = VehicleEnvelope.width_m,
         name: str | None = None,
         strict: bool = False,
+        smooth_rms_m: float | None = None,
     ) -> Track:
         """Read and validate a track file (see :mod:`saferace.track.track_io`)."""
         table = read_track_csv(path)
@@ -108,6 +114,7 @@ class Track:
                 car_width_m=car_width_m,
                 row_name=row,
                 strict=strict,
+                smooth_rms_m=smooth_rms_m,
             )
         except TrackError as exc:
             message = str(exc)
@@ -126,12 +133,16 @@ class Track:
         car_width_m: float = VehicleEnvelope.width_m,
         row_name: validation.RowName = validation.default_row_name,
         strict: bool = False,
+        smooth_rms_m: float | None = None,
     ) -> Track:
         """Build and validate a track from centerline points and widths (scalars broadcast).
 
-        Where a turn is tighter than its inner half width, the lane is narrowed there so that
-        the boundary does not fold (:func:`~saferace.track.validation.narrow_folding_widths`,
-        one warning says how much); ``strict=True`` refuses such a track instead.
+        ``smooth_rms_m``: replace a noisy centre line by a smoothing spline that passes
+        within this RMS distance of the points, boundaries kept in place
+        (:func:`~saferace.track.smoothing.smooth_centerline`; off by default). Where a turn is
+        tighter than its inner half width, the lane is narrowed there so that the boundary
+        does not fold (:func:`~saferace.track.validation.narrow_folding_widths`, one warning
+        says how much); ``strict=True`` refuses such a track instead.
         """
         x_m = np.asarray(x_m, dtype=float).ravel()
         y_m = np.asarray(y_m, dtype=float).ravel()
@@ -140,6 +151,11 @@ class Track:
         if len(x_m) > 1 and np.hypot(x_m[-1] - x_m[0], y_m[-1] - y_m[0]) < 1e-6:
             x_m, y_m, w_right_m, w_left_m = x_m[:-1], y_m[:-1], w_right_m[:-1], w_left_m[:-1]
         validation.check_points(x_m, y_m, w_right_m, w_left_m, row_name)
+        smoothing = None
+        if smooth_rms_m is not None:
+            lane = smooth_centerline(x_m, y_m, w_right_m, w_left_m, smooth_rms_m)
+            x_m, y_m, w_right_m, w_left_m = lane.x_m, lane.y_m, lane.w_right_m, lane.w_left_m
+            smoothing = lane.smoothing
         centerline = ClosedPath(np.column_stack([x_m, y_m]))
         narrowing = validation.NOT_NARROWED
         if not strict:
@@ -163,7 +179,7 @@ class Track:
                     narrowing.max_m,
                 )
         validation.check_lane_width(w_right_m, w_left_m, car_width_m, row_name)
-        track = cls(name, centerline, w_right_m, w_left_m, narrowing)
+        track = cls(name, centerline, w_right_m, w_left_m, narrowing, smoothing)
         track._validate_geometry(row_name)
         return track
 
@@ -215,6 +231,13 @@ class Track:
     def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]:
         """Right and left lane half widths at ``s`` (linear between the input points)."""
         return self._w_right(s_m), self._w_left(s_m)
+
+    def to_csv(self, path: str | Path) -> None:
+        """Write the lane as loaded (smoothed, narrowed) at its points, in the CSV format it
+        is read from."""
+        x_m, y_m = self.centerline.position(self._point_s).T
+        w_right_m, w_left_m = self.widths(self._point_s)
+        write_track_csv(path, x_m, y_m, w_right_m, w_left_m)
 
     def boundaries(self, step_m: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
         """Left and right boundary polylines ``(n, 2)`` sampled every ``step_m``."""
