@@ -12,7 +12,7 @@ from gymnasium.utils.env_checker import check_env
 import saferace  # noqa: F401  - registers the tasks
 from saferace.envs.registry import TASKS
 from saferace.errors import SafeRaceError
-from saferace.track import builtin_track_names
+from saferace.track import Track, builtin_track_names
 
 TASK_IDS = sorted(TASKS)
 
@@ -242,3 +242,30 @@ def test_only_the_four_tyres_touch_the_ground():
         env.step(np.array([0.3 * np.sin(step / 4.0), 2.0]))
         assert touching() <= tyres  # driving, never anything else
     env.close()
+
+
+def test_envs_on_one_geometry_share_its_reference_lines():
+    """A racing line is computed once per track geometry in a process, not once per env."""
+    first = gym.make("saferace/RacingLine-v0", track="oval")
+    again = gym.make("saferace/RacingLine-v0", track=Track.load("oval"))
+    other = gym.make("saferace/RacingLine-v0", track="lab")
+    center = gym.make("saferace/CenterLine-v0", track="oval")
+    assert first.unwrapped.reference is again.unwrapped.reference
+    assert other.unwrapped.reference is not first.unwrapped.reference
+    assert center.unwrapped.reference.name == "center"
+    for env in (first, again, other, center):
+        env.close()
+
+
+def test_the_wheels_follow_the_steering_target_with_the_servos_lag():
+    env = gym.make("saferace/CenterLine-v0", track="oval", image_size=(16, 16))
+    _, info = env.reset(seed=0)
+    assert info["steer_angle_rad"] == pytest.approx(0.0, abs=1e-6)
+    angles = []
+    for _ in range(6):
+        _, _, _, _, info = env.step(np.array([0.2, 0.0]))
+        angles.append(info["steer_angle_rad"])
+    env.close()
+    assert info["steer_rad"] == pytest.approx(0.2)
+    assert 0.05 < angles[0] < 0.17  # a control step is about one time constant of the servo
+    assert angles[-1] == pytest.approx(0.2, abs=0.01)

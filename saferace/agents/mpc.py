@@ -12,10 +12,15 @@ References (lateral offset, heading and speed of the task's reference line) and 
 bounds are looked up at the arc length the plan predicts for each stage. The QP is built
 once; every step only its vectors and the values of the dynamics blocks change, with
 the sparsity pattern fixed (OSQP cannot take new non-zeros), and it is warm-started.
-The expert drives from the ground truth in ``info``; steering lag is not modelled. Its
-steering-rate limit and penalty start from the steering the car has (``info["steer_rad"]``),
-whoever chose it: the expert's own last command, or a filter's, a perturbation's or another
-driver's when it only labels the frames (:mod:`saferace.learning.collect`).
+The expert drives from the ground truth in ``info``. The steering servo's lag (identified
+time constant, about one control step) is part of the model: the state gains the wheels'
+angle (``info["steer_angle_rad"]``), which follows the commanded angle as a first-order lag
+(:meth:`~saferace.safety.models.FrenetModel.discretize_with_steering_lag`). Without it the
+plan is late by the lag, and above about 5 m/s the car weaves and spins on straights. The
+steering-rate limit and penalty start from the steering target the car has
+(``info["steer_rad"]``), whoever chose it: the expert's own last command, or a filter's, a
+perturbation's or another driver's when it only labels the frames
+(:mod:`saferace.learning.collect`).
 """
 
 from __future__ import annotations
@@ -88,7 +93,7 @@ class MPCExpert:
         self.drivetrain = drivetrain or DrivetrainParams()
         self.half_width_m = 0.5 * VehicleEnvelope().width_m
         self.stats = SolveStats()
-        self._layout = _Layout(self.model.n_state, self.model.n_control, self.settings.horizon)
+        self._layout = _Layout(self.model.n_state + 1, self.model.n_control, self.settings.horizon)
         self._build()
         self.reset()
 
@@ -106,7 +111,7 @@ class MPCExpert:
         self._plan_x: np.ndarray | None = None
         self._plan_u = np.zeros((self.settings.horizon, self.model.n_control))
         self._previous_u = np.zeros(self.model.n_control)
-        self._x0 = np.zeros(self.model.n_state)
+        self._x0 = np.zeros(self._layout.n)
 
     # ------------------------------------------------------------------ acting
     def act(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
@@ -133,14 +138,15 @@ class MPCExpert:
         return float(self._plan_x[step, index])
 
     def state_from_info(self, info: dict[str, Any]) -> np.ndarray:
-        """The model's state from the env's ground truth."""
-        return self.model.state_from(
+        """The plan's state from the env's ground truth: the model's, then the wheels' angle."""
+        state = self.model.state_from(
             info["e_y_m"],
             info["e_psi_rad"],
             info["v_x_mps"],
             info["v_y_mps"],
             info["yaw_rate_radps"],
         )
+        return np.append(state, info["steer_angle_rad"])
 
     def _accel_command(self, accel_mps2: float, speed_mps: float) -> float:
         """The command that realises ``accel_mps2`` given the identified gain and drag."""
@@ -156,7 +162,8 @@ class MPCExpert:
             "v": s.weight_speed,
             "v_x": s.weight_speed,
         }
-        q_state = np.array([state_weights.get(name, 0.0) for name in self.model.state_names])
+        names = (*self.model.state_names, "steer_angle")
+        q_state = np.array([state_weights.get(name, 0.0) for name in names])
         self._q_state = q_state
         p_diag = np.concatenate(
             [np.tile(q_state, N), np.zeros(N * m), np.full(N, s.slack_quadratic)]
@@ -253,14 +260,15 @@ class MPCExpert:
         s_stage[0] = s0
         kappas = np.empty(N)
         A_list, B_list, c_list = [], [], []
+        lag_s = self.params.steer_time_constant_s
         for k in range(N):
             kappa = self.track.centerline.curvature_scalar(s_stage[k])
             kappas[k] = kappa
-            A, B, c = model.discretize(plan_x[k], plan_u[k], kappa, dt)
+            A, B, c = model.discretize_with_steering_lag(plan_x[k], plan_u[k], kappa, dt, lag_s)
             A_list.append(A)
             B_list.append(B)
             c_list.append(c)
-            s_stage[k + 1] = s_stage[k] + model.s_dot(plan_x[k], kappa) * dt
+            s_stage[k + 1] = s_stage[k] + model.s_dot(plan_x[k, : model.n_state], kappa) * dt
         s_ref = s_stage[1:]
         reference = np.zeros((N, n))
         reference[:, 0] = self.reference.offset_at(s_ref)
@@ -347,20 +355,21 @@ class MPCExpert:
         Only the first step of an episode, with no plan yet, rolls the nonlinear model
         out from ``x0`` with the curvature's feed-forward steering.
         """
-        N, dt = self.settings.horizon, self.settings.dt_s
+        N, dt, n = self.settings.horizon, self.settings.dt_s, self.model.n_state
         if self._plan_x is not None:
             x = np.vstack([x0, self._plan_x[2:], self._plan_x[-1:]])
             u = np.vstack([self._plan_u[1:], self._plan_u[-1:]])
             return x, u
         u = np.zeros((N, self.model.n_control))
-        x = np.empty((N + 1, self.model.n_state))
+        x = np.empty((N + 1, n + 1))
         x[0] = x0
         s = s0
         for k in range(N):
             kappa = self.track.centerline.curvature_scalar(s)
             u[k, 0] = np.arctan(self.params.wheelbase_m * kappa)
-            x[k + 1] = self.model.step(x[k], u[k], kappa, dt)
-            s += self.model.s_dot(x[k], kappa) * dt
+            x[k + 1, :n] = self.model.step(x[k, :n], u[k], kappa, dt)
+            x[k + 1, n] = u[k, 0]
+            s += self.model.s_dot(x[k, :n], kappa) * dt
         return x, u
 
 

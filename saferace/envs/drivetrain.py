@@ -50,6 +50,15 @@ def ackermann_angles(steer_rad: float, params: DrivetrainParams) -> tuple[float,
     return left, right
 
 
+def bicycle_angle(left_rad: float, right_rad: float) -> float:
+    """The bicycle angle of two front-wheel angles: ``tan`` of it is the harmonic mean of
+    theirs (the inverse of :func:`ackermann_angles`; their mean while they point apart)."""
+    tan_left, tan_right = math.tan(left_rad), math.tan(right_rad)
+    if tan_left * tan_right <= 0.0:
+        return 0.5 * (left_rad + right_rad)
+    return math.atan(2.0 * tan_left * tan_right / (tan_left + tan_right))
+
+
 def rate_limited(target: float, current: float, max_rate: float, dt_s: float) -> float:
     """``target`` approached from ``current`` at no more than ``max_rate`` per second."""
     step = max_rate * dt_s

@@ -16,6 +16,7 @@ from gymnasium import spaces
 from saferace.envs.drivetrain import (
     DrivetrainParams,
     ackermann_angles,
+    bicycle_angle,
     rate_limited,
     wheel_torques,
 )
@@ -99,6 +100,8 @@ class RacingEnv(gym.Env):
     ``ref_offset_m, ref_speed_mps, deviation_m`` (the reference at ``s``),
     ``w_left_m, w_right_m`` (lane half widths at ``s``), ``x_m, y_m, yaw_rad`` (pose),
     ``v_x_mps, v_y_mps, yaw_rate_radps``, ``steer_rad`` (applied steering target),
+    ``steer_angle_rad`` (the wheels' bicycle angle, which follows the target with the
+    servos' lag),
     ``accel_mps2`` (command), ``time_s``, ``progress_m`` (since reset), ``lap`` (laps
     completed), ``lap_time_s`` (last completed lap, None before), ``lap_times_s``,
     ``lap_completed``, ``outside_lane``, ``cost``, ``reward_progress``, ``reward_deviation``.
@@ -345,6 +348,11 @@ class RacingEnv(gym.Env):
         rot = data.xmat[ids.chassis]
         return float(x), float(y), math.atan2(rot[3], rot[0])
 
+    def _steer_angle(self) -> float:
+        """The front wheels' bicycle angle now: the steering target after the servos' lag."""
+        left, right = (float(self.data.qpos[a]) for a in self._ids.steer_joints_qpos)
+        return bicycle_angle(left, right)
+
     def _flipped(self) -> bool:
         return bool(self.data.xmat[self._ids.chassis, 8] < 0.3)
 
@@ -436,6 +444,7 @@ class RacingEnv(gym.Env):
             "v_y_mps": v_y,
             "yaw_rate_radps": r,
             "steer_rad": self._steer_target,
+            "steer_angle_rad": self._steer_angle(),
             "accel_mps2": episode["accel_mps2"],
             "time_s": float(self.data.time),
             "progress_m": episode["progress_m"],
@@ -464,12 +473,24 @@ class RacingLineEnv(RacingEnv):
 
 
 def reference_line(track: Track, kind: str) -> ReferenceLine:
-    """The task's reference line: ``"center"`` or ``"racing"``."""
-    if kind == "center":
-        return center_line(track)
-    if kind == "racing":
-        return racing_line(track)
-    raise SafeRaceError(f"unknown reference line {kind!r}: use 'center' or 'racing'")
+    """The task's reference line: ``"center"`` or ``"racing"``.
+
+    Computed once per track geometry and process (a racing line of a 450 m circuit takes
+    a minute or two, and evaluations make one env per run); lines are never modified.
+    """
+    if kind not in _REFERENCE_LINES:
+        raise SafeRaceError(f"unknown reference line {kind!r}: use 'center' or 'racing'")
+    key = (track.fingerprint, kind)
+    if key not in _COMPUTED_LINES:
+        if len(_COMPUTED_LINES) >= _MAX_COMPUTED_LINES:
+            _COMPUTED_LINES.pop(next(iter(_COMPUTED_LINES)))
+        _COMPUTED_LINES[key] = _REFERENCE_LINES[kind](track)
+    return _COMPUTED_LINES[key]
+
+
+_REFERENCE_LINES = {"center": center_line, "racing": racing_line}
+_MAX_COMPUTED_LINES = 16
+_COMPUTED_LINES: dict[tuple[str, str], ReferenceLine] = {}  # oldest first
 
 
 class _ModelIds:
@@ -482,6 +503,9 @@ class _ModelIds:
         self.wheel_qvel = [
             int(model.joint(f"{wheel}_spin").dofadr[0])
             for wheel in ("front_left", "front_right", "rear_left", "rear_right")
+        ]
+        self.steer_joints_qpos = [
+            int(model.joint(f"front_{side}_steer").qposadr[0]) for side in ("left", "right")
         ]
         self.steer_left = model.actuator("front_left_steering_servo").id
         self.steer_right = model.actuator("front_right_steering_servo").id

@@ -223,6 +223,37 @@ class FrenetModel:
         exp = _expm(block * dt_s)
         return exp[:n, :n], exp[:n, n : n + m], exp[:n, -1]
 
+    def discretize_with_steering_lag(
+        self,
+        x: np.ndarray,
+        u: np.ndarray,
+        kappa: float,
+        dt_s: float,
+        steer_time_constant_s: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`discretize` with the steering servo in front of the model.
+
+        The state gains the wheels' angle ``delta`` (last entry of ``x``), which follows the
+        commanded angle ``u[0]`` as a first-order lag, ``delta' = (u[0] - delta) / tau``; the
+        model sees ``[delta, u[1]]``. At racing speed the servo's lag (about one control step)
+        is what a controller that ignores it turns into a weave.
+        """
+        n, m = self.n_state, self.n_control
+        state, delta = np.asarray(x[:n], dtype=float), float(x[n])
+        applied = np.array([delta, u[1]], dtype=float)
+        a, b = self.jacobians(state, applied, kappa)
+        rate = 1.0 / steer_time_constant_s
+        a_lag = np.zeros((n + 1, n + 1))
+        a_lag[:n, :n], a_lag[:n, n], a_lag[n, n] = a, b[:, 0], -rate
+        b_lag = np.zeros((n + 1, m))
+        b_lag[:n, 1], b_lag[n, 0] = b[:, 1], rate
+        x_dot = np.append(self.f(state, applied, kappa), rate * (u[0] - delta))
+        c = x_dot - a_lag @ np.asarray(x, dtype=float) - b_lag @ np.asarray(u, dtype=float)
+        block = np.zeros((n + m + 2, n + m + 2))
+        block[: n + 1, : n + 1], block[: n + 1, n + 1 : -1], block[: n + 1, -1] = a_lag, b_lag, c
+        exp = _expm(block * dt_s)
+        return exp[: n + 1, : n + 1], exp[: n + 1, n + 1 : -1], exp[: n + 1, -1]
+
 
 def _expm(matrix: np.ndarray) -> np.ndarray:
     from scipy.linalg import expm

@@ -7,6 +7,8 @@ and raises :class:`~saferace.errors.TrackError` with the offending row.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
 from importlib import resources
 from pathlib import Path
@@ -231,6 +233,13 @@ class Track:
     def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]:
         """Right and left lane half widths at ``s`` (linear between the input points)."""
         return self._w_right(s_m), self._w_left(s_m)
+
+    @functools.cached_property
+    def fingerprint(self) -> str:
+        """SHA-256 of the lane as loaded (points and widths): equal for equal geometry."""
+        x_m, y_m = self.centerline.position(self._point_s).T
+        lane = np.column_stack([x_m, y_m, *self.widths(self._point_s)])
+        return hashlib.sha256(np.ascontiguousarray(lane).tobytes()).hexdigest()
 
     def to_csv(self, path: str | Path) -> None:
         """Write the lane as loaded (smoothed, narrowed) at its points, in the CSV format it
