@@ -4,7 +4,11 @@ Gymnasium's ``CarRacing-v3`` (96x96 pixels, Box2D) is measured in the same run a
 the baseline when Box2D is installed (``pip install box2d pygame``). Target: at
 least 10x CarRacing's steps per second at 64x64 mono, on one core.
 
-    python benchmarks/env_speed.py [--steps N]
+``--tracks PATH...`` adds what a long circuit costs beside the built-in ``technical``: the
+scene's build time, its compiled model's and data's memory, its geoms and mesh vertices,
+and the 64x64 mono step rate, measured the same way (the F1TENTH circuits are 250-560 m).
+
+    python benchmarks/env_speed.py [--steps N] [--tracks PATH ...]
 """
 
 from __future__ import annotations
@@ -14,18 +18,23 @@ import os
 import time
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 import saferace  # noqa: F401  - registers the tasks
 from saferace.agents.pure_pursuit import PurePursuit
+from saferace.envs.scene import build_model
 from saferace.eval.tables import markdown_table
+from saferace.track import Track
 
 TARGET_RATIO = 10.0
 
 
-def saferace_steps_per_second(steps: int, physics_only: bool = False, **kwargs) -> float:
-    """Steps per second of the pure-pursuit driver lapping ``technical`` (resets excluded)."""
-    env = gym.make("saferace/CenterLine-v0", track="technical", max_laps=100, **kwargs)
+def saferace_steps_per_second(
+    steps: int, physics_only: bool = False, track: str | Track = "technical", **kwargs
+) -> float:
+    """Steps per second of the pure-pursuit driver lapping ``track`` (resets excluded)."""
+    env = gym.make("saferace/CenterLine-v0", track=track, max_laps=100, **kwargs)
     base = env.unwrapped
     obs, info = env.reset(seed=0)
     agent = PurePursuit.for_env(env)
@@ -63,9 +72,30 @@ def car_racing_steps_per_second(steps: int) -> float | None:
     return steps / elapsed
 
 
+def scene_row(name: str, steps: int) -> list:
+    """Length, build time, memory, size and 64x64 step rate of one track's scene."""
+    track = Track.load(name)
+    start = time.perf_counter()
+    model = build_model(track)
+    build_s = time.perf_counter() - start
+    data_bytes = mujoco.MjData(model).nbuffer
+    rate = saferace_steps_per_second(steps, track=track, image_size=(64, 64))
+    megabytes = (model.nbuffer + data_bytes) / 1e6
+    return [
+        track.name,
+        track.length_m,
+        1e3 * build_s,
+        megabytes,
+        model.ngeom,
+        model.nmeshvert,
+        rate,
+    ]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--tracks", nargs="*", default=[], help="track CSVs to compare scenes")
     args = parser.parse_args()
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core
     configs = {
@@ -90,6 +120,11 @@ def main() -> None:
         print(f"target: 64x64 mono >= {TARGET_RATIO:.0f}x CarRacing -> {mono:.1f}x, {verdict}")
     else:
         print("CarRacing-v3 not measured: install box2d and pygame for the baseline")
+    if args.tracks:
+        columns = ["track", "length [m]", "build [ms]", "model+data [MB]", "geoms",
+                   "mesh vertices", "64x64 steps/s"]  # fmt: skip
+        rows = [scene_row(name, args.steps) for name in ["technical", *args.tracks]]
+        print(markdown_table(columns, rows))
 
 
 if __name__ == "__main__":

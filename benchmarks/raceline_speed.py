@@ -1,8 +1,11 @@
-"""Time the minimum-curvature racing line on a 1000-point track.
+"""Time the minimum-curvature racing line on a 1000-point track, and on a 560 m circuit.
 
 Target: under 2 s on a 2-core CPU. As a baseline measured in the same run, the first
 of its QPs is also solved through cvxpy with the interior-point solver Clarabel (the
-reference formulation); the table gives how far OSQP's offsets are from it.
+reference formulation); the table gives how far OSQP's offsets are from it. The same track
+scaled to 560 m with the F1TENTH collection's 2.2 m lane (the longest of its circuits) is
+timed at the default 0.1 m step: what a user waits for the first time a real circuit's
+``RacingLine-v0`` is made (the line is then kept for the process).
 
     python benchmarks/raceline_speed.py
 """
@@ -29,13 +32,18 @@ from saferace.track.raceline import (
 
 TARGET_S = 2.0
 POINTS = 1000
+LONG_TRACK_M = 560.0
 
 
-def thousand_point_track() -> Track:
+def thousand_point_track(scale: float = 1.0, half_width_m: float = 0.6) -> Track:
     theta = np.linspace(0.0, 2.0 * np.pi, POINTS, endpoint=False)
-    radius = 9.0 + 1.2 * np.cos(3 * theta) + 0.6 * np.sin(5 * theta + 0.4)
+    radius = scale * (9.0 + 1.2 * np.cos(3 * theta) + 0.6 * np.sin(5 * theta + 0.4))
     return Track.from_arrays(
-        1.3 * radius * np.cos(theta), radius * np.sin(theta), 0.6, 0.6, name="blob1000"
+        1.3 * radius * np.cos(theta),
+        radius * np.sin(theta),
+        half_width_m,
+        half_width_m,
+        name=f"blob{POINTS}" if scale == 1.0 else f"blob{POINTS} x{scale:.1f}",
     )
 
 
@@ -71,6 +79,9 @@ def main() -> None:
         track, center_s_m, envelope.width_m, replace(settings, max_iterations=1)
     )
     gap_m = float(np.max(np.abs(osqp_offsets - alpha.value)))
+    long_track = thousand_point_track(scale=LONG_TRACK_M / track.length_m, half_width_m=1.1)
+    long_s = best_of(1, lambda: racing_line(long_track, envelope))
+    long_offsets = round(long_track.length_m / RacingLineSettings().step_m)
 
     rows = [
         ["load + validate 1000-point track", load_s, "-"],
@@ -86,6 +97,12 @@ def main() -> None:
             f"racing line = {racing_s / cvxpy_s:.1f}x this",
         ],
         ["  max |OSQP - Clarabel| offset [m]", gap_m, "-"],
+        [
+            f"racing line, {long_track.length_m:.0f} m circuit, 2.2 m lane "
+            f"({long_offsets} offsets)",
+            long_s,
+            "-",
+        ],
     ]
     print(markdown_table(["step", "time [s]", "ratio"], rows))
     print(

@@ -100,7 +100,9 @@ def test_speed_profile_respects_friction_ellipse_and_top_speed(builtin_track: Tr
     center = center_line(builtin_track, envelope)
     v, a_x = center.vx_mps, center.ax_mps2
     a_y_start = v**2 * np.abs(center.kappa_radpm)
-    a_long_max = np.where(a_x > 0, envelope.a_accel_max_mps2, envelope.a_brake_max_mps2)
+    drive = np.array([envelope.drive_accel_mps2(speed) for speed in v])
+    a_long_max = np.where(a_x > 0, drive, envelope.a_brake_max_mps2)
+    assert np.all(a_x <= drive + 1e-9)  # speeding up only as fast as the motor can
     for a_y in (a_y_start, np.roll(a_y_start, -1)):  # both ends of every segment
         usage = (a_x / a_long_max) ** 2 + (a_y / envelope.a_lat_max_mps2) ** 2
         assert usage.max() < 1.0 + 1e-9

@@ -1,7 +1,9 @@
 """Forward-backward speed profile of a closed path under a friction ellipse.
 
 Lateral acceleration ``v^2 |kappa|`` and longitudinal acceleration share the tyre's
-grip: ``(a_x / a_x,max)^2 + (a_y / a_y,max)^2 <= 1`` (Heilmeier et al. 2019). The
+grip: ``(a_x / a_x,max)^2 + (a_y / a_y,max)^2 <= 1`` (Heilmeier et al. 2019), where
+speeding up ``a_x,max`` is what the motor can still push at that speed
+(:meth:`~saferace.track.VehicleEnvelope.drive_accel_mps2`). The
 profile starts at the slowest corner, where the speed is set by the lateral limit
 alone, so one forward (accelerating) and one backward (braking) pass around the
 loop give the periodic solution.
@@ -10,6 +12,7 @@ loop give the periodic solution.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,8 +42,9 @@ def speed_profile(
     order = (start + np.arange(count + 1)) % count
 
     v = v_limit.copy()
-    _pass(v, kappa, order, step_m, envelope.a_accel_max_mps2, envelope.a_lat_max_mps2)
-    _pass(v, kappa, order[::-1], step_m, envelope.a_brake_max_mps2, envelope.a_lat_max_mps2)
+    _pass(v, kappa, order, step_m, envelope.drive_accel_mps2, envelope.a_lat_max_mps2)
+    brake = envelope.a_brake_max_mps2
+    _pass(v, kappa, order[::-1], step_m, lambda _speed: brake, envelope.a_lat_max_mps2)
 
     v_next = np.roll(v, -1)
     ax = (v_next**2 - v**2) / (2.0 * step_m)
@@ -53,19 +57,25 @@ def _pass(
     kappa: np.ndarray,
     order: np.ndarray,
     step_m: float,
-    a_long_max: float,
+    a_long_max: Callable[[float], float],
     a_lat_max: float,
 ) -> None:
     """One pass in ``order``: cap each speed by what the grip allows coming from the previous.
 
-    Speeds are only ever lowered, so the braking pass keeps what the accelerating pass set.
+    ``a_long_max(speed)`` is the longitudinal limit at the start of each step (the motor's
+    falls with speed). Speeds are only ever lowered, so the braking pass keeps what the
+    accelerating pass set.
     """
     speeds = v.tolist()
     curvature = kappa.tolist()
     for prev, cur in zip(order[:-1].tolist(), order[1:].tolist(), strict=True):
         v_prev_sq = speeds[prev] * speeds[prev]
+        a_long = a_long_max(speeds[prev])
+        if a_long <= 0.0:
+            speeds[cur] = min(speeds[cur], speeds[prev])
+            continue
         reachable_sq = max_next_speed_squared(
-            v_prev_sq, curvature[prev], curvature[cur], step_m, a_long_max, a_lat_max
+            v_prev_sq, curvature[prev], curvature[cur], step_m, a_long, a_lat_max
         )
         if reachable_sq < speeds[cur] * speeds[cur]:
             speeds[cur] = math.sqrt(reachable_sq)
