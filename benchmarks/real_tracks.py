@@ -22,6 +22,7 @@ import numpy as np
 
 from saferace.eval.safety_table import filter_label, run_table
 from saferace.eval.tables import markdown_table
+from saferace.safety.filter import DEFAULT_GAINS
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import RacingLineSettings, racing_line
 
@@ -129,7 +130,11 @@ def main() -> None:
     parser.add_argument("folder", type=Path, help="a folder of track CSVs")
     parser.add_argument("--out", type=Path, default=Path("results/real_tracks"))
     parser.add_argument("--geometry-only", action="store_true", help="load and racing line only")
-    parser.add_argument("--gains", default="paper", help="the filter's gains (safety-table's)")
+    parser.add_argument(
+        "--gains",
+        default=DEFAULT_GAINS,
+        help="the filter's settings (safety-table's --filter-gains)",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     tracks = sorted(

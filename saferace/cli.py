@@ -385,7 +385,7 @@ def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) 
     )
 
 
-FILTER_GAINS = ("paper", "tuned")  # the keys of saferace.safety.filter.GAIN_PRESETS
+FILTER_GAINS = ("paper", "grip", "tuned")  # the keys of saferace.safety.filter.GAIN_PRESETS
 
 
 def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
@@ -444,9 +444,11 @@ def _add_map_curvature_argument(parser: argparse.ArgumentParser) -> None:
 def _add_gains_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--filter-gains",
-        default="paper",
+        default="grip",
         choices=FILTER_GAINS,
-        help="the filter's class-K gains: the paper's, or those measured to cost the expert least",
+        help="the filter's settings: the paper's gain, the same with the steering held within "
+        "the tyres' grip (drivable at racing speed), or the gains measured to cost the expert "
+        "least on the built-in tracks",
     )
 
 

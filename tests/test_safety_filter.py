@@ -231,7 +231,13 @@ def test_gain_presets_reach_the_filter_by_name():
     filtered = apply_filter(make_env(), FilterConfig(kind="cbf", gains="tuned"))
     assert filtered.lam == GAIN_PRESETS["tuned"]["lam"]
     assert filtered.lateral_decel_mps2 == GAIN_PRESETS["tuned"]["lateral_decel_mps2"]
-    assert apply_filter(make_env(), FilterConfig(kind="cbf")).lam == 2.5  # the paper's
+    default = apply_filter(make_env(), FilterConfig(kind="cbf"))
+    assert default.lam == 2.5  # the paper's gain, with the steering within the tyres' grip
+    assert default.max_lateral_accel_mps2 == GAIN_PRESETS["grip"]["max_lateral_accel_mps2"] > 0
+    assert (
+        apply_filter(make_env(), FilterConfig(kind="cbf", gains="paper")).max_lateral_accel_mps2
+        is None
+    )
     with pytest.raises(ValueError, match="gains"):
         FilterConfig(kind="cbf", gains="fast")
 

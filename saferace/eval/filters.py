@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass
 import gymnasium as gym
 
 from saferace.eval.agents import load_entry_point
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.filter import DEFAULT_GAINS, GAIN_PRESETS, SafetyFilter
 from saferace.safety.state_sources import (
     NoisyOracleStateSource,
     OracleStateSource,
@@ -42,7 +42,7 @@ class FilterConfig:
     samples: int = 20
     probabilistic: bool = True
     eta: float = 0.95
-    gains: str = "paper"
+    gains: str = DEFAULT_GAINS
     state_source: str | None = None
     map_curvature: bool = False
     spread_scale: tuple[float, float, float] | None = None

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table
+from saferace.safety.filter import DEFAULT_GAINS
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
 #: Size of generated test tracks: tight enough that 1.6x the racing line's speed exceeds
@@ -77,7 +78,7 @@ def run_table(
     noise: tuple[float, float] = (0.05, 0.05),
     samples: int = 20,
     model: str = "kinematic",
-    gains: str = "paper",
+    gains: str = DEFAULT_GAINS,
     seed: int = 0,
     progress: bool = True,
     state_source: str | None = None,

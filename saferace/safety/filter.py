@@ -39,13 +39,18 @@ MAP_DS_M = 0.05
 #: tyres' grip is about 9.8), so braking ends as the car turns in.
 SPEED_LIMIT_DECEL_MPS2 = 2.0
 SPEED_LIMIT_LATERAL_MPS2 = 7.0
-#: Settings of ``SafetyFilter`` by name: the paper's gain, and the gains measured to leave
-#: the expert most alone while keeping every reckless run of ``saferace safety-table``
-#: inside its lane (the README gives the numbers).
+#: Settings of ``SafetyFilter`` by name: the paper's gain; the same with the steering held
+#: within the tyres' grip (``max_lateral_accel_mps2``), the default of the command line and
+#: :class:`~saferace.eval.filters.FilterConfig`, since at racing speed the paper's kinematic
+#: filter asks for corrections the car cannot drive; and the gains measured to leave the
+#: expert most alone while keeping every reckless run of ``saferace safety-table`` on the
+#: built-in tracks inside its lane (the README gives the numbers).
 GAIN_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"lam": 2.5},
+    "grip": {"lam": 2.5, "max_lateral_accel_mps2": SPEED_LIMIT_LATERAL_MPS2},
     "tuned": {"lam": (20.0, 4.0), "lateral_decel_mps2": 5.0},
 }
+DEFAULT_GAINS = "grip"
 #: A filtered action this close to the nominal one is not an intervention.
 INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2)
 RELINEARISE_TOL = 1e-3  # rad: a steering this close to the linearisation point is final
