@@ -33,11 +33,11 @@ def test_expert_round_labels_are_its_own_actions(tmp_path: Path):
     assert np.array_equal(frames["driver_action"], frames["expert"][:, [0, 2]])
     clipped = np.clip(frames["driver_action"], [-0.36, -4.0], [0.36, 4.0])  # the action space
     assert np.array_equal(frames["applied_action"], clipped)
-    assert not np.array_equal(clipped, frames["driver_action"])  # the expert asked for more
+    # The speed profile asks only what the motors can push, so the plan stays within them.
+    assert np.abs(frames["driver_action"][:, 1]).max() <= 4.0
     assert not frames["intervened"].any()
     assert np.all(np.diff(frames["s_m"]) > 0) and np.all(np.diff(frames["time_s"]) > 0)
-    # The target-speed label is the plan's speed 0.25 s ahead: near the speed 5 steps later
-    # (the plan accelerates a little harder than the saturated motor can).
+    # The target-speed label is the plan's speed 0.25 s ahead: near the speed 5 steps later.
     later_speed = frames["velocity"][5:, 0]
     assert np.abs(frames["expert"][:-5, 1] - later_speed).mean() < 0.2
     assert np.abs(frames["expert"][:, 1] - frames["velocity"][:, 0]).mean() > 0.2
