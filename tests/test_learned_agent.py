@@ -131,7 +131,9 @@ def test_gradcam_maps_and_command(tiny_checkpoint, tmp_path: Path, stereo: bool)
     image = np.random.default_rng(0).integers(0, 256, (64, 64, 6 if stereo else 3), np.uint8)
     maps = gradcam_maps(loaded.state, image, None, "layer2")
     assert maps.shape == (3, 64, 64)
-    assert maps.min() >= 0.0 and np.allclose(maps.max(axis=(1, 2)), 1.0)
+    peaks = maps.max(axis=(1, 2))  # each map normalised, or empty: no positive evidence
+    assert maps.min() >= 0.0 and np.all(np.isclose(peaks, 1.0) | (peaks == 0.0))
+    assert np.isclose(peaks, 1.0).any()
     result = run_cli("gradcam", str(checkpoint), "--frames", "2", "--out", str(tmp_path))
     assert result.returncode == 0, result.stderr
     sheets = sorted(tmp_path.glob("gradcam_*.png"))
