@@ -119,7 +119,7 @@ def test_self_intersecting_centerline_is_rejected(tmp_path: Path):
 def test_overlapping_boundaries_are_rejected():
     """A hairpin whose two legs are closer than the lane width: boundaries cross."""
     t = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
-    x, y = 10.0 * np.cos(t), 0.6 * np.sin(t) + 0.0 * t
+    x, y = 10.0 * np.cos(t), 0.4 * np.sin(t)
     with pytest.raises(TrackError, match=r"(boundary crosses itself|turn radius)"):
         Track.from_arrays(x, y, 0.5, 0.5)
 

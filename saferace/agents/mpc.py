@@ -43,6 +43,8 @@ from saferace.track.raceline import ReferenceLine
 #: ``kp = 1 / lookahead`` tracking it asks for the plan's mean acceleration over that time
 #: (:class:`saferace.agents.pid.PIDGains`).
 TARGET_SPEED_LOOKAHEAD_S = 0.25
+#: Below this stretch per stage the curvature is sampled at its start (see _stage_curvature).
+_MIN_STAGE_LENGTH_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -258,12 +260,10 @@ class MPCExpert:
         plan_x, plan_u = self._linearisation_trajectory(x0, s0)
         s_stage = np.empty(N + 1)
         s_stage[0] = s0
-        kappas = np.empty(N)
         A_list, B_list, c_list = [], [], []
         lag_s = self.params.steer_time_constant_s
         for k in range(N):
-            kappa = self.track.centerline.curvature_scalar(s_stage[k])
-            kappas[k] = kappa
+            kappa = self._stage_curvature(plan_x[k, : model.n_state], s_stage[k], dt)
             A, B, c = model.discretize_with_steering_lag(plan_x[k], plan_u[k], kappa, dt, lag_s)
             A_list.append(A)
             B_list.append(B)
@@ -348,6 +348,22 @@ class MPCExpert:
         self._plan_x = np.vstack([x0, z[: N * n].reshape(N, n)])
         self._plan_u = z[L.u(0) : L.u(0) + N * m].reshape(N, m)
         return self._plan_u[0].copy()
+
+    def _stage_curvature(self, x: np.ndarray, s_m: float, dt_s: float) -> float:
+        """The centre line's mean curvature over the stretch a stage covers from ``s_m``.
+
+        Its heading change over the stretch divided by its length: a kink shorter than a
+        stage (real circuits' centre lines have some, 1-2 m of 1/m curvature) turns the
+        Frenet frame by what it really turns, where a point sample could miss it or see
+        only its peak. The stretch is the model's ``s_dot`` at the point's curvature.
+        """
+        centerline = self.track.centerline
+        kappa = centerline.curvature_scalar(s_m)
+        length = self.model.s_dot(x, kappa) * dt_s
+        if length < _MIN_STAGE_LENGTH_M:
+            return kappa
+        turn = centerline.heading(s_m + length) - centerline.heading(s_m)
+        return float(np.angle(np.exp(1j * turn))) / length
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
         """States and inputs to linearise about: the last plan shifted by one step.
