@@ -76,7 +76,10 @@ def main() -> None:
     logging.getLogger("saferace").setLevel(logging.ERROR)  # one iteration on purpose
     cvxpy_s = best_of(1, lambda: problem.solve(solver=cp.CLARABEL))
     osqp_offsets = min_curvature_offsets(
-        track, center_s_m, envelope.width_m, replace(settings, max_iterations=1)
+        track,
+        center_s_m,
+        envelope.width_m,
+        replace(settings, max_iterations=1, draft_tolerance=None),
     )
     gap_m = float(np.max(np.abs(osqp_offsets - alpha.value)))
     long_track = thousand_point_track(scale=LONG_TRACK_M / track.length_m, half_width_m=1.1)

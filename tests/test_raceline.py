@@ -140,3 +140,11 @@ def test_cli_writes_racing_line_csv_and_plot(tmp_path: Path):
     heading = np.arctan2(np.diff(y), np.diff(x))
     assert np.max(np.abs(np.angle(np.exp(1j * (heading - psi[:-1]))))) < 0.05
     assert np.all(data[:, 5] > 0)
+
+
+def test_drafting_at_a_loose_tolerance_ends_on_the_tight_line():
+    track = Track.load("technical")
+    s = track.centerline.sample(0.1)
+    drafted = min_curvature_offsets(track, s, 0.3, RacingLineSettings())
+    tight = min_curvature_offsets(track, s, 0.3, RacingLineSettings(draft_tolerance=None))
+    assert np.max(np.abs(drafted - tight)) < 2e-3

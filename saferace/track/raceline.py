@@ -44,11 +44,6 @@ _OSQP_SETTINGS = {
     "max_iter": 50000,
     "polishing": True,
 }
-#: The tolerance of the re-linearisations before the last: each QP only moves the point the
-#: next is linearised at, and a loose solve takes a fifth of the time of a tight one. Once the
-#: stopping rule holds, the line is solved at ``_OSQP_SETTINGS``' tolerance until it holds
-#: again.
-_DRAFT_TOLERANCE = 1e-5
 
 CSV_COLUMNS = ("s_m", "x_m", "y_m", "psi_rad", "kappa_radpm", "vx_mps", "ax_mps2")
 
@@ -58,13 +53,17 @@ class RacingLineSettings:
     """Discretisation and stopping rule of the minimum-curvature optimisation: stop when no
     offset moves by ``tolerance_m`` or the integral of kappa^2 changes by less than
     ``curvature_tolerance`` of itself; at ``max_iterations`` the warning says how far it was
-    from either."""
+    from either. ``draft_tolerance``: OSQP's tolerance for the QPs before the rule first
+    holds (each only moves the point the next is linearised at, and a loose solve takes a
+    fifth of the time of a tight one); then they are solved tight until it holds again.
+    ``None`` solves every QP tight."""
 
     margin_m: float = 0.10
     step_m: float = 0.1
     max_iterations: int = 50
     tolerance_m: float = 1e-4
     curvature_tolerance: float = 1e-4
+    draft_tolerance: float | None = 1e-5
 
 
 @dataclass(frozen=True)
@@ -238,7 +237,7 @@ def min_curvature_offsets(
     offsets = np.zeros(count)
     solver = None
     change = relative = previous_integral = np.inf
-    draft = True
+    draft = settings.draft_tolerance is not None
     for iteration in range(1, settings.max_iterations + 2):
         P, q, integral = curvature_qp(track, center_s_m, offsets)
         if iteration > 1:
@@ -256,9 +255,7 @@ def min_curvature_offsets(
                 if not draft:
                     return offsets
                 draft = False
-                solver.update_settings(
-                    eps_abs=_OSQP_SETTINGS["eps_abs"], eps_rel=_OSQP_SETTINGS["eps_rel"]
-                )
+                solver.update_settings(**_tolerance(_OSQP_SETTINGS["eps_abs"]))
             if iteration > settings.max_iterations:
                 break
         if solver is None:
@@ -270,7 +267,7 @@ def min_curvature_offsets(
                 l=lower,
                 u=upper,
                 verbose=False,
-                **{**_OSQP_SETTINGS, "eps_abs": _DRAFT_TOLERANCE, "eps_rel": _DRAFT_TOLERANCE},
+                **{**_OSQP_SETTINGS, **(_tolerance(settings.draft_tolerance) if draft else {})},
             )
         else:
             solver.update(Px=sp.triu(P, format="csc").data, q=q)
@@ -293,6 +290,11 @@ def min_curvature_offsets(
         settings.curvature_tolerance,
     )
     return offsets
+
+
+def _tolerance(eps: float) -> dict[str, float]:
+    """OSQP's absolute and relative tolerance, both ``eps``."""
+    return {"eps_abs": eps, "eps_rel": eps}
 
 
 def _reference(
