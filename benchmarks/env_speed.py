@@ -74,6 +74,7 @@ def car_racing_steps_per_second(steps: int) -> float | None:
 def scene_row(name: str, steps: int) -> list:
     """Length, build time, memory, size and 64x64 step rate of one track's scene."""
     import mujoco  # after saferace, which chooses the GL backend before mujoco loads
+
     track = Track.load(name)
     start = time.perf_counter()
     model = build_model(track)
