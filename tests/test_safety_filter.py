@@ -28,6 +28,7 @@ from saferace.safety.state_sources import (
     true_lane_state,
 )
 from saferace.safety.vehicle_params import load_params
+from saferace.track import Track
 
 LOWER, UPPER = np.array([-0.36, -4.0]), np.array([0.36, 4.0])
 UNBOUNDED = np.array([1e3, 1e3])
@@ -357,3 +358,27 @@ def test_relinearising_holds_an_agent_steering_hard_one_way(steer_rad: float):
     assert summaries[1]["min_lane_barrier_m"] < summaries[2]["min_lane_barrier_m"] - 0.005
     assert summaries[2]["time_outside_lane_s"] == 0.0
     assert summaries[2]["min_lane_barrier_m"] > 0.0
+
+
+def test_the_lane_barriers_preview_the_narrowest_width_ahead():
+    """``width_preview_s``: the barrier is measured to the narrowest edge the car reaches
+    within that time, so a narrowing is met before the car is in it."""
+    angle = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
+    narrow = (angle > np.pi) & (angle < np.pi + 0.5)  # 4 m of a 0.6 m left half width
+    track = Track.from_arrays(
+        8.0 * np.cos(angle), 8.0 * np.sin(angle), 1.0, np.where(narrow, 0.6, 1.0), name="dent"
+    )
+    plain = SafetyFilter(make_env(track))
+    previewing = SafetyFilter(make_env(track), width_preview_s=0.5)
+    for env in (plain, previewing):
+        observation, info = env.reset(seed=0, options={"start_s_m": 24.0, "start_speed_mps": 3.0})
+        decision = env.certify(observation, info, np.zeros(2))
+        ahead = info["s_m"] + np.linspace(0.0, 0.5 * observation["velocity"][0], 200)
+        w_left = track.widths(ahead)[1].min() if env is previewing else info["w_left_m"]
+        expected = w_left - info["e_y_m"] - env.half_width_m
+        assert decision.barriers["lane_left"] == pytest.approx(expected, abs=2e-3)
+    assert previewing.certify(observation, info, np.zeros(2)).barriers["lane_left"] < (
+        plain.certify(observation, info, np.zeros(2)).barriers["lane_left"] - 0.1
+    )
+    with pytest.raises(ValueError, match="width_preview_s"):
+        SafetyFilter(make_env(), width_preview_s=-1.0)

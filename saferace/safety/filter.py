@@ -47,7 +47,11 @@ SPEED_LIMIT_LATERAL_MPS2 = 7.0
 #: built-in tracks inside its lane (the README gives the numbers).
 GAIN_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"lam": 2.5},
-    "grip": {"lam": 2.5, "max_lateral_accel_mps2": SPEED_LIMIT_LATERAL_MPS2},
+    "grip": {
+        "lam": 2.5,
+        "max_lateral_accel_mps2": SPEED_LIMIT_LATERAL_MPS2,
+        "width_preview_s": 0.3,
+    },
     "tuned": {"lam": (20.0, 4.0), "lateral_decel_mps2": 5.0},
 }
 DEFAULT_GAINS = "grip"
@@ -170,7 +174,10 @@ class SafetyFilter(gym.Wrapper):
     i.e. ``accel <= lam_1 h + dv_limit/ds * v_x``. It needs the car's arc length on the
     track map (localisation, ``info["s_m"]``), not the perceived state; ``None`` turns it
     off. The lane barriers take the half widths' slopes along the track from the map at
-    the same ``s`` (see :mod:`saferace.safety.barriers`). ``map_curvature=True`` takes the
+    the same ``s`` (see :mod:`saferace.safety.barriers`); with ``width_preview_s`` they take
+    the narrowest width the car reaches within that time (and its slope) instead, since a
+    second-order barrier cannot see a narrowing coming: a lane narrowed at a real circuit's
+    kink widens and narrows again within metres. ``map_curvature=True`` takes the
     centerline's curvature from the map at ``s`` too, instead of the state source's: a
     learned state network judges the curvature under the car worst (off by 0.1-0.4 1/m on
     lab, against 0.02-0.03 m for ``e_y``), and a wrong curvature turns the lane barriers'
@@ -195,6 +202,7 @@ class SafetyFilter(gym.Wrapper):
         speed_limit_factor: float | None = 1.1,
         map_curvature: bool = False,
         linearisation_passes: int = 2,
+        width_preview_s: float = 0.0,
         params: VehicleParams | None = None,
     ) -> None:
         super().__init__(env)
@@ -236,6 +244,9 @@ class SafetyFilter(gym.Wrapper):
         if linearisation_passes < 1:
             raise ValueError(f"linearisation_passes must be at least 1, got {linearisation_passes}")
         self.linearisation_passes = linearisation_passes
+        if width_preview_s < 0.0:
+            raise ValueError(f"width_preview_s must be non-negative, got {width_preview_s}")
+        self.width_preview_s = width_preview_s
         self.track = env.unwrapped.track
         self.speed_limit = (
             braking_speed_limit(
@@ -296,10 +307,13 @@ class SafetyFilter(gym.Wrapper):
         if not chance:
             lane = lane.mean(axis=0, keepdims=True)
         states = self._model_states(lane, observation["velocity"])
-        w_left_slope, w_right_slope = self._width_slopes(float(info["s_m"]))
+        s_m = float(info["s_m"])
+        preview_m = self.width_preview_s * max(float(observation["velocity"][0]), 0.0)
+        w_right, w_left = self._lane_widths(s_m, preview_m)
+        w_left_slope, w_right_slope = self._width_slopes(s_m, preview_m)
         context = BarrierContext(
-            w_left_m=float(info["w_left_m"]),
-            w_right_m=float(info["w_right_m"]),
+            w_left_m=w_left,
+            w_right_m=w_right,
             half_width_m=self.half_width_m,
             theta_max_rad=self.theta_max,
             lam=self.lam,
@@ -437,10 +451,20 @@ class SafetyFilter(gym.Wrapper):
             lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
         return lower, upper
 
-    def _width_slopes(self, s_m: float) -> tuple[float, float]:
-        """``(d w_left / ds, d w_right / ds)`` of the track map at ``s_m``."""
-        right_ahead, left_ahead = self.track.widths(s_m + MAP_DS_M)
-        right_behind, left_behind = self.track.widths(s_m - MAP_DS_M)
+    def _lane_widths(self, s_m: float, preview_m: float) -> tuple[float, float]:
+        """Right and left half widths of the map at ``s_m``: the narrowest over the next
+        ``preview_m`` (sampled every ``MAP_DS_M``) when previewing."""
+        if preview_m <= 0.0:
+            right, left = self.track.widths(s_m)
+            return float(right), float(left)
+        ahead = s_m + np.linspace(0.0, preview_m, 2 + math.ceil(preview_m / MAP_DS_M))
+        right, left = self.track.widths(ahead)
+        return float(right.min()), float(left.min())
+
+    def _width_slopes(self, s_m: float, preview_m: float) -> tuple[float, float]:
+        """``(d w_left / ds, d w_right / ds)`` of :meth:`_lane_widths` at ``s_m``."""
+        right_ahead, left_ahead = self._lane_widths(s_m + MAP_DS_M, preview_m)
+        right_behind, left_behind = self._lane_widths(s_m - MAP_DS_M, preview_m)
         scale = 0.5 / MAP_DS_M
         return (left_ahead - left_behind) * scale, (right_ahead - right_behind) * scale
 
