@@ -216,12 +216,7 @@ class FrenetModel:
         by one matrix exponential.
         """
         a, b = self.jacobians(x, u, kappa)
-        c = self.f(x, u, kappa) - a @ x - b @ u
-        n, m = self.n_state, self.n_control
-        block = np.zeros((n + m + 1, n + m + 1))
-        block[:n, :n], block[:n, n : n + m], block[:n, -1] = a, b, c
-        exp = _expm(block * dt_s)
-        return exp[:n, :n], exp[:n, n : n + m], exp[:n, -1]
+        return _zero_order_hold(a, b, self.f(x, u, kappa) - a @ x - b @ u, dt_s)
 
     def discretize_with_steering_lag(
         self,
@@ -249,16 +244,21 @@ class FrenetModel:
         b_lag[:n, 1], b_lag[n, 0] = b[:, 1], rate
         x_dot = np.append(self.f(state, applied, kappa), rate * (u[0] - delta))
         c = x_dot - a_lag @ np.asarray(x, dtype=float) - b_lag @ np.asarray(u, dtype=float)
-        block = np.zeros((n + m + 2, n + m + 2))
-        block[: n + 1, : n + 1], block[: n + 1, n + 1 : -1], block[: n + 1, -1] = a_lag, b_lag, c
-        exp = _expm(block * dt_s)
-        return exp[: n + 1, : n + 1], exp[: n + 1, n + 1 : -1], exp[: n + 1, -1]
+        return _zero_order_hold(a_lag, b_lag, c, dt_s)
 
 
-def _expm(matrix: np.ndarray) -> np.ndarray:
+def _zero_order_hold(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, dt_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``x' = a x + b u + c`` with ``u`` held over ``dt_s``, discretised exactly by one
+    matrix exponential: ``(A_d, B_d, c_d)``."""
     from scipy.linalg import expm
 
-    return expm(matrix)
+    n, m = b.shape
+    block = np.zeros((n + m + 1, n + m + 1))
+    block[:n, :n], block[:n, n : n + m], block[:n, -1] = a, b, c
+    exp = expm(block * dt_s)
+    return exp[:n, :n], exp[:n, n : n + m], exp[:n, -1]
 
 
 @cache
