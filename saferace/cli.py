@@ -354,6 +354,13 @@ def _parser() -> argparse.ArgumentParser:
     shots.add_argument("--out", type=Path, default=Path("results/snapshots"))
     shots.add_argument("--tracks", nargs="*", help="track names or CSVs (default: all built-in)")
     shots.add_argument("--image-size", type=int, default=64)
+    shots.add_argument(
+        "--randomize",
+        metavar="PRESET",
+        help="instead, one contact sheet per track of the looks a domain-randomisation preset "
+        "(none, mild, strong) draws for --seeds",
+    )
+    shots.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     shots.set_defaults(command=_snapshots)
     return parser
 
@@ -857,10 +864,15 @@ def _check_count(flag: str, value: int) -> None:
 
 
 def _snapshots(args: argparse.Namespace) -> int:
-    from saferace.eval.drive import snapshots
+    from saferace.eval.drive import contact_sheets, snapshots
     from saferace.track import builtin_track_names
 
-    for path in snapshots(args.out, args.tracks or builtin_track_names(), args.image_size):
+    tracks = args.tracks or builtin_track_names()
+    if args.randomize:
+        paths = contact_sheets(args.out, tracks, args.randomize, args.seeds, args.image_size)
+    else:
+        paths = snapshots(args.out, tracks, args.image_size)
+    for path in paths:
         print(path)
     return 0
 

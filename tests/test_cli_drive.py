@@ -67,3 +67,17 @@ def test_snapshots_of_every_track(tmp_path: Path):
     image = cv2.imread(str(tmp_path / "lab_stereo.png"))
     top, bottom = image[:120, :120], image[120:, :120]
     assert np.abs(top.astype(int) - bottom.astype(int)).mean() > 1.0  # two different cameras
+
+
+def test_snapshots_of_a_randomisation_preset_make_a_contact_sheet(tmp_path: Path):
+    result = run_cli(
+        "snapshots", "--randomize", "strong", "--seeds", "0", "1", "--tracks", "lab",
+        "--out", str(tmp_path),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    sheet = cv2.imread(str(tmp_path / "lab_strong_looks.png"))
+    assert sheet.shape[0] == 2 * 240  # a row per seed, chase view 240 high
+    first, second = sheet[:240].astype(int), sheet[240:].astype(int)
+    assert np.abs(first - second).mean() > 5.0  # two different looks
+    refused = run_cli("snapshots", "--randomize", "wild", "--out", str(tmp_path))
+    assert refused.returncode != 0 and "unknown VisualRandomization preset 'wild'" in refused.stderr

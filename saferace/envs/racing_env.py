@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import atexit
+import copy
+import dataclasses
 import functools
 import math
 import weakref
@@ -13,6 +15,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from saferace.envs.car_variation import CarVariation
 from saferace.envs.drivetrain import (
     DrivetrainParams,
     ackermann_angles,
@@ -21,7 +24,14 @@ from saferace.envs.drivetrain import (
     wheel_torques,
 )
 from saferace.envs.gl_backend import renderer_error
+from saferace.envs.randomization import (
+    PhysicsRandomization,
+    VisualRandomization,
+    physics_randomization,
+    visual_randomization,
+)
 from saferace.envs.scene import SceneOptions, build_model
+from saferace.envs.scene_look import SceneLook
 from saferace.errors import SafeRaceError
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.frenet import wrap_arc
@@ -111,7 +121,15 @@ class RacingEnv(gym.Env):
     ``"technical"``); ``image_size=(64, 64)`` (H, W); ``stereo=False``; ``control_hz=20``;
     ``physics_dt_s=0.005``; ``max_laps=1``; ``max_steps=None``; ``render_mode=None`` or
     ``"rgb_array"`` (chase view of ``render_size=(240, 320)``); ``start_s_m=0.0``;
-    ``random_start=False``; ``deviation_weight=1.0``; ``scene_options``.
+    ``random_start=False``; ``deviation_weight=1.0``; ``scene_options``;
+    ``randomize``: visual domain randomisation, a preset (``"none"``, ``"mild"``,
+    ``"strong"``) or a :class:`~saferace.envs.randomization.VisualRandomization` of ranges
+    (light, colours, textures, lane markings, roadside objects, onboard camera mounting,
+    image noise and blur); ``physics_randomize``: the same for the car (mass, tyre friction,
+    motor strength; :class:`~saferace.envs.randomization.PhysicsRandomization`). Both are
+    drawn at each reset from the env's seeded generator (same seed, same look and car) and
+    written into the model in place; the values drawn are in the reset info as ``look`` and
+    ``car``.
 
     ## Version history
     - v0: first release.
@@ -135,6 +153,8 @@ class RacingEnv(gym.Env):
         random_start: bool = False,
         deviation_weight: float = 1.0,
         scene_options: SceneOptions | None = None,
+        randomize: str | VisualRandomization | None = None,
+        physics_randomize: str | PhysicsRandomization | None = None,
     ) -> None:
         _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode, self.metadata)
         self._init_kwargs = dict(
@@ -151,7 +171,11 @@ class RacingEnv(gym.Env):
             random_start=random_start,
             deviation_weight=deviation_weight,
             scene_options=scene_options,
+            randomize=randomize,
+            physics_randomize=physics_randomize,
         )
+        self.randomize = visual_randomization(randomize)
+        self.physics_randomize = physics_randomization(physics_randomize)
         self.track = track if isinstance(track, Track) else Track.load(track)
         self.reference = reference_line(self.track, self.reference_kind)
         self.params = DrivetrainParams()
@@ -170,9 +194,21 @@ class RacingEnv(gym.Env):
         self.metadata = {**self.metadata, "render_fps": control_hz}
 
         options = scene_options or SceneOptions()
+        if not self.randomize.is_identity:
+            options = dataclasses.replace(options, randomizable=True)
         self.model = build_model(self.track, options)
         self.model.opt.timestep = physics_dt_s
         self.data = mujoco.MjData(self.model)
+        self._look = (
+            None
+            if self.randomize.is_identity
+            else SceneLook(self.model, self.randomize, self.image_size)
+        )
+        self._car = (
+            None
+            if self.physics_randomize.is_identity
+            else CarVariation(self.model, self.params, self.physics_randomize)
+        )
         self._ids = _ModelIds(self.model)
         self._projector = self.track.projector()
         self._cameras = ("stereo_left", "stereo_right") if stereo else ("front_camera",)
@@ -193,6 +229,7 @@ class RacingEnv(gym.Env):
         )
         self._steer_target = 0.0
         self._episode: dict[str, Any] = {}
+        self._variation_rng: dict[str, Any] | None = None  # the generator's state at the draw
 
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -207,6 +244,7 @@ class RacingEnv(gym.Env):
         start_speed = options.get("start_speed_mps")
         if start_speed is not None and not 0.0 <= float(start_speed) <= 20.0:
             raise SafeRaceError(f"start_speed_mps must be between 0 and 20 m/s, got {start_speed}")
+        variations = self._vary()
         self._place_car(start_s % self.track.length_m, start_speed)
         self._steer_target = 0.0
         pose = self._pose()
@@ -222,7 +260,7 @@ class RacingEnv(gym.Env):
         )
         velocity = self._velocity()
         info = self._info(pose, frenet, velocity, progress_m=0.0, lap_completed=False)
-        return self._observation(velocity), info
+        return self._observation(velocity), {**info, **variations}
 
     def step(self, action):
         steer_cmd, accel_cmd = self._clipped(action)
@@ -271,6 +309,8 @@ class RacingEnv(gym.Env):
             episode=self._episode,
             projector=self._projector.get_state(),
             np_random=self._np_random,
+            variation_rng=self._variation_rng,
+            noise_index=self._look.noise_index if self._look else 0,
         )
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -281,9 +321,27 @@ class RacingEnv(gym.Env):
         self._steer_target = state["steer_target"]
         self._episode = state["episode"]
         self._projector.set_state(state["projector"])
+        if state["variation_rng"] is not None:  # the same look and car again
+            self._np_random = np.random.Generator(np.random.PCG64())
+            self._np_random.bit_generator.state = state["variation_rng"]
+            self._vary()
+            if self._look is not None:
+                self._look.noise_index = state["noise_index"]
         self._np_random = state["np_random"]
 
     # ------------------------------------------------------------- internals
+    def _vary(self) -> dict[str, dict[str, Any]]:
+        """Draw this episode's look and car, apply them, and return the values drawn."""
+        variations: dict[str, dict[str, Any]] = {}
+        self._variation_rng = copy.deepcopy(self.np_random.bit_generator.state)
+        if self._look is not None:
+            variations["look"] = self._look.apply(self.np_random)
+            for renderer in self._renderers.values():
+                self._look.upload(renderer)
+        if self._car is not None:
+            self.params, variations["car"] = self._car.apply(self.np_random)
+        return variations
+
     def _place_car(self, s_m: float, speed_mps: float | None = None) -> None:
         model, data = self.model, self.data
         mujoco.mj_resetData(model, data)
@@ -392,7 +450,10 @@ class RacingEnv(gym.Env):
         images = []
         for camera in self._cameras:
             renderer.update_scene(self.data, camera=camera, scene_option=self._onboard_option)
-            images.append(renderer.render())
+            image = renderer.render()
+            if self._look is not None:
+                image = self._look.postprocess(image)
+            images.append(image)
         image = images[0] if len(images) == 1 else np.concatenate(images, axis=2)
         return {"image": image, "velocity": velocity}
 

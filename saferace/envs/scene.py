@@ -4,8 +4,12 @@ The scene has what the cameras need and nothing that costs render time on a CPU:
 one asphalt ribbon mesh, two white boundary-line meshes (what the networks look at,
 so they are emissive and crisp even at 64x64), a start/finish line, a grass ground
 plane with a coarse grid, and some roadside cones and boxes for visual structure.
-Shadows and multisampling are off. Only the car's tyres and chassis collide, with
-the ground plane; every other scene element is visual.
+Shadows and multisampling are off. Only the car's tyres and chassis collide, with the
+ground plane; every other scene element is visual. A ``randomizable`` scene gives the
+asphalt a plain white texture and adds hidden dashed lines, which domain randomisation
+repaints, moves and shows in place (:mod:`saferace.envs.scene_look`). The texture costs a
+software rasteriser about 7% of a 64x64 step; every mesh vertex drawn costs too, so the
+dashed lines are drawn only when shown.
 """
 
 from __future__ import annotations
@@ -28,6 +32,11 @@ START_RGBA = (0.85, 0.10, 0.10, 1.0)
 ROADSIDE_RGBA = ((1.0, 0.45, 0.0, 1.0), (0.15, 0.35, 0.85, 1.0), (0.95, 0.85, 0.10, 1.0))
 
 _SURFACE_Z_M = {"asphalt": 0.002, "lines": 0.004, "start": 0.005}
+ASPHALT_TEXTURE = "asphalt_texture"
+ASPHALT_TEXTURE_TEXELS = 64
+ASPHALT_TEXTURE_TILE_M = 1.0  # the asphalt's texture repeats every metre in x and y
+#: Dashes and gaps of a dashed line (randomizable scene); no piece of line spans two.
+DASH_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -41,6 +50,7 @@ class SceneOptions:
     roadside_objects: bool = True
     max_image_width: int = 640
     max_image_height: int = 480
+    randomizable: bool = False
 
 
 def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjSpec:
@@ -52,13 +62,24 @@ def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjS
     _add_ground_and_light(spec, track)
     s = mesh_samples(track, options.mesh_chord_error_m, options.mesh_max_step_m)
     left, right = track.boundaries_at(s)
+    z_lines = _SURFACE_Z_M["lines"]
+    if options.randomizable:
+        _add_white_texture(spec, ASPHALT_TEXTURE, ASPHALT_TEXTURE_TEXELS)
+        closed_left, closed_right = np.vstack([left, left[:1]]), np.vstack([right, right[:1]])
+        uv = (closed_left / ASPHALT_TEXTURE_TILE_M, closed_right / ASPHALT_TEXTURE_TILE_M)
+        _add_ribbon(spec, "asphalt", left, right, ASPHALT_RGBA, _SURFACE_Z_M["asphalt"], 0.0, uv)
+        line_emission = 0.0  # lines dim with the randomised light
+    else:
+        _add_ribbon(spec, "asphalt", left, right, ASPHALT_RGBA, _SURFACE_Z_M["asphalt"], 0.0)
+        line_emission = 0.6
     normals = track.centerline.normal(s)
-    _add_ribbon(spec, "asphalt", left, right, ASPHALT_RGBA, _SURFACE_Z_M["asphalt"], emission=0.0)
     width = options.line_width_m
-    _add_ribbon(spec, "left_line", left, left - width * normals, LINE_RGBA, _SURFACE_Z_M["lines"])
+    _add_ribbon(spec, "left_line", left, left - width * normals, LINE_RGBA, z_lines, line_emission)
     _add_ribbon(
-        spec, "right_line", right + width * normals, right, LINE_RGBA, _SURFACE_Z_M["lines"]
+        spec, "right_line", right + width * normals, right, LINE_RGBA, z_lines, line_emission
     )
+    if options.randomizable:
+        _add_dashes(spec, track, dash_pieces(track, options), width, z_lines)
     _add_start_line(spec, track)
     if options.roadside_objects:
         _add_roadside_objects(spec, track, options.roadside_spacing_m)
@@ -87,6 +108,56 @@ def _configure_visual(spec: mujoco.MjSpec, track: Track, options: SceneOptions) 
     spec.visual.headlight.ambient = [0.45, 0.45, 0.45]
     spec.visual.headlight.diffuse = [0.35, 0.35, 0.35]
     spec.visual.headlight.specular = [0.0, 0.0, 0.0]
+
+
+def _add_white_texture(spec: mujoco.MjSpec, name: str, texels: int) -> None:
+    texture = spec.add_texture(name=name, type=mujoco.mjtTexture.mjTEXTURE_2D)
+    texture.width = texture.height = texels
+    texture.nchannel = 3
+    texture.data = bytes([255]) * (3 * texels * texels)
+
+
+def dash_pieces(track: Track, options: SceneOptions) -> np.ndarray:
+    """Start and end arc lengths (m) of the pieces of a dashed line: the lane meshes'
+    vertices split at every multiple of ``DASH_M``, keeping every other stretch."""
+    s = mesh_samples(track, options.mesh_chord_error_m, options.mesh_max_step_m)
+    s = np.union1d(s, np.arange(0.0, track.length_m, DASH_M))
+    ends = np.append(s[1:], track.length_m)
+    in_dash = np.floor(0.5 * (s + ends) / DASH_M) % 2 == 0
+    return np.column_stack([s[in_dash], ends[in_dash]])
+
+
+def _add_dashes(
+    spec: mujoco.MjSpec, track: Track, pieces: np.ndarray, width_m: float, z_m: float
+) -> None:
+    """Dashed boundary lines, hidden (alpha 0) until a look shows them: separate quads
+    of four vertices each (outer edge, inner edge at the piece's start, then at its end)."""
+    starts, ends = pieces[:, 0], pieces[:, 1]
+    first = 4 * np.arange(len(pieces))[:, None]
+    for name, side in (("left_dashes", 1.0), ("right_dashes", -1.0)):
+        vertices = np.empty((len(pieces), 4, 3))
+        for column, s in ((0, starts), (2, ends)):
+            left, right = track.boundaries_at(s)
+            outer = left if side > 0 else right
+            vertices[:, column, :2] = outer
+            vertices[:, column + 1, :2] = outer - side * width_m * track.centerline.normal(s)
+        vertices[..., 2] = z_m
+        # faces up (counter-clockwise seen from above) on either side of the lane
+        order = [[0, 1, 2], [1, 3, 2]] if side > 0 else [[0, 2, 1], [1, 2, 3]]
+        faces = np.concatenate([first + np.array(triangle) for triangle in order])
+        mesh = spec.add_mesh(name=f"{name}_mesh")
+        mesh.uservert = vertices.ravel().tolist()
+        mesh.userface = faces.ravel().astype(int).tolist()
+        mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_SHELL
+        spec.worldbody.add_geom(
+            name=name,
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=mesh.name,
+            material="left_line_material",
+            rgba=[1.0, 1.0, 1.0, 0.0],
+            contype=0,
+            conaffinity=0,
+        )
 
 
 def _add_ground_and_light(spec: mujoco.MjSpec, track: Track) -> None:
@@ -154,15 +225,26 @@ def _add_ribbon(
     rgba: tuple[float, ...],
     z_m: float,
     emission: float = 0.6,
+    texcoords: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
-    """A closed flat strip between two polylines, faces up, as one visual mesh geom."""
+    """A closed flat strip between two polylines, faces up, as one visual mesh geom.
+
+    With ``texcoords`` (``(u, v)`` of the left and the right polyline, one more row each
+    than the polylines: the closing pair) the strip gets the texture ``{name}_texture``,
+    and a repeated first pair closes it so that the texture does not run backwards over
+    the last quad.
+    """
     count = len(left)
-    vertices = np.empty((2 * count, 3))
+    if texcoords is not None:
+        left, right = np.vstack([left, left[:1]]), np.vstack([right, right[:1]])
+    vertex_pairs = len(left)
+    vertices = np.empty((2 * vertex_pairs, 3))
     vertices[0::2, :2], vertices[1::2, :2] = left, right
     vertices[:, 2] = z_m
     i = np.arange(count)
     left_i, right_i = 2 * i, 2 * i + 1
-    left_j, right_j = 2 * ((i + 1) % count), 2 * ((i + 1) % count) + 1
+    following = (i + 1) % vertex_pairs
+    left_j, right_j = 2 * following, 2 * following + 1
     faces = np.concatenate(
         [np.stack([right_i, right_j, left_i], 1), np.stack([left_i, right_j, left_j], 1)]
     )
@@ -173,6 +255,11 @@ def _add_ribbon(
     material = spec.add_material(name=f"{name}_material", rgba=list(rgba))
     material.emission = emission
     material.specular = 0.0
+    if texcoords is not None:
+        uv = np.empty((2 * vertex_pairs, 2))
+        uv[0::2], uv[1::2] = texcoords
+        mesh.usertexcoord = uv.ravel().tolist()
+        material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"{name}_texture"
     spec.worldbody.add_geom(
         name=name,
         type=mujoco.mjtGeom.mjGEOM_MESH,

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import cv2
 import gymnasium as gym
+import numpy as np
 
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
@@ -90,4 +91,37 @@ def snapshots(out_dir: str | Path, tracks: list[str], image_size: int = 64) -> l
             cv2.imwrite(str(path), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
             written.append(path)
             env.close()
+    return written
+
+
+def contact_sheets(
+    out_dir: str | Path,
+    tracks: list[str],
+    randomize: str,
+    seeds: list[int],
+    image_size: int = 64,
+) -> list[Path]:
+    """One PNG per track of the looks that ``randomize`` draws for ``seeds``: a row per seed,
+    the onboard view (scaled up) beside the chase view, the seed written on each row."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in tracks:
+        env = gym.make(
+            task_id("RacingLine"),
+            track=name,
+            image_size=(image_size, image_size),
+            render_mode="rgb_array",
+            randomize=randomize,
+        )
+        rows = []
+        for seed in seeds:
+            observation, _ = env.reset(seed=seed)
+            row = side_by_side(observation["image"], env.render())
+            cv2.putText(row, f"seed {seed}", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 0))
+            rows.append(row)
+        env.close()
+        path = out_dir / f"{Path(name).stem}_{randomize}_looks.png"
+        cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
+        written.append(path)
     return written

@@ -1,0 +1,215 @@
+"""Per-episode looks of a randomizable scene, applied to the compiled model in place.
+
+:class:`SceneLook` draws a look from :class:`~saferace.envs.randomization.VisualRandomization`
+ranges and writes it into the ``MjModel`` (light, colours, the asphalt's and the sky's
+texels, the boundary lines' pieces, roadside objects, the onboard cameras), starting each
+time from the values as built. Renderers made before a draw get the changed textures and
+meshes uploaded (:meth:`SceneLook.upload`); no scene is rebuilt. Image noise and blur are
+applied to each rendered onboard image (:meth:`SceneLook.postprocess`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import mujoco
+import numpy as np
+
+from saferace.envs.randomization import VisualRandomization
+from saferace.envs.scene import ASPHALT_TEXTURE, ROADSIDE_RGBA
+
+ONBOARD_CAMERAS = ("front_camera", "stereo_left", "stereo_right")
+SKY_TEXTURE = "sky"
+LINES = ("left_line", "right_line")
+DASHES = ("left_dashes", "right_dashes")
+#: Noise images drawn per episode; successive images get them in turn.
+NOISE_BANK_SIZE = 8
+_RGB = int(mujoco.mjtTextureRole.mjTEXROLE_RGB)
+
+
+class SceneLook:
+    """Draws looks from ``ranges`` and applies them to ``model`` (built ``randomizable``)
+    and to onboard images of ``image_size`` (H, W)."""
+
+    def __init__(
+        self, model: mujoco.MjModel, ranges: VisualRandomization, image_size: tuple[int, int]
+    ) -> None:
+        self.model, self.ranges, self.image_size = model, ranges, image_size
+        self._sun = model.light("sun").id
+        self._sun_dir = model.light_dir[self._sun].copy()
+        self._sun_diffuse = model.light_diffuse[self._sun].copy()
+        self._head_ambient = model.vis.headlight.ambient.copy()
+        self._head_diffuse = model.vis.headlight.diffuse.copy()
+        self._asphalt = model.material("asphalt_material").id
+        self._asphalt_rgba = model.mat_rgba[self._asphalt].copy()
+        self._asphalt_texid = int(model.mat_texid[self._asphalt, _RGB])
+        self._ground = model.geom("ground").id
+        self._ground_rgba = model.geom_rgba[self._ground].copy()
+        self._textures = [model.texture(name).id for name in (ASPHALT_TEXTURE, SKY_TEXTURE)]
+        self._sky_texels = self._texels(self._textures[1]).copy()
+        self._line_materials = [model.material(f"{name}_material").id for name in LINES]
+        self._solid = [model.geom(name).id for name in LINES]
+        self._dashed = [model.geom(name).id for name in DASHES]
+        self._meshes = [model.mesh(f"{name}_mesh").id for name in (*LINES, *DASHES)]
+        self._built_pairs = [self._pairs(mesh).copy() for mesh in self._meshes]
+        # which edge of each mesh's vertex pairs is the inner one (see scene._add_ribbon and
+        # scene._add_dashes): the right solid line's pairs run inner edge first
+        self._inner_edge = [0 if name == "right_line" else 1 for name in (*LINES, *DASHES)]
+        self._roadside = [
+            model.geom(f"roadside_{kind}").id
+            for kind in range(len(ROADSIDE_RGBA))
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"roadside_{kind}") >= 0
+        ]
+        self._roadside_rgba = model.geom_rgba[self._roadside].copy()
+        self._cameras = [model.camera(name).id for name in ONBOARD_CAMERAS]
+        self._camera_pos = model.cam_pos[self._cameras].copy()
+        self._camera_quat = model.cam_quat[self._cameras].copy()
+        self._camera_fovy = model.cam_fovy[self._cameras].copy()
+        self.image_blur_sigma_px = 0.0
+        self._noise_bank: np.ndarray | None = None
+        self.noise_index = 0  # images noised this episode
+
+    def apply(self, rng: np.random.Generator) -> dict[str, Any]:
+        """Draw a look with ``rng`` and write it into the model; the values drawn."""
+        r = self.ranges
+        drawn: dict[str, Any] = {}
+
+        def uniform(name: str) -> float:
+            low, high = getattr(r, name)
+            drawn[name] = float(rng.uniform(low, high)) if high > low else float(low)
+            return drawn[name]
+
+        def tint(name: str) -> np.ndarray:
+            spread = uniform(name)
+            return 1.0 + rng.uniform(-spread, spread, 3)
+
+        azimuth, elevation = uniform("light_azimuth_rad"), uniform("light_elevation_rad")
+        self._light(azimuth, elevation, uniform("light_intensity") * tint("light_tint"))
+        asphalt = self._asphalt_rgba[:3] * uniform("asphalt_brightness") * tint("asphalt_tint")
+        asphalt = np.clip(asphalt, 0.0, 1.0)
+        self.model.mat_rgba[self._asphalt, :3] = asphalt
+        self._asphalt_texture(uniform("asphalt_texture_contrast"), rng)
+        ground = self._ground_rgba[:3] * uniform("ground_brightness") * tint("ground_tint")
+        self.model.geom_rgba[self._ground, :3] = np.clip(ground, 0.0, 1.0)
+        sky = self._sky_texels * uniform("sky_brightness") * tint("sky_tint")
+        self._texels(self._textures[1])[:] = np.clip(sky, 0, 255).astype(np.uint8)
+        fade = uniform("line_fade")
+        paint = (1.0 - fade) + fade * asphalt
+        for material in self._line_materials:
+            self.model.mat_rgba[material, :3] = paint
+        drawn["line_dashed"] = dashed = bool(rng.random() < r.line_dashed_probability)
+        for solid, dashes in zip(self._solid, self._dashed, strict=True):
+            self.model.geom_rgba[solid, 3] = 0.0 if dashed else 1.0
+            self.model.geom_rgba[dashes] = [*paint, 1.0 if dashed else 0.0]
+        self._line_shape(uniform("line_width_scale"), uniform("line_wear"), rng)
+        self._roadside_objects(uniform("roadside_tint"), rng, drawn)
+        height, pitch = uniform("camera_height_m"), uniform("camera_pitch_rad")
+        self._camera(height, pitch, uniform("camera_fovy_deg"))
+        noise_std = uniform("image_noise_std")
+        self.image_blur_sigma_px = uniform("image_blur_sigma_px")
+        self._noise_bank, self.noise_index = None, 0
+        if noise_std > 0.0:
+            self._noise_bank = self._draw_noise_bank(noise_std, rng)
+        return drawn
+
+    def upload(self, renderer: mujoco.Renderer) -> None:
+        """Send the repainted textures and reshaped meshes to ``renderer``'s GL context.
+
+        ``mujoco.Renderer`` uploads the model once, when it is made, and has no public
+        call to upload again; this uses its context as MuJoCo's own viewer does.
+        """
+        renderer._gl_context.make_current()
+        context = renderer._mjr_context
+        for texture in self._textures:
+            mujoco.mjr_uploadTexture(self.model, context, texture)
+        for mesh in self._meshes:
+            mujoco.mjr_uploadMesh(self.model, context, mesh)
+
+    def postprocess(self, image: np.ndarray) -> np.ndarray:
+        """``image`` blurred and noised as drawn for this episode (unchanged if neither)."""
+        if self.image_blur_sigma_px > 0.0:
+            image = cv2.GaussianBlur(image, (0, 0), self.image_blur_sigma_px)
+        if self._noise_bank is not None:
+            self.noise_index += 1
+            noise = self._noise_bank[self.noise_index % NOISE_BANK_SIZE]
+            image = cv2.add(image, noise, dtype=cv2.CV_8U)  # saturating
+        return image
+
+    # ------------------------------------------------------------------ parts
+    def _texels(self, texture: int) -> np.ndarray:
+        """The texture's texels as a writable ``(height, width, channels)`` view."""
+        model = self.model
+        height, width, channels = (
+            model.tex_height[texture],
+            model.tex_width[texture],
+            model.tex_nchannel[texture],
+        )
+        start = model.tex_adr[texture]
+        flat = model.tex_data[start : start + height * width * channels]
+        return flat.reshape(height, width, channels)
+
+    def _pairs(self, mesh: int) -> np.ndarray:
+        """A line mesh's vertices as a writable ``(n, 2, 3)`` view of pairs across it."""
+        start, count = self.model.mesh_vertadr[mesh], self.model.mesh_vertnum[mesh]
+        return self.model.mesh_vert[start : start + count].reshape(-1, 2, 3)
+
+    def _light(self, azimuth_rad: float, elevation_rad: float, colour: np.ndarray) -> None:
+        x, y, z = self._sun_dir
+        azimuth = math.atan2(y, x) + azimuth_rad
+        elevation = min(max(math.atan2(-z, math.hypot(x, y)) + elevation_rad, 0.2), 1.5)
+        self.model.light_dir[self._sun] = [
+            math.cos(elevation) * math.cos(azimuth),
+            math.cos(elevation) * math.sin(azimuth),
+            -math.sin(elevation),
+        ]
+        self.model.light_diffuse[self._sun] = np.clip(self._sun_diffuse * colour, 0.0, 1.0)
+        self.model.vis.headlight.ambient = np.clip(self._head_ambient * colour, 0.0, 1.0)
+        self.model.vis.headlight.diffuse = np.clip(self._head_diffuse * colour, 0.0, 1.0)
+
+    def _asphalt_texture(self, contrast: float, rng: np.random.Generator) -> None:
+        """White less ``contrast`` times smooth noise scaled to [0, 1]; none at contrast 0,
+        since sampling a texture costs a software rasteriser about 7% of a 64x64 step."""
+        self.model.mat_texid[self._asphalt, _RGB] = self._asphalt_texid if contrast else -1
+        texels = self._texels(self._textures[0])
+        noise = cv2.GaussianBlur(rng.random(texels.shape[:2]), (0, 0), 1.0)
+        noise = (noise - noise.min()) / max(float(np.ptp(noise)), 1e-9)
+        texels[:] = np.rint(255.0 * (1.0 - contrast * noise))[..., None].astype(np.uint8)
+
+    def _line_shape(self, width_scale: float, wear: float, rng: np.random.Generator) -> None:
+        """Every line ``width_scale`` times as wide as built, and at worn vertex pairs (a
+        share ``wear``) a random 0-50% of that: notches in solid lines, chipped dashes."""
+        for mesh, built, inner in zip(
+            self._meshes, self._built_pairs, self._inner_edge, strict=True
+        ):
+            outer = 1 - inner
+            worn = rng.random(len(built)) < wear
+            scale = width_scale * np.where(worn, rng.uniform(0.0, 0.5, len(built)), 1.0)
+            offset = built[:, inner] - built[:, outer]
+            self._pairs(mesh)[:, inner] = built[:, outer] + scale[:, None] * offset
+
+    def _roadside_objects(
+        self, spread: float, rng: np.random.Generator, drawn: dict[str, Any]
+    ) -> None:
+        hidden = rng.random(len(self._roadside)) < self.ranges.roadside_hidden_probability
+        drawn["roadside_hidden"] = int(hidden.sum())
+        for k, geom in enumerate(self._roadside):
+            colour = self._roadside_rgba[k, :3] * (1.0 + rng.uniform(-spread, spread, 3))
+            self.model.geom_rgba[geom] = [*np.clip(colour, 0.0, 1.0), 0.0 if hidden[k] else 1.0]
+
+    def _camera(self, height_m: float, pitch_rad: float, fovy_deg: float) -> None:
+        """Raise, pitch down (about each camera's own x axis) and widen the onboard cameras."""
+        tilt = np.empty(4)
+        mujoco.mju_axisAngle2Quat(tilt, np.array([1.0, 0.0, 0.0]), -pitch_rad)
+        for k, camera in enumerate(self._cameras):
+            self.model.cam_pos[camera] = self._camera_pos[k] + [0.0, 0.0, height_m]
+            quat = np.empty(4)
+            mujoco.mju_mulQuat(quat, self._camera_quat[k], tilt)
+            self.model.cam_quat[camera] = quat
+            self.model.cam_fovy[camera] = self._camera_fovy[k] + fovy_deg
+
+    def _draw_noise_bank(self, std: float, rng: np.random.Generator) -> np.ndarray:
+        """``NOISE_BANK_SIZE`` Gaussian noise images (int16) of the onboard images' size."""
+        shape = (NOISE_BANK_SIZE, *self.image_size, 3)
+        return np.rint(rng.normal(0.0, std, shape)).astype(np.int16)
