@@ -350,6 +350,22 @@ def _parser() -> argparse.ArgumentParser:
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     tables.set_defaults(command=_paper_tables)
 
+    export = commands.add_parser(
+        "export-minari",
+        help="collection or DAgger rounds as a Minari dataset (minari.load_dataset)",
+    )
+    export.add_argument("rounds", nargs="+", type=Path, help="round or dataset folders")
+    export.add_argument(
+        "--name", required=True, help="dataset id, e.g. saferace/lab-racing-expert-v0"
+    )
+    export.add_argument(
+        "--datasets-dir",
+        type=Path,
+        help="Minari's dataset root (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)",
+    )
+    export.add_argument("--description", help="the dataset's description (default: generated)")
+    export.set_defaults(command=_export_minari)
+
     shots = commands.add_parser("snapshots", help="PNGs of the onboard and chase views of tracks")
     shots.add_argument("--out", type=Path, default=Path("results/snapshots"))
     shots.add_argument("--tracks", nargs="*", help="track names or CSVs (default: all built-in)")
@@ -861,6 +877,17 @@ def _cell(value):
 def _check_count(flag: str, value: int) -> None:
     if value < 1:
         raise SafeRaceError(f"{flag} must be at least 1, got {value}")
+
+
+def _export_minari(args: argparse.Namespace) -> int:
+    from saferace.learning.minari_export import export_minari
+
+    dataset = export_minari(args.rounds, args.name, args.datasets_dir, args.description)
+    print(
+        f"{args.name}: {dataset.total_episodes} episodes, {dataset.total_steps} steps, "
+        f"in {dataset.storage.data_path}"
+    )
+    return 0
 
 
 def _snapshots(args: argparse.Namespace) -> int:

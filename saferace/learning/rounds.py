@@ -205,6 +205,25 @@ def load_rounds(paths: Iterable[str | Path], held_out: bool = False) -> FrameSet
     return FrameSet(arrays, manifests)
 
 
+def round_episodes(round_dir: str | Path) -> tuple[dict, list[dict[str, np.ndarray]]]:
+    """A round's manifest and its episodes as driven: each episode's frames, training and
+    held-out together, in time order."""
+    round_dir = Path(round_dir)
+    manifest = json.loads((round_dir / MANIFEST_FILE).read_text())
+    parts = []
+    for name, count_key in ((FRAMES_FILE, "frame_count"), (HELD_OUT_FILE, "held_out_frame_count")):
+        if manifest.get(count_key, 0):
+            with np.load(round_dir / name) as stored:
+                parts.append({field: stored[field] for field in FRAME_FIELDS})
+    frames = {field: np.concatenate([part[field] for part in parts]) for field in FRAME_FIELDS}
+    episodes = []
+    for episode in np.unique(frames["episode"]):
+        rows = np.flatnonzero(frames["episode"] == episode)
+        rows = rows[np.argsort(frames["time_s"][rows], kind="stable")]
+        episodes.append({field: values[rows] for field, values in frames.items()})
+    return manifest, episodes
+
+
 def _checked_frames(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     missing = set(FRAME_FIELDS) - set(arrays)
     if missing:
