@@ -125,6 +125,7 @@ def _parser() -> argparse.ArgumentParser:
         "--max-seconds", type=float, help="end an episode after this much simulated time"
     )
     collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
+    _add_randomize_argument(collect)
     _add_filter_arguments(collect)
     collect.set_defaults(command=_collect)
 
@@ -334,6 +335,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     dagger.add_argument("--seed", type=int, default=0, help="seeds training and dropout masks")
     dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
+    _add_randomize_argument(dagger)
     dagger.set_defaults(command=_dagger)
 
     tables = commands.add_parser(
@@ -349,6 +351,33 @@ def _parser() -> argparse.ArgumentParser:
     tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     tables.set_defaults(command=_paper_tables)
+
+    robust = commands.add_parser(
+        "robustness",
+        help="a driver in each domain-randomisation preset's looks: completion, lane, state error",
+    )
+    _add_episode_arguments(robust, default_agent="expert")
+    robust.add_argument(
+        "--presets", nargs="+", default=["none", "mild", "strong"], help="looks to drive in"
+    )
+    robust.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="a look per seed")
+    robust.add_argument(
+        "--physics", action="store_true", help="the car varies with the same preset too"
+    )
+    robust.add_argument(
+        "--monitor-state",
+        metavar="learned:CKPT",
+        help="score this state network beside an unfiltered run (a filtered run scores its own)",
+    )
+    robust.add_argument(
+        "--model", default="dynamic", choices=VEHICLE_MODELS, help="the expert's vehicle model"
+    )
+    robust.add_argument(
+        "--max-seconds", type=float, default=60.0, help="end a run after this much simulated time"
+    )
+    robust.add_argument("--out", type=Path, required=True, help="folder of runs.jsonl and tables")
+    _add_filter_arguments(robust)
+    robust.set_defaults(command=_robustness)
 
     export = commands.add_parser(
         "export-minari",
@@ -727,6 +756,7 @@ def _collect(args: argparse.Namespace) -> int:
         image_size=(args.image_size, args.image_size),
         stereo=args.stereo,
         mc_samples=args.mc_samples,
+        randomize=args.randomize,
     )
     collected = collect_round(args.out, config)
     rows = [
@@ -849,6 +879,7 @@ def _dagger(args: argparse.Namespace) -> int:
         mc_samples=args.mc_samples,
         beta_rampdown=args.beta_rampdown,
         max_seconds=args.max_seconds,
+        randomize=args.randomize,
     )
     rows = DaggerRun(args.out, config, fork_of=args.fork_of).run()
     print(
@@ -879,6 +910,47 @@ def _check_count(flag: str, value: int) -> None:
         raise SafeRaceError(f"{flag} must be at least 1, got {value}")
 
 
+def _robustness(args: argparse.Namespace) -> int:
+    from saferace.eval.robustness import (
+        TABLE_COLUMNS,
+        RobustnessConfig,
+        plot_robustness,
+        robustness_rows,
+        run_robustness,
+    )
+    from saferace.eval.tables import markdown_table, write_csv
+
+    _check_count("--laps", args.laps)
+    monitor = args.monitor_state
+    if monitor is not None and not monitor.startswith("learned:"):
+        raise SafeRaceError(f"--monitor-state must be learned:CHECKPOINT, got {monitor}")
+    config = RobustnessConfig(
+        agent=args.agent,
+        task=args.task,
+        track=args.track,
+        presets=tuple(args.presets),
+        seeds=tuple(args.seeds),
+        laps=args.laps,
+        max_seconds=args.max_seconds,
+        physics=args.physics,
+        safety=_filter_config(args),
+        monitor_state_source=monitor,
+        model=args.model,
+        image_size=args.image_size,
+        stereo=args.stereo,
+        mc_samples=args.mc_samples,
+    )
+    runs = run_robustness(config, args.out)
+    rows = robustness_rows(runs, config.presets, config.laps)
+    table = markdown_table(TABLE_COLUMNS, rows)
+    (args.out / "robustness.md").write_text(table + "\n")
+    write_csv(args.out / "robustness.csv", TABLE_COLUMNS, rows)
+    plot_robustness(runs, config.presets, args.out / "robustness.png")
+    print(table)
+    print(f"runs.jsonl, robustness.md, .csv and .png written to {args.out}")
+    return 0
+
+
 def _export_minari(args: argparse.Namespace) -> int:
     from saferace.learning.minari_export import export_minari
 
@@ -888,6 +960,15 @@ def _export_minari(args: argparse.Namespace) -> int:
         f"in {dataset.storage.data_path}"
     )
     return 0
+
+
+def _add_randomize_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--randomize",
+        default="none",
+        metavar="PRESET",
+        help="visual domain randomisation: none, mild or strong (a look per episode seed)",
+    )
 
 
 def _snapshots(args: argparse.Namespace) -> int:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import csv
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from saferace.eval.tables import markdown_table
+from saferace.eval.tables import markdown_table, write_csv
 
 COLUMNS = (
     "agent",
@@ -66,10 +65,7 @@ def leaderboard_markdown(rows: list[dict]) -> str:
 
 
 def write_leaderboard_csv(rows: list[dict], path: str | Path) -> None:
-    with open(path, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(COLUMNS)
-        writer.writerows(leaderboard_rows(rows))
+    write_csv(path, COLUMNS, leaderboard_rows(rows))
 
 
 def plot_trajectories(rows: list[dict], path: str | Path) -> None:

@@ -11,7 +11,6 @@ an interrupted table resumes.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from tqdm import tqdm
 
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
-from saferace.eval.tables import markdown_table
+from saferace.eval.tables import markdown_table, write_csv
 from saferace.safety.filter import DEFAULT_GAINS
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
@@ -226,10 +225,7 @@ def write_tables(rows: list[dict], out_dir: Path, gains: str) -> None:
         ("safety_table.csv", TABLE_COLUMNS, runs),
         ("expert_cost.csv", EXPERT_COLUMNS, costs),
     ):
-        with open(out_dir / name, "w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(columns)
-            writer.writerows(lines)
+        write_csv(out_dir / name, columns, lines)
 
 
 FILTER_STYLES = {

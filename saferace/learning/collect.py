@@ -171,6 +171,7 @@ class CollectionConfig:
     mc_samples: int = 10
     train_fraction: float = 1.0
     beta: float = 0.0
+    randomize: str = "none"  # a domain-randomisation preset: each episode's look by its seed
 
     def __post_init__(self) -> None:
         if not 0.0 < self.train_fraction <= 1.0:
@@ -217,6 +218,7 @@ def collect_round(
             max_steps=max_steps_for(config.max_seconds),
             image_size=tuple(config.image_size),
             stereo=config.stereo,
+            randomize=config.randomize,
         )
         try:
             base = env.unwrapped

@@ -120,6 +120,7 @@ class DaggerConfig:
     mc_samples: int = 10
     beta_rampdown: int = 0
     max_seconds: float = 60.0
+    randomize: str = "none"
 
     def __post_init__(self) -> None:
         if self.filter not in ("none", "cbf"):
@@ -150,6 +151,8 @@ class DaggerConfig:
         unfiltered run is the same whatever filter its forks will use."""
         values = asdict(self)
         del values["iterations"]
+        if self.randomize == "none":  # the same run as one made before the option existed
+            del values["randomize"]
         if self.filter == "none":
             for name in FILTER_SETTINGS:
                 del values[name]
@@ -292,6 +295,7 @@ class DaggerRun:
             train_fraction=config.train_fraction,
             beta=0.0 if iteration == 0 else config.beta(iteration),
             perturbation=Perturbation(config.expert_perturb if iteration == 0 else 0.0),
+            randomize=config.randomize,
         )
         collected = collect_round(self.data_dir, collection, progress=self.progress)
         if collected.path.name != self.round_path(iteration).name:

@@ -13,7 +13,6 @@ final policies on tracks they never saw, without and with the filter) and ``timi
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -23,7 +22,7 @@ import numpy as np
 from saferace.eval.drive import drive
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import evaluate, max_steps_for
-from saferace.eval.tables import markdown_table
+from saferace.eval.tables import markdown_table, write_csv
 from saferace.eval.track_plots import plot_track, plt
 from saferace.learning.dagger import DaggerConfig, DaggerRun, final_checkpoint, spread_scale_of
 from saferace.track import Track
@@ -487,10 +486,7 @@ def write_table(
     table_path = out_dir / f"{setting.name}.md"
     table_path.write_text(text)
     csv_path = out_dir / f"{setting.name}.csv"
-    with open(csv_path, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(header)
-        writer.writerows(lines)
+    write_csv(csv_path, header, lines)
     figure = out_dir / f"{setting.name}_trajectories.png"
     plot_iterations(setting, rows, seeds[0], figure)
     return [table_path, csv_path, figure]

@@ -1,0 +1,293 @@
+"""How a driver holds up when the scene's look (and optionally the car) changes.
+
+:func:`run_robustness` drives an agent once per domain-randomisation preset and seed (the
+seed draws the look, see :mod:`saferace.envs.randomization`), optionally behind the safety
+filter, and records per run: completion, lap time, time outside the lane, the filter's
+interventions and, when a state network is in play (the filter's ``learned:CKPT`` state
+source, or ``monitor_state_source`` beside an unfiltered run), its error against the true
+lane state and the spread of its MC-dropout samples. Runs are appended to ``runs.jsonl``
+as they end; a run already there is not driven again. :func:`robustness_rows` aggregates
+them per preset, the table of ``saferace robustness``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from saferace.errors import SafeRaceError
+from saferace.eval.agents import load_entry_point, make_agent
+from saferace.eval.filters import STATE_SOURCE_KINDS, FilterConfig
+from saferace.eval.runner import (
+    append_jsonl,
+    make_task_env,
+    max_steps_for,
+    read_jsonl,
+    run_episode,
+)
+
+RUNS_FILE = "runs.jsonl"
+TABLE_COLUMNS = (
+    "look",
+    "runs",
+    "completion [%]",
+    "laps completed",
+    "lap time [s]",
+    "time outside lane [s]",
+    "interventions [%]",
+    "e_y error [m]",
+    "e_y spread [m]",
+    "e_psi error [rad]",
+    "e_psi spread [rad]",
+    "truth within 2 spreads [%]",
+)
+
+
+@dataclass(frozen=True)
+class RobustnessConfig:
+    """One robustness evaluation: ``agent`` on ``task``/``track`` in each preset's looks.
+
+    ``physics``: the car varies with the same preset too. ``monitor_state_source``
+    (``learned:CKPT``): a state network scored beside an unfiltered run; a filtered run
+    scores the one that feeds the filter.
+    """
+
+    agent: str
+    task: str = "CenterLine"
+    track: str = "lab"
+    presets: tuple[str, ...] = ("none", "mild", "strong")
+    seeds: tuple[int, ...] = (0, 1, 2)
+    laps: int = 1
+    max_seconds: float | None = 60.0
+    physics: bool = False
+    safety: FilterConfig = field(default_factory=FilterConfig)
+    monitor_state_source: str | None = None
+    model: str = "dynamic"
+    image_size: int = 64
+    stereo: bool = False
+    mc_samples: int = 10
+
+    def __post_init__(self) -> None:
+        if not self.presets or not self.seeds:
+            raise SafeRaceError("a robustness evaluation needs at least one preset and seed")
+        if self.monitor_state_source is not None and self.safety.state_source is not None:
+            raise SafeRaceError(
+                "the filter's state source is scored already: give no second state source"
+            )
+
+    def as_dict(self) -> dict:
+        values = asdict(self)
+        values["safety"] = self.safety.as_dict()
+        return values
+
+
+def run_robustness(
+    config: RobustnessConfig, out_dir: str | Path, progress: bool = True
+) -> list[dict]:
+    """Drive every (preset, seed) not yet in ``out_dir/runs.jsonl``; all runs' rows."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    settings = {
+        key: value for key, value in config.as_dict().items() if key not in ("presets", "seeds")
+    }
+    path = out_dir / RUNS_FILE
+    done = read_jsonl(path) if path.exists() else []
+    for row in done:
+        if row["settings"] != settings:
+            raise SafeRaceError(
+                f"{path} holds runs of other settings ({_difference(row['settings'], settings)}): "
+                "use another --out"
+            )
+    finished = {(row["look"], row["seed"]) for row in done}
+    for preset in config.presets:
+        for seed in config.seeds:
+            if (preset, seed) in finished:
+                continue
+            row = {"look": preset, "seed": seed, **drive_once(config, preset, seed, progress)}
+            row["settings"] = settings
+            append_jsonl(path, row)
+            done.append(row)
+    wanted = {(p, s) for p in config.presets for s in config.seeds}
+    return [row for row in done if (row["look"], row["seed"]) in wanted]
+
+
+def drive_once(config: RobustnessConfig, preset: str, seed: int, progress: bool) -> dict:
+    """One run's metrics in the look (and car) ``preset`` draws for ``seed``."""
+    env = make_task_env(
+        config.task,
+        config.track,
+        config.laps,
+        config.safety,
+        seed,
+        max_steps=max_steps_for(config.max_seconds),
+        image_size=(config.image_size, config.image_size),
+        stereo=config.stereo,
+        randomize=preset,
+        physics_randomize=preset if config.physics else None,
+    )
+    try:
+        monitor = _state_monitor(config, env, seed)
+        progress_m = [0.0]
+
+        def on_step(observation: dict, info: dict, action: np.ndarray) -> None:
+            monitor(observation, info)
+            progress_m[0] = info["progress_m"]  # since the reset
+
+        agent = make_agent(
+            config.agent, env, model=config.model, mc_samples=config.mc_samples, seed=seed
+        )
+        result = run_episode(env, agent, seed=seed, progress=progress, on_step=on_step)
+        length = env.unwrapped.track.length_m
+    finally:
+        env.close()
+    summary = result.summary
+    intervened = result.steps.get("intervened")
+    return {
+        "completion": min(1.0, progress_m[0] / (config.laps * length)),
+        "laps_completed": summary["laps_completed"],
+        "lap_time_s": summary["mean_lap_time_s"],
+        "time_outside_lane_s": summary["time_outside_lane_s"],
+        "intervention_rate": None if intervened is None else float(np.mean(intervened)),
+        "terminated": result.terminated,
+        **monitor.summary(),
+    }
+
+
+class _StateErrors:
+    """Collects a state network's samples against the truth, step by step."""
+
+    def __init__(self, sample: Callable[[dict, dict], tuple[np.ndarray, np.ndarray]] | None):
+        self.sample = sample
+        self.errors: list[np.ndarray] = []
+        self.spreads: list[np.ndarray] = []
+
+    def __call__(self, observation: dict, info: dict) -> None:
+        if self.sample is None:
+            return
+        mean, spread, truth = self.sample(observation, info)
+        self.errors.append(np.abs(mean - truth))
+        self.spreads.append(spread)
+
+    def summary(self) -> dict:
+        if not self.errors:
+            return {}
+        errors, spreads = np.array(self.errors), np.array(self.spreads)
+        within = np.all(errors <= 2.0 * spreads, axis=1)
+        return {
+            "e_y_error_m": float(np.sqrt(np.mean(errors[:, 0] ** 2))),
+            "e_y_spread_m": float(np.mean(spreads[:, 0])),
+            "e_psi_error_rad": float(np.sqrt(np.mean(errors[:, 1] ** 2))),
+            "e_psi_spread_rad": float(np.mean(spreads[:, 1])),
+            "truth_within_2_spreads": float(np.mean(within)),
+        }
+
+
+def _state_monitor(config: RobustnessConfig, env, seed: int) -> _StateErrors:
+    """Scores the filter's learned state source, or a monitoring one, or nothing."""
+    if config.safety.kind == "cbf" and config.safety.state_source is not None:
+
+        def from_filter(observation: dict, info: dict):
+            decision = info["safety"]  # the state the filter believed before this step
+            return (
+                np.asarray(decision["state_mean"][:2]),
+                np.asarray(decision["state_std"][:2]),
+                np.asarray(decision["state_true"][:2]),
+            )
+
+        return _StateErrors(from_filter)
+    if config.monitor_state_source is None:
+        return _StateErrors(None)
+    kind, argument = config.monitor_state_source.split(":", 1)
+    if kind not in STATE_SOURCE_KINDS:
+        raise SafeRaceError(f"unknown state source {config.monitor_state_source!r}")
+    factory = load_entry_point(STATE_SOURCE_KINDS[kind])
+    image_shape = env.observation_space["image"].shape
+    source = factory(argument, image_shape, n_samples=config.mc_samples, seed=seed)
+
+    def from_monitor(observation: dict, info: dict):
+        samples = np.atleast_2d(source.samples(observation, info))[:, :2]
+        truth = np.array([info["e_y_m"], info["e_psi_rad"]])
+        return samples.mean(axis=0), samples.std(axis=0), truth
+
+    return _StateErrors(from_monitor)
+
+
+def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -> list[list]:
+    """One row of :data:`TABLE_COLUMNS` per preset: means over its seeds (``laps`` each),
+    ``-`` where nothing was measured."""
+    rows = []
+    for preset in presets:
+        mine = [run for run in runs if run["look"] == preset]
+        if not mine:
+            continue
+
+        def mean(name: str, scale: float = 1.0, runs: list[dict] = mine) -> float | str:
+            values = [run[name] for run in runs if run.get(name) is not None]
+            return scale * float(np.mean(values)) if values else "-"
+
+        rows.append(
+            [
+                preset,
+                len(mine),
+                mean("completion", 100.0),
+                f"{sum(run['laps_completed'] for run in mine)} of {laps * len(mine)}",
+                mean("lap_time_s"),
+                mean("time_outside_lane_s"),
+                mean("intervention_rate", 100.0),
+                mean("e_y_error_m"),
+                mean("e_y_spread_m"),
+                mean("e_psi_error_rad"),
+                mean("e_psi_spread_rad"),
+                mean("truth_within_2_spreads", 100.0),
+            ]
+        )
+    return rows
+
+
+def _difference(stored: dict, wanted: dict) -> str:
+    names = sorted(k for k in set(stored) | set(wanted) if stored.get(k) != wanted.get(k))
+    return ", ".join(
+        f"{k}: {json.dumps(stored.get(k))} there, {json.dumps(wanted.get(k))} now" for k in names
+    )
+
+
+def plot_robustness(runs: list[dict], presets: tuple[str, ...], path: str | Path) -> None:
+    """Per preset, each seed's time outside the lane and, where a state network was scored,
+    its lateral error beside its MC-dropout spread (the premise of the probabilistic filter:
+    the spread grows where the error does)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scored = any("e_y_error_m" in run for run in runs)
+    figure, axes = plt.subplots(1, 2 if scored else 1, figsize=(10 if scored else 5, 3.8))
+    axes = np.atleast_1d(axes)
+    for k, preset in enumerate(presets):
+        mine = [run for run in runs if run["look"] == preset]
+        outside = [run["time_outside_lane_s"] for run in mine]
+        axes[0].scatter(np.full(len(outside), k), outside, color="tab:red", zorder=3)
+        if scored:
+            errors = [run.get("e_y_error_m", np.nan) for run in mine]
+            spreads = [run.get("e_y_spread_m", np.nan) for run in mine]
+            axes[1].scatter(np.full(len(mine), k - 0.1), errors, color="tab:blue", zorder=3,
+                            label="RMS error" if k == 0 else None)  # fmt: skip
+            axes[1].scatter(np.full(len(mine), k + 0.1), spreads, color="tab:orange", zorder=3,
+                            label="mean spread" if k == 0 else None)  # fmt: skip
+    axes[0].set_ylabel("time outside the lane [s]")
+    axes[0].set_title("lane keeping, one dot per seed")
+    if scored:
+        axes[1].set_ylabel("state network, lateral offset [m]")
+        axes[1].set_title("perception: error and MC-dropout spread")
+        axes[1].legend()
+    for axis in axes:
+        axis.set_xticks(range(len(presets)), presets)
+        axis.set_xlabel("look (domain-randomisation preset)")
+        axis.grid(alpha=0.3)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)

@@ -1,0 +1,69 @@
+"""``saferace robustness``: a driver per look, resumable, with the state network scored."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from saferace.errors import SafeRaceError
+from saferace.eval import robustness
+from saferace.eval.filters import FilterConfig
+from saferace.eval.robustness import (
+    TABLE_COLUMNS,
+    RobustnessConfig,
+    plot_robustness,
+    robustness_rows,
+    run_robustness,
+)
+
+
+def short(agent: str, **kwargs) -> RobustnessConfig:
+    return RobustnessConfig(
+        agent=agent, track="lab", presets=("none", "strong"), seeds=(0,), max_seconds=2.0,
+        model="kinematic", **kwargs,
+    )  # fmt: skip
+
+
+def test_runs_are_kept_and_not_driven_again(tmp_path: Path, monkeypatch):
+    config = short("pure-pursuit")
+    runs = run_robustness(config, tmp_path, progress=False)
+    assert [(run["look"], run["seed"]) for run in runs] == [("none", 0), ("strong", 0)]
+    assert all(0.0 < run["completion"] < 1.0 for run in runs)  # 2 s of a 24 m lap
+
+    def must_not_drive(*args, **kwargs):
+        raise AssertionError("a finished run was driven again")
+
+    monkeypatch.setattr(robustness, "drive_once", must_not_drive)
+    assert run_robustness(config, tmp_path, progress=False) == runs
+    with pytest.raises(SafeRaceError, match=r"other settings.*agent"):
+        run_robustness(short("expert"), tmp_path, progress=False)
+
+
+def test_the_state_network_is_scored_beside_and_behind_the_filter(tmp_path: Path, tiny_checkpoint):
+    checkpoint, _ = tiny_checkpoint(False)
+    monitored = short("pure-pursuit", monitor_state_source=f"learned:{checkpoint}")
+    filtered = short(
+        "pure-pursuit",
+        safety=FilterConfig(kind="cbf", state_source=f"learned:{checkpoint}", samples=3),
+    )
+    for name, config in (("monitored", monitored), ("filtered", filtered)):
+        runs = run_robustness(config, tmp_path / name, progress=False)
+        for run in runs:
+            assert run["e_y_error_m"] > 0.0 and run["e_y_spread_m"] > 0.0
+            assert 0.0 <= run["truth_within_2_spreads"] <= 1.0
+        rows = robustness_rows(runs, config.presets)
+        assert [row[0] for row in rows] == ["none", "strong"]
+        assert all(len(row) == len(TABLE_COLUMNS) for row in rows)
+        plot_robustness(runs, config.presets, tmp_path / f"{name}.png")
+        assert (tmp_path / f"{name}.png").stat().st_size > 10_000
+    assert runs[0]["intervention_rate"] is not None  # the filtered runs
+
+
+def test_a_second_state_network_beside_the_filters_is_refused():
+    with pytest.raises(SafeRaceError, match="scored already"):
+        short(
+            "expert",
+            safety=FilterConfig(kind="cbf", state_source="learned:a.pt"),
+            monitor_state_source="learned:b.pt",
+        )
