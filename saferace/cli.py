@@ -233,11 +233,36 @@ def _parser() -> argparse.ArgumentParser:
     _add_gains_argument(table)
     table.set_defaults(command=_safety_table)
 
-    board = commands.add_parser("leaderboard", help="markdown table (and plots) from eval results")
-    board.add_argument("results", type=Path, nargs="+", help="JSONL files written by saferace eval")
+    board = commands.add_parser(
+        "leaderboard",
+        help="markdown table (and plots) from eval results, or the benchmark's from submissions",
+    )
+    board.add_argument(
+        "results",
+        type=Path,
+        nargs="+",
+        help="JSONL files written by saferace eval, or submission .json files of saferace "
+        "benchmark",
+    )
     board.add_argument("--csv", type=Path, help="also write the table as CSV")
     board.add_argument("--plot", type=Path, help="driven trajectories and speeds to a PNG")
+    board.add_argument("--html", type=Path, help="submissions: one self-contained leaderboard page")
     board.set_defaults(command=_leaderboard)
+
+    bench = commands.add_parser(
+        "benchmark", help="the fixed evaluation protocol for one agent: a submission file"
+    )
+    bench.add_argument(
+        "--agent",
+        required=True,
+        help="expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY",
+    )
+    bench.add_argument("--out", type=Path, required=True, help="the submission .json to write")
+    bench.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    bench.add_argument(
+        "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
+    )
+    bench.set_defaults(command=_benchmark)
 
     sysid = commands.add_parser(
         "sysid", help="identify the vehicle-model parameters from MuJoCo runs"
@@ -817,7 +842,48 @@ def _print_report(report) -> None:
         print(f"written: {path}")
 
 
+def _benchmark(args: argparse.Namespace) -> int:
+    from saferace.eval.benchmark import run_benchmark
+
+    _check_count("--workers", args.workers)
+    result = run_benchmark(args.agent, args.out, workers=args.workers, mc_samples=args.mc_samples)
+    score = "-" if result["score"] is None else f"{result['score']:.1f}"
+    with_filter = result["score_with_filter"]
+    print(
+        f"{args.agent}: score {score}, with the filter "
+        f"{'-' if with_filter is None else f'{with_filter:.1f}'}; submission written to {args.out}"
+    )
+    return 0
+
+
+def _submission_leaderboard(args: argparse.Namespace) -> int:
+    from saferace.eval.benchmark import load_suite, read_submission
+    from saferace.eval.leaderboard_html import COLUMNS, leaderboard_html, leaderboard_rows
+    from saferace.eval.tables import markdown_table, write_csv
+
+    if args.plot:
+        raise SafeRaceError("--plot is for eval results; a submissions' page has --html")
+    submissions = [read_submission(path) for path in args.results]
+    rows = leaderboard_rows(submissions)
+    print(markdown_table(COLUMNS, [["-" if v is None else v for v in row] for row in rows]))
+    if args.csv:
+        write_csv(args.csv, COLUMNS, rows)
+        print(f"table written to {args.csv}")
+    if args.html:
+        args.html.parent.mkdir(parents=True, exist_ok=True)
+        args.html.write_text(leaderboard_html(submissions, load_suite()))
+        print(f"page written to {args.html}")
+    return 0
+
+
 def _leaderboard(args: argparse.Namespace) -> int:
+    submissions = [path.suffix == ".json" for path in args.results]
+    if any(submissions):
+        if not all(submissions):
+            raise SafeRaceError("give either eval results (.jsonl) or submissions (.json)")
+        return _submission_leaderboard(args)
+    if args.html:
+        raise SafeRaceError("--html makes the benchmark's page: give submission .json files")
     from saferace.eval.leaderboard import (
         leaderboard_markdown,
         plot_trajectories,

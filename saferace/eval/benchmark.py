@@ -1,0 +1,335 @@
+"""The SafeRace benchmark: a fixed, versioned evaluation protocol and its submissions.
+
+Protocol v1 (``saferace/assets/benchmark/v1/suite.json``, made by
+``scripts/make_benchmark_suite.py``): the four built-in tracks and two evaluation tracks
+generated once from fixed seeds and shipped with the suite (no other code of the
+repository loads them, so nothing trains on them); both tasks; seeds 0 and 1, starting on
+the start line and half a lap on; one lap within 60 s; each run without and with the shared
+safety filter (``FilterConfig(kind="cbf")``: the default gains, the true lane state, as a
+car with localisation would have it). 48 runs per agent.
+
+Per run: completion (share of the lap driven), lap time and its ratio to the expert MPC's
+on the same track, task and start (measured once and stored in the suite), mean deviation
+from the reference, time outside the lane, and with the filter its interventions and
+correction sizes. The run's score (0 to 1, more is better):
+
+    score = completion * speed_ratio * exp(-time_outside_lane_s / 1 s)
+
+with ``speed_ratio`` the run's mean speed over the expert's on that lap (faster than the
+expert scores above 1). The agent's **score** is 100 times the mean over its unfiltered runs:
+the filter cannot lift it. Beside it: the score with the filter, and the filter's share of
+interventions and mean corrections in the filtered runs (how much the driver leans on it).
+Every row carries the suite's version; changing the suite means a new version.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from importlib import resources
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+import saferace
+from saferace.errors import SafeRaceError
+from saferace.eval.agents import make_agent
+from saferace.eval.filters import FilterConfig
+from saferace.eval.runner import (
+    append_jsonl,
+    git_revision,
+    make_task_env,
+    max_steps_for,
+    package_versions,
+    read_jsonl,
+    run_episode,
+)
+from saferace.track import Track
+
+SUITE_VERSION = 1
+OUTSIDE_SCALE_S = 1.0  # the score falls by 1/e per second outside the lane
+TRAJECTORY_POINTS = 200
+SUBMISSION_FIELDS = (
+    "suite_version",
+    "agent",
+    "score",
+    "score_with_filter",
+    "intervention_rate",
+    "rows",
+    "versions",
+)
+ROW_FIELDS = ("track", "task", "seed", "filter", "completion", "time_outside_lane_s", "score")
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A version of the protocol: what is driven, and the expert's reference lap times
+    (``"track/task/seed"`` -> s)."""
+
+    version: int
+    tracks: tuple[str, ...]
+    tasks: tuple[str, ...]
+    seeds: tuple[int, ...]
+    start_fractions: tuple[float, ...]  # of the lap, per seed
+    laps: int
+    max_seconds: float
+    filters: tuple[str, ...]
+    expert_lap_time_s: dict[str, float]
+    folder: Path
+
+    def track_argument(self, track: str) -> str:
+        """A built-in track's name, or the path of one of the suite's own tracks."""
+        path = self.folder / f"{track}.csv"
+        return str(path) if path.exists() else track
+
+    def runs(self) -> list[RunSpec]:
+        return [
+            RunSpec(track, task, seed, kind)
+            for track in self.tracks
+            for task in self.tasks
+            for seed in self.seeds
+            for kind in self.filters
+        ]
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run of the protocol."""
+
+    track: str
+    task: str
+    seed: int
+    filter: str
+
+    @property
+    def key(self) -> str:
+        return f"{self.track}/{self.task}/{self.seed}/{self.filter}"
+
+    @property
+    def reference_key(self) -> str:
+        return f"{self.track}/{self.task}/{self.seed}"
+
+
+def suite_folder(version: int = SUITE_VERSION) -> Path:
+    return Path(str(resources.files("saferace.assets").joinpath(f"benchmark/v{version}")))
+
+
+def load_suite(version: int = SUITE_VERSION) -> Suite:
+    """The protocol of ``version`` as shipped in the package."""
+    folder = suite_folder(version)
+    path = folder / "suite.json"
+    if not path.exists():
+        raise SafeRaceError(f"no benchmark suite version {version} in this SafeRace ({path})")
+    data = json.loads(path.read_text())
+    return Suite(
+        version=data["version"],
+        tracks=tuple(data["tracks"]),
+        tasks=tuple(data["tasks"]),
+        seeds=tuple(data["seeds"]),
+        start_fractions=tuple(data["start_fractions"]),
+        laps=data["laps"],
+        max_seconds=data["max_seconds"],
+        filters=tuple(data["filters"]),
+        expert_lap_time_s=data["expert_lap_time_s"],
+        folder=folder,
+    )
+
+
+def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> dict:
+    """The row of one run: its metrics and score (see the module docstring)."""
+    track_argument = suite.track_argument(spec.track)
+    length_m = Track.load(track_argument).length_m
+    start_s_m = suite.start_fractions[suite.seeds.index(spec.seed)] * length_m
+    env = make_task_env(
+        spec.task,
+        track_argument,
+        suite.laps,
+        FilterConfig(kind=spec.filter),
+        spec.seed,
+        max_steps=max_steps_for(suite.max_seconds),
+        start_s_m=start_s_m,
+    )
+    progress_m = [0.0]
+    try:
+        driver = make_agent(agent, env, mc_samples=mc_samples, seed=spec.seed)
+        result = run_episode(
+            env,
+            driver,
+            seed=spec.seed,
+            on_step=lambda obs, info, action: progress_m.__setitem__(0, info["progress_m"]),
+        )
+    finally:
+        env.close()
+    summary = result.summary
+    driven_s = len(result.steps["time_s"]) * env.unwrapped.control_dt_s
+    route_m = suite.laps * length_m
+    expert_s = suite.expert_lap_time_s[spec.reference_key] * suite.laps
+    completion = min(1.0, max(0.0, progress_m[0]) / route_m)
+    speed_ratio = (completion * route_m / driven_s) / (route_m / expert_s) if driven_s else 0.0
+    outside = summary["time_outside_lane_s"]
+    lap_time = summary["mean_lap_time_s"]
+    stride = max(1, len(result.steps["x_m"]) // TRAJECTORY_POINTS)
+    return {
+        "suite_version": suite.version,
+        **asdict(spec),
+        "completion": completion,
+        "laps_completed": summary["laps_completed"],
+        "lap_time_s": lap_time,
+        "expert_lap_time_s": expert_s / suite.laps,
+        "lap_time_ratio": None if lap_time is None else lap_time / (expert_s / suite.laps),
+        "speed_ratio": speed_ratio,
+        "mean_abs_deviation_m": summary["mean_abs_deviation_m"],
+        "time_outside_lane_s": outside,
+        "terminated": result.terminated,
+        "intervention_rate": summary.get("intervention_rate"),
+        "mean_steer_correction_rad": summary.get("mean_steer_correction_rad"),
+        "mean_accel_correction_mps2": summary.get("mean_accel_correction_mps2"),
+        "score": completion * speed_ratio * math.exp(-outside / OUTSIDE_SCALE_S),
+        "trajectory": {
+            name: result.steps[name][::stride].round(3).tolist() for name in ("x_m", "y_m")
+        },
+    }
+
+
+def run_benchmark(
+    agent: str,
+    out: str | Path,
+    workers: int = 1,
+    mc_samples: int = 10,
+    progress: bool = True,
+    suite: Suite | None = None,
+    runs: Iterable[RunSpec] | None = None,
+) -> dict:
+    """Run the protocol's runs missing from ``OUT.runs.jsonl`` (over ``workers``
+    processes), then write the submission ``out``; the submission."""
+    suite = suite or load_suite()
+    out = Path(out)
+    journal = out.with_name(out.name + ".runs.jsonl")
+    done = read_jsonl(journal) if journal.exists() else []
+    for row in done:
+        if row.get("agent") != agent or row.get("suite_version") != suite.version:
+            raise SafeRaceError(
+                f"{journal} holds runs of agent {row.get('agent')!r} on suite "
+                f"v{row.get('suite_version')}, not {agent!r} on v{suite.version}: use another --out"
+            )
+    wanted = list(runs) if runs is not None else suite.runs()
+    finished = {row["key"] for row in done}
+    missing = [spec for spec in wanted if spec.key not in finished]
+
+    def keep(row: dict) -> None:
+        append_jsonl(journal, row)
+        done.append(row)
+
+    _drive_all(agent, missing, suite, workers, mc_samples, progress, keep)
+    by_key = {row["key"]: row for row in done}
+    rows = [by_key[spec.key] for spec in wanted]
+    result = submission(agent, rows, suite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_name(f".{out.name}.partial")
+    partial.write_text(json.dumps(result, indent=1) + "\n")
+    os.replace(partial, out)
+    return result
+
+
+def _drive_all(
+    agent: str,
+    specs: list[RunSpec],
+    suite: Suite,
+    workers: int,
+    mc_samples: int,
+    progress: bool,
+    keep: Callable[[dict], None],
+) -> None:
+    """Drive ``specs``, handing each row to ``keep`` as it ends (in order when serial)."""
+    bar = tqdm(total=len(specs), desc=f"benchmark {agent}", unit="run", disable=not progress)
+    with bar:
+        if workers <= 1:
+            for spec in specs:
+                keep(_keyed(drive_run(agent, spec, suite, mc_samples), agent, spec))
+                bar.update()
+            return
+        # spawn: a forked child would share the parent's OpenGL and PyTorch state
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            futures = {
+                pool.submit(drive_run, agent, spec, suite, mc_samples): spec for spec in specs
+            }
+            for future in as_completed(futures):
+                spec = futures[future]
+                keep(_keyed(future.result(), agent, spec))
+                bar.update()
+
+
+def _keyed(row: dict, agent: str, spec: RunSpec) -> dict:
+    return {"key": spec.key, "agent": agent, **row}
+
+
+def submission(agent: str, rows: list[dict], suite: Suite) -> dict:
+    """The submission of ``agent``: its rows, scores and where they were measured."""
+    plain = [row for row in rows if row["filter"] == "none"]
+    filtered = [row for row in rows if row["filter"] != "none"]
+    rates = [row["intervention_rate"] for row in filtered if row["intervention_rate"] is not None]
+    return {
+        "suite_version": suite.version,
+        "agent": agent,
+        "score": 100.0 * float(np.mean([row["score"] for row in plain])) if plain else None,
+        "score_with_filter": (
+            100.0 * float(np.mean([row["score"] for row in filtered])) if filtered else None
+        ),
+        "intervention_rate": float(np.mean(rates)) if rates else None,
+        "completion": float(np.mean([row["completion"] for row in plain])) if plain else None,
+        "time_outside_lane_s": float(sum(row["time_outside_lane_s"] for row in plain)),
+        "rows": rows,
+        "versions": {"saferace": saferace.__version__, **package_versions()},
+        "git_revision": git_revision(),
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+        },
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+def validate_submission(data: object, source: str, version: int = SUITE_VERSION) -> dict:
+    """``data`` if it is a complete submission of suite ``version``; else one-line refusal."""
+    if not isinstance(data, dict):
+        raise SafeRaceError(f"{source}: not a submission (a JSON object is expected)")
+    missing = [name for name in SUBMISSION_FIELDS if name not in data]
+    if missing:
+        raise SafeRaceError(f"{source}: missing field(s) {', '.join(missing)}")
+    if data["suite_version"] != version:
+        raise SafeRaceError(
+            f"{source}: made on suite v{data['suite_version']}, this leaderboard is v{version}"
+        )
+    for name in ("score", "score_with_filter", "intervention_rate"):
+        value = data[name]
+        if value is not None and not (isinstance(value, int | float) and math.isfinite(value)):
+            raise SafeRaceError(f"{source}: {name} is {value!r}, not a finite number")
+    if not isinstance(data["rows"], list) or not data["rows"]:
+        raise SafeRaceError(f"{source}: no rows")
+    for index, row in enumerate(data["rows"]):
+        absent = [name for name in ROW_FIELDS if name not in row]
+        if absent:
+            raise SafeRaceError(f"{source}: row {index} lacks {', '.join(absent)}")
+        if row.get("suite_version", version) != version:
+            raise SafeRaceError(f"{source}: row {index} is of suite v{row['suite_version']}")
+        if not math.isfinite(row["score"]):
+            raise SafeRaceError(f"{source}: row {index} has score {row['score']!r}")
+    return data
+
+
+def read_submission(path: str | Path, version: int = SUITE_VERSION) -> dict:
+    """A validated submission from ``path``."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise SafeRaceError(f"{path}: cannot be read as JSON ({error})") from error
+    return validate_submission(data, str(path), version)

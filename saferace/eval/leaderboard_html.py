@@ -1,0 +1,147 @@
+"""The benchmark's leaderboard: a table of submissions (markdown, CSV) and one HTML page.
+
+The page is self-contained (a group can publish the file alone): the table sorts by any
+column with a click (a few lines of inline JavaScript), and each track's driven paths of
+every agent (unfiltered, first seed, both tasks) are embedded as PNG images.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from collections import defaultdict
+
+import numpy as np
+
+from saferace.eval.benchmark import Suite
+
+COLUMNS = (
+    "rank",
+    "agent",
+    "score",
+    "score with filter",
+    "interventions [%]",
+    "completion [%]",
+    "lap time / expert",
+    "outside lane [s]",
+    "runs",
+)
+
+
+def leaderboard_rows(submissions: list[dict]) -> list[list]:
+    """One row per submission, best score first (its unfiltered score; see the protocol)."""
+    ordered = sorted(submissions, key=lambda s: -(s["score"] if s["score"] is not None else -1))
+    rows = []
+    for rank, entry in enumerate(ordered, start=1):
+        plain = [row for row in entry["rows"] if row["filter"] == "none"]
+        ratios = [row["lap_time_ratio"] for row in plain if row.get("lap_time_ratio") is not None]
+        rate = entry["intervention_rate"]
+        rows.append(
+            [
+                rank,
+                entry["agent"],
+                entry["score"],
+                entry["score_with_filter"],
+                None if rate is None else 100.0 * rate,
+                100.0 * float(np.mean([row["completion"] for row in plain])) if plain else None,
+                float(np.mean(ratios)) if ratios else None,
+                float(sum(row["time_outside_lane_s"] for row in plain)),
+                len(entry["rows"]),
+            ]
+        )
+    return rows
+
+
+def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:
+    """Per track, a base64 PNG of every agent's unfiltered paths (first seed) over it."""
+    from saferace.eval.track_plots import plot_track, plt
+    from saferace.track import Track
+
+    paths: dict[str, list[tuple[str, dict]]] = defaultdict(list)
+    for entry in submissions:
+        for row in entry["rows"]:
+            if row["filter"] == "none" and row["seed"] == suite.seeds[0] and "trajectory" in row:
+                paths[row["track"]].append((f"{entry['agent']} ({row['task']})", row))
+    images = {}
+    for track_name in suite.tracks:
+        if track_name not in paths:
+            continue
+        figure, axis = plt.subplots(figsize=(6, 5))
+        plot_track(axis, Track.load(suite.track_argument(track_name)))
+        for label, row in paths[track_name]:
+            trajectory = row["trajectory"]
+            axis.plot(trajectory["x_m"], trajectory["y_m"], lw=1.2, label=label)
+        axis.set_title(f"{track_name}: driven paths, no filter")
+        axis.legend(fontsize=6, loc="upper right")
+        buffer = io.BytesIO()
+        figure.tight_layout()
+        figure.savefig(buffer, format="png", dpi=90)
+        plt.close(figure)
+        images[track_name] = base64.b64encode(buffer.getvalue()).decode("ascii")
+    return images
+
+
+_SORT_SCRIPT = """
+document.querySelectorAll("th").forEach((header, column) => {
+  header.addEventListener("click", () => {
+    const body = header.closest("table").tBodies[0];
+    const ascending = header.dataset.order !== "asc";
+    header.dataset.order = ascending ? "asc" : "desc";
+    const value = (row) => {
+      const text = row.cells[column].textContent.trim();
+      const number = parseFloat(text);
+      return isNaN(number) ? text : number;
+    };
+    const rows = Array.from(body.rows).sort((a, b) => {
+      const x = value(a), y = value(b);
+      const numbers = typeof x === "number" && typeof y === "number";
+      const order = numbers ? x - y : String(x).localeCompare(String(y));
+      return ascending ? order : -order;
+    });
+    rows.forEach((row) => body.appendChild(row));
+  });
+});
+"""
+
+
+def leaderboard_html(submissions: list[dict], suite: Suite) -> str:
+    """The self-contained leaderboard page."""
+    rows = leaderboard_rows(submissions)
+    header = "".join(f"<th>{html.escape(name)}</th>" for name in COLUMNS)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(_cell(value))}</td>" for value in row) + "</tr>"
+        for row in rows
+    )
+    figures = "".join(
+        f'<figure><img alt="{html.escape(track)}" src="data:image/png;base64,{data}">'
+        f"<figcaption>{html.escape(track)}</figcaption></figure>"
+        for track, data in trajectory_images(submissions, suite).items()
+    )
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<title>SafeRace leaderboard, suite v{suite.version}</title>
+<style>
+body {{ font-family: sans-serif; margin: 2em; }}
+table {{ border-collapse: collapse; }}
+th, td {{ border: 1px solid #999; padding: 4px 8px; text-align: right; }}
+th {{ cursor: pointer; background: #eee; }}
+figure {{ display: inline-block; margin: 0.5em; }}
+</style></head><body>
+<h1>SafeRace leaderboard</h1>
+<p>Suite v{suite.version}: {len(suite.tracks)} tracks, {len(suite.tasks)} tasks,
+{len(suite.seeds)} starts, without and with the shared safety filter. Score: 100 times the
+mean over the unfiltered runs of completion x speed against the expert x exp(-seconds
+outside the lane). Click a column to sort.</p>
+<table id="leaderboard"><thead><tr>{header}</tr></thead><tbody>{body}</tbody></table>
+<h2>Driven paths</h2>
+{figures}
+<script>{_SORT_SCRIPT}</script>
+</body></html>
+"""
+
+
+def _cell(value: object) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.3f}" if isinstance(value, float) else str(value)

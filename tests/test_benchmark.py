@@ -1,0 +1,135 @@
+"""The benchmark protocol: suite, runs, resumption, workers, submissions and leaderboard."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+from cli_helpers import run_cli
+
+from saferace.errors import SafeRaceError
+from saferace.eval import benchmark
+from saferace.eval.benchmark import (
+    SUITE_VERSION,
+    RunSpec,
+    load_suite,
+    run_benchmark,
+    validate_submission,
+)
+from saferace.eval.leaderboard_html import leaderboard_html, leaderboard_rows
+from saferace.track import Track, builtin_track_names
+
+LAB_RUNS = [RunSpec("lab", "CenterLine", 0, "none"), RunSpec("lab", "CenterLine", 1, "cbf")]
+
+
+def without_timestamps(submission: dict) -> dict:
+    return {k: v for k, v in submission.items() if k != "created"}
+
+
+def test_the_suite_is_fixed_and_its_evaluation_tracks_are_nowhere_else():
+    suite = load_suite()
+    assert suite.version == SUITE_VERSION
+    assert len(suite.runs()) == 6 * 2 * 2 * 2
+    evaluation = [t for t in suite.tracks if t not in builtin_track_names()]
+    assert evaluation == ["eval_901", "eval_902"]
+    for track in suite.tracks:
+        Track.load(suite.track_argument(track))  # every track loads
+        for task in suite.tasks:
+            for seed in suite.seeds:
+                assert suite.expert_lap_time_s[f"{track}/{task}/{seed}"] > 0.0
+    repository = Path(__file__).resolve().parents[1]
+    sources = [
+        path
+        for folder in ("saferace", "scripts", "benchmarks", "tests", "examples")
+        for path in (repository / folder).rglob("*.py")
+    ]
+    users = sorted(path.name for path in sources if "901" in path.read_text())
+    assert users == ["make_benchmark_suite.py", "test_benchmark.py"]  # nothing trains on them
+
+
+def test_an_interrupted_benchmark_continues_to_the_same_submission(tmp_path: Path, monkeypatch):
+    whole = run_benchmark("pure-pursuit", tmp_path / "whole.json", progress=False, runs=LAB_RUNS)
+    real_drive = benchmark.drive_run
+    calls = []
+
+    def interrupted(agent, spec, suite, mc_samples=10):
+        calls.append(spec)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_drive(agent, spec, suite, mc_samples)
+
+    monkeypatch.setattr(benchmark, "drive_run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_benchmark("pure-pursuit", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
+    assert not (tmp_path / "cut.json").exists()
+    monkeypatch.setattr(benchmark, "drive_run", real_drive)
+    resumed = run_benchmark("pure-pursuit", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
+    assert without_timestamps(resumed) == without_timestamps(whole)
+    with pytest.raises(SafeRaceError, match="use another --out"):
+        run_benchmark("expert", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
+
+
+def test_rows_scores_and_workers(tmp_path: Path):
+    serial = run_benchmark("pure-pursuit", tmp_path / "a.json", progress=False, runs=LAB_RUNS)
+    parallel = run_benchmark(
+        "pure-pursuit", tmp_path / "b.json", workers=2, progress=False, runs=LAB_RUNS
+    )
+    assert parallel["rows"] == serial["rows"]  # the same runs, whatever the order they end in
+    plain, filtered = serial["rows"]
+    assert plain["filter"] == "none" and filtered["filter"] == "cbf"
+    for row in serial["rows"]:
+        assert row["completion"] == 1.0 and row["laps_completed"] == 1
+        assert 0.5 < row["lap_time_ratio"] < 2.0
+        expected = row["completion"] * row["speed_ratio"] * math.exp(-row["time_outside_lane_s"])
+        assert row["score"] == pytest.approx(expected)
+    assert serial["score"] == pytest.approx(100.0 * plain["score"])  # the filter cannot lift it
+    assert serial["score_with_filter"] == pytest.approx(100.0 * filtered["score"])
+    assert 0.0 <= serial["intervention_rate"] <= 1.0
+    assert validate_submission(json.loads((tmp_path / "a.json").read_text()), "a.json")
+
+
+@pytest.fixture(scope="module")
+def submission(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    out = tmp_path_factory.mktemp("submission") / "pp.json"
+    return run_benchmark("pure-pursuit", out, progress=False, runs=LAB_RUNS[:1])
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        (lambda s: s.pop("score"), "missing field(s) score"),
+        (lambda s: s.update(suite_version=SUITE_VERSION + 1), "this leaderboard is v1"),
+        (lambda s: s.update(score=float("nan")), "score is nan, not a finite number"),
+        (lambda s: s["rows"][0].pop("completion"), "row 0 lacks completion"),
+        (lambda s: s.update(rows=[]), "no rows"),
+    ],
+)
+def test_bad_submissions_are_refused_in_one_line(
+    submission: dict, tmp_path: Path, change, reason: str
+):
+    bad = json.loads(json.dumps(submission))
+    change(bad)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(bad))
+    result = run_cli("leaderboard", str(path))
+    assert result.returncode != 0
+    message = result.stderr.strip().splitlines()
+    assert len(message) == 1 and reason in message[0], result.stderr
+
+
+def test_leaderboard_page_ranks_and_embeds_the_paths(submission: dict, tmp_path: Path):
+    worse = json.loads(json.dumps(submission))
+    worse["agent"], worse["score"] = "slower", submission["score"] / 2
+    rows = leaderboard_rows([worse, submission])
+    assert [row[1] for row in rows] == ["pure-pursuit", "slower"]
+    page = leaderboard_html([worse, submission], load_suite())
+    assert page.count("<tr>") == 3  # header and two agents
+    assert page.count("data:image/png;base64,") == 1  # one track driven: lab
+    assert "addEventListener" in page
+    path = tmp_path / "submission.json"
+    path.write_text(json.dumps(submission))
+    result = run_cli("leaderboard", str(path), "--html", str(tmp_path / "board.html"))
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "board.html").stat().st_size > 10_000
