@@ -48,6 +48,7 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 test-slow: setup
+	bash scripts/install_chromium.sh
 	$(BIN)/python -m pytest -q -m slow
 
 lint: setup

@@ -260,6 +260,13 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", type=Path, required=True, help="the submission .json to write")
     bench.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
     bench.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="one Ray task per run: on a Ray cluster at ADDRESS, or a local Ray instance",
+    )
+    bench.add_argument(
         "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
     )
     bench.set_defaults(command=_benchmark)
@@ -846,7 +853,13 @@ def _benchmark(args: argparse.Namespace) -> int:
     from saferace.eval.benchmark import run_benchmark
 
     _check_count("--workers", args.workers)
-    result = run_benchmark(args.agent, args.out, workers=args.workers, mc_samples=args.mc_samples)
+    result = run_benchmark(
+        args.agent,
+        args.out,
+        workers=args.workers,
+        mc_samples=args.mc_samples,
+        ray_address=args.ray,
+    )
     score = "-" if result["score"] is None else f"{result['score']:.1f}"
     with_filter = result["score_with_filter"]
     print(

@@ -133,3 +133,26 @@ def test_leaderboard_page_ranks_and_embeds_the_paths(submission: dict, tmp_path:
     result = run_cli("leaderboard", str(path), "--html", str(tmp_path / "board.html"))
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "board.html").stat().st_size > 10_000
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def test_ray_gives_the_serial_rows_and_reports_failed_runs(tmp_path: Path, local_ray):
+    serial = run_benchmark("pure-pursuit", tmp_path / "a.json", progress=False, runs=LAB_RUNS)
+    on_ray = run_benchmark(
+        "pure-pursuit", tmp_path / "b.json", progress=False, runs=LAB_RUNS, ray_address="local"
+    )
+    assert on_ray["rows"] == serial["rows"]
+    with pytest.raises(SafeRaceError, match=r"2 run\(s\) failed on Ray after 2 retries"):
+        run_benchmark(
+            "no_such_module:agent", tmp_path / "c.json", progress=False, runs=LAB_RUNS,
+            ray_address="local",
+        )  # fmt: skip
+    assert not (tmp_path / "c.json").exists()

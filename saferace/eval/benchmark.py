@@ -55,6 +55,7 @@ from saferace.eval.runner import (
 from saferace.track import Track
 
 SUITE_VERSION = 1
+RAY_RETRIES = 2  # a run that fails is tried again this many times on Ray, then reported
 OUTSIDE_SCALE_S = 1.0  # the score falls by 1/e per second outside the lane
 TRAJECTORY_POINTS = 200
 SUBMISSION_FIELDS = (
@@ -207,9 +208,11 @@ def run_benchmark(
     progress: bool = True,
     suite: Suite | None = None,
     runs: Iterable[RunSpec] | None = None,
+    ray_address: str | None = None,
 ) -> dict:
     """Run the protocol's runs missing from ``OUT.runs.jsonl`` (over ``workers``
-    processes), then write the submission ``out``; the submission."""
+    processes, or as Ray tasks with ``ray_address``: ``"local"`` starts a Ray instance on
+    this machine), then write the submission ``out``; the submission."""
     suite = suite or load_suite()
     out = Path(out)
     journal = out.with_name(out.name + ".runs.jsonl")
@@ -228,7 +231,12 @@ def run_benchmark(
         append_jsonl(journal, row)
         done.append(row)
 
-    _drive_all(agent, missing, suite, workers, mc_samples, progress, keep)
+    bar = tqdm(total=len(missing), desc=f"benchmark {agent}", unit="run", disable=not progress)
+    with bar:
+        if ray_address is not None:
+            _drive_on_ray(agent, missing, suite, mc_samples, ray_address, keep, bar.update)
+        else:
+            _drive_all(agent, missing, suite, workers, mc_samples, keep, bar.update)
     by_key = {row["key"]: row for row in done}
     rows = [by_key[spec.key] for spec in wanted]
     result = submission(agent, rows, suite)
@@ -245,26 +253,60 @@ def _drive_all(
     suite: Suite,
     workers: int,
     mc_samples: int,
-    progress: bool,
     keep: Callable[[dict], None],
+    advance: Callable[[], object],
 ) -> None:
     """Drive ``specs``, handing each row to ``keep`` as it ends (in order when serial)."""
-    bar = tqdm(total=len(specs), desc=f"benchmark {agent}", unit="run", disable=not progress)
-    with bar:
-        if workers <= 1:
-            for spec in specs:
-                keep(_keyed(drive_run(agent, spec, suite, mc_samples), agent, spec))
-                bar.update()
-            return
-        # spawn: a forked child would share the parent's OpenGL and PyTorch state
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            futures = {
-                pool.submit(drive_run, agent, spec, suite, mc_samples): spec for spec in specs
-            }
-            for future in as_completed(futures):
-                spec = futures[future]
-                keep(_keyed(future.result(), agent, spec))
-                bar.update()
+    if workers <= 1:
+        for spec in specs:
+            keep(_keyed(drive_run(agent, spec, suite, mc_samples), agent, spec))
+            advance()
+        return
+    # spawn: a forked child would share the parent's OpenGL and PyTorch state
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        futures = {pool.submit(drive_run, agent, spec, suite, mc_samples): spec for spec in specs}
+        for future in as_completed(futures):
+            keep(_keyed(future.result(), agent, futures[future]))
+            advance()
+
+
+def _drive_on_ray(
+    agent: str,
+    specs: list[RunSpec],
+    suite: Suite,
+    mc_samples: int,
+    address: str,
+    keep: Callable[[dict], None],
+    advance: Callable[[], object],
+) -> None:
+    """One Ray task per run, rows kept as they arrive; a task that still fails after
+    ``RAY_RETRIES`` retries is reported (the others are kept, so a rerun drives only it)."""
+    import ray
+
+    if not ray.is_initialized():
+        ray.init(
+            address=None if address == "local" else address,
+            include_dashboard=False,
+            log_to_driver=False,
+            runtime_env={"env_vars": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}},
+        )
+    task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES, retry_exceptions=True)(drive_run)
+    pending = {task.remote(agent, spec, suite, mc_samples): spec for spec in specs}
+    failures = []
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        for reference in ready:
+            spec = pending.pop(reference)
+            try:
+                keep(_keyed(ray.get(reference), agent, spec))
+            except ray.exceptions.RayError as error:
+                failures.append(f"{spec.key}: {str(error).splitlines()[-1]}")
+            advance()
+    if failures:
+        raise SafeRaceError(
+            f"{len(failures)} run(s) failed on Ray after {RAY_RETRIES} retries (the rest are "
+            f"kept; run again to retry them): " + "; ".join(failures)
+        )
 
 
 def _keyed(row: dict, agent: str, spec: RunSpec) -> dict:
