@@ -199,6 +199,8 @@ def test_presets_grow_from_none_to_strong():
     for presets in (VISUAL_PRESETS, PHYSICS_PRESETS):
         assert presets["none"].is_identity
         for field in dataclasses.fields(presets["none"]):
+            if field.name == "asphalt_textured_probability":
+                continue  # a share of looks, not a spread: strong textures half of them
             widths = []
             for name in PRESET_NAMES:
                 value = getattr(presets[name], field.name)

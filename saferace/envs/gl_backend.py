@@ -117,6 +117,30 @@ def load_llvm_users_before_mesa() -> None:
             )
 
 
+#: The process that made the first OpenGL context, if any (see :func:`check_gl_process`).
+_GL_OWNER_PID: int | None = None
+
+
+def check_gl_process() -> None:
+    """Before making a renderer: refuse in a child forked from a process that rendered.
+
+    Mesa's EGL and OSMesa do not survive ``fork`` once a context exists (the child hangs
+    in its first context), which is what ``gymnasium.make_vec(..., vectorization_mode=
+    "async")`` does by default on Linux; spawned children are fine. Record this process
+    as one that renders.
+    """
+    global _GL_OWNER_PID
+    pid = os.getpid()
+    if _GL_OWNER_PID is not None and pid != _GL_OWNER_PID:
+        raise RenderingUnavailableError(
+            f"this process was forked from process {_GL_OWNER_PID} after it rendered, and "
+            "offscreen OpenGL does not survive a fork: start subprocesses with spawn, e.g. "
+            'gymnasium.make_vec(..., vectorization_mode="async", '
+            'vector_kwargs={"context": "spawn"})'
+        )
+    _GL_OWNER_PID = pid
+
+
 def renderer_error(exc: BaseException) -> RenderingUnavailableError:
     """The error to raise when a MuJoCo renderer cannot be created."""
     backend = os.environ.get("MUJOCO_GL")

@@ -23,7 +23,7 @@ from saferace.envs.drivetrain import (
     rate_limited,
     wheel_torques,
 )
-from saferace.envs.gl_backend import renderer_error
+from saferace.envs.gl_backend import check_gl_process, renderer_error
 from saferace.envs.randomization import (
     PhysicsRandomization,
     VisualRandomization,
@@ -461,6 +461,7 @@ class RacingEnv(gym.Env):
         """The renderer for ``purpose`` (onboard or chase), created on first use."""
         renderer = self._renderers.get(purpose)
         if renderer is None:
+            check_gl_process()
             try:
                 renderer = mujoco.Renderer(self.model, *size)
             except Exception as exc:  # any GL failure gets the same advice
