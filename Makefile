@@ -61,6 +61,7 @@ bench: setup
 	$(BIN)/python benchmarks/mpc_speed.py
 	$(BIN)/python benchmarks/env_speed.py
 	$(BIN)/python benchmarks/learned_step_speed.py
+	$(BIN)/python benchmarks/benchmark_scaling.py
 
 clean:
 	rm -rf $(VENV) .sysdeps-stamp results

@@ -1,0 +1,27 @@
+"""The examples run as a user would run them (slow: they train)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+@pytest.mark.slow
+def test_sb3_ppo_trains_through_the_filter_and_drives(tmp_path: Path):
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "sb3_ppo_through_filter.py"), "--timesteps", "512",
+         "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    trained = re.search(r"trained (\d+) steps .* intervened in ([\d.]+)%", result.stdout)
+    assert trained and int(trained.group(1)) >= 512
+    assert 0.0 < float(trained.group(2)) <= 100.0  # the filter was in the loop
+    assert "evaluation:" in result.stdout
+    assert (tmp_path / "ppo_saferace.zip").stat().st_size > 10_000
