@@ -231,6 +231,7 @@ def _parser() -> argparse.ArgumentParser:
         "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of the network"
     )
     _add_gains_argument(table)
+    _add_parallel_arguments(table)
     table.set_defaults(command=_safety_table)
 
     board = commands.add_parser(
@@ -258,14 +259,7 @@ def _parser() -> argparse.ArgumentParser:
         help="expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY",
     )
     bench.add_argument("--out", type=Path, required=True, help="the submission .json to write")
-    bench.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
-    bench.add_argument(
-        "--ray",
-        nargs="?",
-        const="local",
-        metavar="ADDRESS",
-        help="one Ray task per run: on a Ray cluster at ADDRESS, or a local Ray instance",
-    )
+    _add_parallel_arguments(bench)
     bench.add_argument(
         "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
     )
@@ -747,6 +741,7 @@ def _safety_table(args: argparse.Namespace) -> int:
     if args.state_source is not None and not args.state_source.startswith("learned:"):
         raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
     _check_count("--mc-samples", args.mc_samples)
+    _check_count("--workers", args.workers)
     tracks = list(args.tracks) if args.tracks else list(builtin_track_names())
     for seed in args.random_tracks:
         path = args.out / "tracks" / f"random_{seed}.csv"
@@ -763,6 +758,8 @@ def _safety_table(args: argparse.Namespace) -> int:
         gains=args.filter_gains,
         state_source=args.state_source,
         mc_samples=args.mc_samples,
+        workers=args.workers,
+        ray_address=args.ray,
     )
     print((args.out / "safety_table.md").read_text())
     print(f"tables, runs and reckless_paths.png written to {args.out}")
@@ -1039,6 +1036,17 @@ def _export_minari(args: argparse.Namespace) -> int:
         f"in {dataset.storage.data_path}"
     )
     return 0
+
+
+def _add_parallel_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    parser.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="one Ray task per run: on a Ray cluster at ADDRESS, or a local Ray instance",
+    )
 
 
 def _add_randomize_argument(parser: argparse.ArgumentParser) -> None:

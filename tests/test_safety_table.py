@@ -37,6 +37,17 @@ def test_table_command_writes_tables_and_resumes(tmp_path: Path):
     assert second.returncode == 0 and len(read_jsonl(out / "runs.jsonl")) == len(rows)
 
 
+def test_table_over_two_workers_gives_the_serial_rows(tmp_path: Path):
+    options = dict(laps=1, max_seconds=3.0, progress=False)
+    serial = run_table(["lab"], tmp_path / "serial", **options)
+    parallel = run_table(["lab"], tmp_path / "parallel", workers=2, **options)
+
+    def measured(rows):  # what the runs drove, not how long their solvers took
+        return [(row["agent"], row["task"], row["summary"], row["trajectory"]) for row in rows]
+
+    assert measured(parallel) == measured(serial)
+
+
 def test_table_adds_the_perceived_state_runs(tiny_checkpoint, tmp_path: Path):
     source = f"learned:{tiny_checkpoint()[0]}"
     rows = run_table(

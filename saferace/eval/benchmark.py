@@ -29,11 +29,9 @@ import math
 import os
 import platform
 import time
-from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from importlib import resources
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +41,7 @@ import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
+from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     append_jsonl,
     git_revision,
@@ -55,7 +54,6 @@ from saferace.eval.runner import (
 from saferace.track import Track
 
 SUITE_VERSION = 1
-RAY_RETRIES = 2  # a run that fails is tried again this many times on Ray, then reported
 OUTSIDE_SCALE_S = 1.0  # the score falls by 1/e per second outside the lane
 TRAJECTORY_POINTS = 200
 SUBMISSION_FIELDS = (
@@ -233,10 +231,15 @@ def run_benchmark(
 
     bar = tqdm(total=len(missing), desc=f"benchmark {agent}", unit="run", disable=not progress)
     with bar:
-        if ray_address is not None:
-            _drive_on_ray(agent, missing, suite, mc_samples, ray_address, keep, bar.update)
-        else:
-            _drive_all(agent, missing, suite, workers, mc_samples, keep, bar.update)
+        run_jobs(
+            drive_run,
+            [(agent, spec, suite, mc_samples) for spec in missing],
+            lambda job, row: keep(_keyed(row, agent, job[1])),
+            workers=workers,
+            ray_address=ray_address,
+            advance=bar.update,
+            describe=lambda job: job[1].key,
+        )
     by_key = {row["key"]: row for row in done}
     rows = [by_key[spec.key] for spec in wanted]
     result = submission(agent, rows, suite)
@@ -245,68 +248,6 @@ def run_benchmark(
     partial.write_text(json.dumps(result, indent=1) + "\n")
     os.replace(partial, out)
     return result
-
-
-def _drive_all(
-    agent: str,
-    specs: list[RunSpec],
-    suite: Suite,
-    workers: int,
-    mc_samples: int,
-    keep: Callable[[dict], None],
-    advance: Callable[[], object],
-) -> None:
-    """Drive ``specs``, handing each row to ``keep`` as it ends (in order when serial)."""
-    if workers <= 1:
-        for spec in specs:
-            keep(_keyed(drive_run(agent, spec, suite, mc_samples), agent, spec))
-            advance()
-        return
-    # spawn: a forked child would share the parent's OpenGL and PyTorch state
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-        futures = {pool.submit(drive_run, agent, spec, suite, mc_samples): spec for spec in specs}
-        for future in as_completed(futures):
-            keep(_keyed(future.result(), agent, futures[future]))
-            advance()
-
-
-def _drive_on_ray(
-    agent: str,
-    specs: list[RunSpec],
-    suite: Suite,
-    mc_samples: int,
-    address: str,
-    keep: Callable[[dict], None],
-    advance: Callable[[], object],
-) -> None:
-    """One Ray task per run, rows kept as they arrive; a task that still fails after
-    ``RAY_RETRIES`` retries is reported (the others are kept, so a rerun drives only it)."""
-    import ray
-
-    if not ray.is_initialized():
-        ray.init(
-            address=None if address == "local" else address,
-            include_dashboard=False,
-            log_to_driver=False,
-            runtime_env={"env_vars": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}},
-        )
-    task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES, retry_exceptions=True)(drive_run)
-    pending = {task.remote(agent, spec, suite, mc_samples): spec for spec in specs}
-    failures = []
-    while pending:
-        ready, _ = ray.wait(list(pending), num_returns=1)
-        for reference in ready:
-            spec = pending.pop(reference)
-            try:
-                keep(_keyed(ray.get(reference), agent, spec))
-            except ray.exceptions.RayError as error:
-                failures.append(f"{spec.key}: {str(error).splitlines()[-1]}")
-            advance()
-    if failures:
-        raise SafeRaceError(
-            f"{len(failures)} run(s) failed on Ray after {RAY_RETRIES} retries (the rest are "
-            f"kept; run again to retry them): " + "; ".join(failures)
-        )
 
 
 def _keyed(row: dict, agent: str, spec: RunSpec) -> dict:

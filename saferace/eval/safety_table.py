@@ -17,6 +17,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from saferace.eval.filters import FilterConfig
+from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.safety.filter import DEFAULT_GAINS
@@ -82,8 +83,11 @@ def run_table(
     progress: bool = True,
     state_source: str | None = None,
     mc_samples: int = 10,
+    workers: int = 1,
+    ray_address: str | None = None,
 ) -> list[dict]:
-    """Run what is not in ``out_dir/runs.jsonl`` yet; write the tables; return all rows."""
+    """Run what is not in ``out_dir/runs.jsonl`` yet (over ``workers`` processes or Ray
+    tasks, see :func:`~saferace.eval.parallel.run_jobs`); write the tables; all rows."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     runs_file = out_dir / "runs.jsonl"
@@ -91,24 +95,41 @@ def run_table(
     runs = planned_runs(tracks, noise, samples, model, gains, state_source, mc_samples)
     todo = [run for run in runs if run.key not in done]
     env_kwargs = {"max_steps": max_steps_for(max_seconds)}
-    for run in tqdm(todo, desc="safety table", unit="run", disable=None if progress else True):
-        (row,) = evaluate(
-            run.agent,
-            run.task,
-            run.track,
-            [seed],
-            laps=laps,
-            progress=False,
-            env_kwargs=env_kwargs,
-            safety=run.safety,
-        )
-        row["track_arg"] = run.track
+
+    def keep(job: tuple, row: dict) -> None:
         append_jsonl(runs_file, row)
-        done[run.key] = row
+        done[job[0].key] = row
+
+    with tqdm(total=len(todo), desc="safety table", unit="run", disable=not progress) as bar:
+        run_jobs(
+            table_row,
+            [(run, seed, laps, env_kwargs) for run in todo],
+            keep,
+            workers=workers,
+            ray_address=ray_address,
+            advance=bar.update,
+            describe=lambda job: " ".join(map(str, job[0].key[:4])),
+        )
     rows = [done[run.key] for run in runs]
     write_tables(rows, out_dir, gains)
     plot_reckless_paths(rows, out_dir / "reckless_paths.png")
     return rows
+
+
+def table_row(run: Run, seed: int, laps: int, env_kwargs: dict) -> dict:
+    """The result row of one run of the table."""
+    (row,) = evaluate(
+        run.agent,
+        run.task,
+        run.track,
+        [seed],
+        laps=laps,
+        progress=False,
+        env_kwargs=env_kwargs,
+        safety=run.safety,
+    )
+    row["track_arg"] = run.track
+    return row
 
 
 def run_key(agent: str, task: str, track: str, safety: FilterConfig) -> tuple:

@@ -1,0 +1,85 @@
+"""Independent runs, serial, over worker processes, or as Ray tasks; results as they end.
+
+The benchmark's and the safety table's runs are independent episodes. :func:`run_jobs`
+calls ``function(*job)`` for each job and hands ``keep(job, result)`` each result as it
+arrives (in order when serial), so that the caller writes it down at once and a rerun
+skips it. Worker processes are spawned (a forked child would share its parent's OpenGL
+and PyTorch state). On Ray each job is one task (``ray_address="local"`` starts a Ray
+instance on this machine); a task that still fails after ``RAY_RETRIES`` retries is
+reported once all others have ended, never dropped.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from multiprocessing import get_context
+from typing import Any
+
+from saferace.errors import SafeRaceError
+
+RAY_RETRIES = 2
+
+Job = tuple[Any, ...]
+
+
+def run_jobs(
+    function: Callable[..., Any],
+    jobs: Sequence[Job],
+    keep: Callable[[Job, Any], None],
+    workers: int = 1,
+    ray_address: str | None = None,
+    advance: Callable[[], object] = lambda: None,
+    describe: Callable[[Job], str] = str,
+) -> None:
+    """``keep(job, function(*job))`` for every job; ``advance()`` after each (a progress
+    bar); ``describe(job)`` names a job in the report of failures on Ray."""
+    if ray_address is not None:
+        _run_on_ray(function, jobs, keep, ray_address, advance, describe)
+    elif workers <= 1:
+        for job in jobs:
+            keep(job, function(*job))
+            advance()
+    else:
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            futures = {pool.submit(function, *job): job for job in jobs}
+            for future in as_completed(futures):
+                keep(futures[future], future.result())
+                advance()
+
+
+def _run_on_ray(
+    function: Callable[..., Any],
+    jobs: Sequence[Job],
+    keep: Callable[[Job, Any], None],
+    address: str,
+    advance: Callable[[], object],
+    describe: Callable[[Job], str],
+) -> None:
+    import ray
+
+    if not ray.is_initialized():
+        ray.init(
+            address=None if address == "local" else address,
+            include_dashboard=False,
+            log_to_driver=False,
+            runtime_env={"env_vars": {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}},
+        )
+    task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES, retry_exceptions=True)(function)
+    pending = {task.remote(*job): job for job in jobs}
+    failures = []
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=1)
+        for reference in ready:
+            job = pending.pop(reference)
+            try:
+                keep(job, ray.get(reference))
+            except ray.exceptions.RayError as error:
+                failures.append(f"{describe(job)}: {str(error).strip().splitlines()[-1]}")
+            advance()
+    if failures:
+        raise SafeRaceError(
+            f"{len(failures)} run(s) failed on Ray after {RAY_RETRIES} retries (the rest are "
+            "kept; run again to retry them): " + "; ".join(failures)
+        )
