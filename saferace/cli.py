@@ -362,6 +362,10 @@ def _parser() -> argparse.ArgumentParser:
     dagger.add_argument("--seed", type=int, default=0, help="seeds training and dropout masks")
     dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
     _add_randomize_argument(dagger)
+    dagger.add_argument(
+        "--episodes", type=int, default=1, help="drives per iteration (the first is reported)"
+    )
+    _add_parallel_arguments(dagger)
     dagger.set_defaults(command=_dagger)
 
     tables = commands.add_parser(
@@ -956,8 +960,12 @@ def _dagger(args: argparse.Namespace) -> int:
         beta_rampdown=args.beta_rampdown,
         max_seconds=args.max_seconds,
         randomize=args.randomize,
+        episodes=args.episodes,
     )
-    rows = DaggerRun(args.out, config, fork_of=args.fork_of).run()
+    _check_count("--workers", args.workers)
+    rows = DaggerRun(
+        args.out, config, fork_of=args.fork_of, workers=args.workers, ray_address=args.ray
+    ).run()
     print(
         markdown_table(
             METRIC_COLUMNS, [[_cell(row.get(c)) for c in METRIC_COLUMNS] for row in rows]

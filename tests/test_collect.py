@@ -94,3 +94,16 @@ def test_collect_command_adds_rounds(tmp_path: Path):
     assert bytes_per_frame < 5_000  # a 64x64 frame with its labels: well under 20 kB
     bad = run_cli(*args, "--perturb", "-0.1", "--out", str(out))
     assert bad.returncode == 2 and "--perturb needs a non-negative" in bad.stderr
+
+
+def test_a_round_over_two_workers_is_the_serial_round(tmp_path: Path):
+    config = CollectionConfig(
+        task="CenterLine", track="lab", laps=1, max_seconds=1.5, seeds=(3, 4), randomize="mild"
+    )
+    serial = collect_round(tmp_path / "serial", config, progress=False)
+    parallel = collect_round(tmp_path / "parallel", config, progress=False, workers=2)
+    assert parallel.episodes == serial.episodes
+    with np.load(serial.path / "frames.npz") as a, np.load(parallel.path / "frames.npz") as b:
+        for name in a.files:
+            np.testing.assert_array_equal(a[name], b[name])
+        assert set(a["episode"]) == {0, 1}

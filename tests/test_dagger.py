@@ -18,7 +18,13 @@ import torch
 from saferace.errors import SafeRaceError
 from saferace.learning.calibration import inside_lane, spread_scale
 from saferace.learning.checkpoint import load_checkpoint
-from saferace.learning.dagger import DaggerConfig, DaggerRun, spread_scale_path
+from saferace.learning.dagger import (
+    DaggerConfig,
+    DaggerRun,
+    episode_seed,
+    episode_seeds,
+    spread_scale_path,
+)
 from saferace.learning.rounds import FrameSet, load_rounds
 from saferace.track import Track
 
@@ -199,3 +205,18 @@ def test_killed_while_driving_and_while_training_it_ends_with_the_same_rounds(
         "round_0001",
         "round_0002",
     ]
+
+
+def test_an_iterations_episodes_on_two_workers_add_frames_and_keep_the_first(
+    unfiltered: DaggerRun, tmp_path: Path
+):
+    wider = replace(TINY, iterations=0, episodes=2)
+    run = DaggerRun(tmp_path / "two", wider, progress=False, workers=2)
+    run.run()
+    both = load_rounds([run.round_path(0)])
+    first = load_rounds([unfiltered.round_path(0)])
+    assert set(both["episode"]) == {0, 1}
+    shared = both["episode"] == 0
+    np.testing.assert_array_equal(both["image"][shared], first["image"])  # episode 0 as before
+    assert run.metrics()[0]["frames"] == len(both)
+    assert episode_seeds(0, 0, 2)[0] == episode_seed(0, 0)

@@ -229,7 +229,12 @@ def run_benchmark(
         append_jsonl(journal, row)
         done.append(row)
 
-    bar = tqdm(total=len(missing), desc=f"benchmark {agent}", unit="run", disable=not progress)
+    bar = tqdm(
+        total=len(missing),
+        desc=f"benchmark {agent}",
+        unit="run",
+        disable=None if progress else True,
+    )
     with bar:
         run_jobs(
             drive_run,

@@ -100,7 +100,9 @@ def run_table(
         append_jsonl(runs_file, row)
         done[job[0].key] = row
 
-    with tqdm(total=len(todo), desc="safety table", unit="run", disable=not progress) as bar:
+    with tqdm(
+        total=len(todo), desc="safety table", unit="run", disable=None if progress else True
+    ) as bar:
         run_jobs(
             table_row,
             [(run, seed, laps, env_kwargs) for run in todo],

@@ -29,6 +29,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.metrics import span_metrics
+from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     EpisodeResult,
     git_revision,
@@ -196,66 +197,58 @@ class CollectedRound:
     episodes: list[dict]
 
 
+@dataclass(frozen=True)
+class CollectedEpisode:
+    """One episode of a round: its kept and held-out frames and its summary."""
+
+    frames: dict[str, np.ndarray]
+    held_out: dict[str, np.ndarray]
+    summary: dict
+    track_name: str
+    track_length_m: float
+    control_hz: float
+
+
 def collect_round(
-    dataset_dir: str | Path, config: CollectionConfig, progress: bool = True
+    dataset_dir: str | Path,
+    config: CollectionConfig,
+    progress: bool = True,
+    workers: int = 1,
+    ray_address: str | None = None,
 ) -> CollectedRound:
     """Drive one episode per seed, label every frame, write it all as the next round.
 
     Each episode's summary holds its lap metrics, those of the part of the lap past
     ``train_fraction`` (``held_out``, when it is below 1) and a downsampled trajectory.
+    The episodes are independent: ``workers`` processes or Ray tasks (``ray_address``,
+    see :func:`~saferace.eval.parallel.run_jobs`) drive them at once, and the round is the
+    same as a serial one.
     """
-    frames: list[dict[str, np.ndarray]] = []
-    held_out: list[dict[str, np.ndarray]] = []
-    summaries = []
-    track_name = track_length = control_hz = None
-    for episode, seed in enumerate(config.seeds):
-        env = make_task_env(
-            config.task,
-            config.track,
-            config.laps,
-            config.safety,
-            seed,
-            max_steps=max_steps_for(config.max_seconds),
-            image_size=tuple(config.image_size),
-            stereo=config.stereo,
-            randomize=config.randomize,
-        )
-        try:
-            base = env.unwrapped
-            track_name, track_length = base.track.name, base.track.length_m
-            control_hz = 1.0 / base.control_dt_s
-            expert = MPCExpert.for_env(env, model=config.expert_model)
-            driver = (
-                None
-                if config.agent == "expert"
-                else make_agent(config.agent, env, config.expert_model, config.mc_samples, seed)
-            )
-            noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
-            labeller = LabellingDriver(
-                expert, driver, noise, base.action_space, episode, config.beta, seed
-            )
-            result = run_episode(
-                env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
-            )
-        finally:
-            env.close()
-        episode_frames = labeller.arrays()
-        kept = np.mod(episode_frames["s_m"] / track_length, 1.0) < config.train_fraction
-        frames.append({name: values[kept] for name, values in episode_frames.items()})
-        held_out.append({name: values[~kept] for name, values in episode_frames.items()})
-        summaries.append(
-            episode_summary(seed, result, track_length, config.train_fraction, base.control_dt_s)
-        )
-    arrays, held_out_arrays = (
-        {name: np.concatenate([f[name] for f in parts]) for name in FRAME_FIELDS}
-        for parts in (frames, held_out)
+    collected: dict[int, CollectedEpisode] = {}
+    jobs = [
+        (config, episode, seed, progress and workers <= 1)
+        for episode, seed in enumerate(config.seeds)
+    ]
+    run_jobs(
+        collect_episode,
+        jobs,
+        lambda job, result: collected.__setitem__(job[1], result),
+        workers=workers,
+        ray_address=ray_address,
+        describe=lambda job: f"episode {job[1]} (seed {job[2]})",
     )
+    episodes = [collected[episode] for episode in range(len(config.seeds))]
+    arrays, held_out_arrays = (
+        {name: np.concatenate([getattr(e, part)[name] for e in episodes]) for name in FRAME_FIELDS}
+        for part in ("frames", "held_out")
+    )
+    summaries = [episode.summary for episode in episodes]
     manifest_config = {
         **config.as_dict(),
-        "track": track_name,
+        "track": episodes[0].track_name,
         "track_argument": str(config.track),
-        "track_length_m": track_length,
-        "control_hz": control_hz,
+        "track_length_m": episodes[0].track_length_m,
+        "control_hz": episodes[0].control_hz,
         "label_lookahead_s": TARGET_SPEED_LOOKAHEAD_S,
         "episodes": summaries,
         "saferace_version": saferace.__version__,
@@ -265,6 +258,53 @@ def collect_round(
     }
     path = write_round(dataset_dir, arrays, manifest_config, held_out_arrays)
     return CollectedRound(path, len(arrays["s_m"]), summaries)
+
+
+def collect_episode(
+    config: CollectionConfig, episode: int, seed: int, progress: bool = False
+) -> CollectedEpisode:
+    """Drive and label episode ``episode`` of a round (seeded by ``seed``)."""
+    env = make_task_env(
+        config.task,
+        config.track,
+        config.laps,
+        config.safety,
+        seed,
+        max_steps=max_steps_for(config.max_seconds),
+        image_size=tuple(config.image_size),
+        stereo=config.stereo,
+        randomize=config.randomize,
+    )
+    try:
+        base = env.unwrapped
+        track_length = base.track.length_m
+        expert = MPCExpert.for_env(env, model=config.expert_model)
+        driver = (
+            None
+            if config.agent == "expert"
+            else make_agent(config.agent, env, config.expert_model, config.mc_samples, seed)
+        )
+        noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
+        labeller = LabellingDriver(
+            expert, driver, noise, base.action_space, episode, config.beta, seed
+        )
+        result = run_episode(
+            env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
+        )
+    finally:
+        env.close()
+    frames = labeller.arrays()
+    kept = np.mod(frames["s_m"] / track_length, 1.0) < config.train_fraction
+    return CollectedEpisode(
+        frames={name: values[kept] for name, values in frames.items()},
+        held_out={name: values[~kept] for name, values in frames.items()},
+        summary=episode_summary(
+            seed, result, track_length, config.train_fraction, base.control_dt_s
+        ),
+        track_name=base.track.name,
+        track_length_m=track_length,
+        control_hz=1.0 / base.control_dt_s,
+    )
 
 
 def episode_summary(

@@ -121,8 +121,11 @@ class DaggerConfig:
     beta_rampdown: int = 0
     max_seconds: float = 60.0
     randomize: str = "none"
+    episodes: int = 1
 
     def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise SafeRaceError(f"episodes must be at least 1, got {self.episodes}")
         if self.filter not in ("none", "cbf"):
             raise SafeRaceError(f"filter must be none or cbf, got {self.filter!r}")
         if self.state_source not in STATE_SOURCES:
@@ -151,8 +154,9 @@ class DaggerConfig:
         unfiltered run is the same whatever filter its forks will use."""
         values = asdict(self)
         del values["iterations"]
-        if self.randomize == "none":  # the same run as one made before the option existed
-            del values["randomize"]
+        for name, default in (("randomize", "none"), ("episodes", 1)):
+            if values[name] == default:  # the same run as one made before the option existed
+                del values[name]
         if self.filter == "none":
             for name in FILTER_SETTINGS:
                 del values[name]
@@ -181,7 +185,12 @@ class DaggerRun:
         fork_of: str | Path | None = None,
         progress: bool = True,
         label: str = "dagger",
+        workers: int = 1,
+        ray_address: str | None = None,
     ) -> None:
+        """``workers``/``ray_address``: where an iteration's episodes are driven (see
+        :func:`~saferace.learning.collect.collect_round`); the rounds are the same."""
+        self.workers, self.ray_address = workers, ray_address
         self.out_dir = Path(out_dir)
         self.config = config
         self.fork_of = None if fork_of is None else Path(fork_of)
@@ -284,7 +293,7 @@ class DaggerRun:
             agent="expert" if iteration == 0 else f"learned:{checkpoint}",
             task=config.task,
             track=config.track,
-            seeds=(episode_seed(config.seed, iteration),),
+            seeds=episode_seeds(config.seed, iteration, config.episodes),
             laps=config.laps,
             max_seconds=config.max_seconds,
             safety=safety,
@@ -297,7 +306,13 @@ class DaggerRun:
             perturbation=Perturbation(config.expert_perturb if iteration == 0 else 0.0),
             randomize=config.randomize,
         )
-        collected = collect_round(self.data_dir, collection, progress=self.progress)
+        collected = collect_round(
+            self.data_dir,
+            collection,
+            progress=self.progress,
+            workers=self.workers,
+            ray_address=self.ray_address,
+        )
         if collected.path.name != self.round_path(iteration).name:
             raise SafeRaceError(
                 f"{self.data_dir} holds rounds that belong to no iteration of this run "
@@ -436,9 +451,15 @@ def spread_scale_of(
     return tuple(json.loads(path.read_text())["spread_scale"])
 
 
-def episode_seed(seed: int, iteration: int) -> int:
-    """The episode seed of one iteration's drive (its dropout masks)."""
-    return int(np.random.SeedSequence([seed, iteration]).generate_state(1)[0] % 2**31)
+def episode_seed(seed: int, iteration: int, episode: int = 0) -> int:
+    """The seed of one drive of an iteration (its dropout masks and look)."""
+    entropy = [seed, iteration] if episode == 0 else [seed, iteration, episode]
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0] % 2**31)
+
+
+def episode_seeds(seed: int, iteration: int, episodes: int) -> tuple[int, ...]:
+    """The seeds of an iteration's ``episodes`` drives."""
+    return tuple(episode_seed(seed, iteration, episode) for episode in range(episodes))
 
 
 def final_checkpoint(run_dir: str | Path) -> Path:
