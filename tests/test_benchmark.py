@@ -156,3 +156,10 @@ def test_ray_gives_the_serial_rows_and_reports_failed_runs(tmp_path: Path, local
             ray_address="local",
         )  # fmt: skip
     assert not (tmp_path / "c.json").exists()
+
+
+def test_failed_runs_in_worker_processes_are_reported_not_dropped(tmp_path: Path):
+    with pytest.raises(SafeRaceError, match=r"2 run\(s\) failed in worker processes"):
+        run_benchmark(
+            "no_such_module:agent", tmp_path / "c.json", workers=2, progress=False, runs=LAB_RUNS
+        )

@@ -146,17 +146,20 @@ def test_physics_randomisation_changes_the_car_and_restores_it_per_draw():
         assert env.model.geom_friction[tyre, 0] == pytest.approx(
             plain.model.geom_friction[tyre, 0] * car["friction_scale"]
         )
-        assert env.params.motor_stall_torque_nm == pytest.approx(
+        assert env.drivetrain.motor_stall_torque_nm == pytest.approx(
             plain.params.motor_stall_torque_nm * car["motor_scale"]
         )
+        assert env.params == plain.params  # what a controller knows stays nominal
         masses.add(round(float(env.model.body_mass[chassis]), 6))
     assert len(masses) == 3
     env.close()
     plain.close()
 
 
-def test_pickled_env_keeps_its_look_and_continues_identically():
-    env = gym.make("saferace/RacingLine-v0", track="varying", randomize="strong").unwrapped
+def test_pickled_env_keeps_its_look_and_car_and_continues_identically():
+    env = gym.make(
+        "saferace/RacingLine-v0", track="varying", randomize="strong", physics_randomize="strong"
+    ).unwrapped
     env.reset(seed=2)
     for _ in range(5):
         env.step(np.array([0.0, 1.0]))
@@ -165,6 +168,7 @@ def test_pickled_env_keeps_its_look_and_continues_identically():
         action = np.array([0.05 * np.sin(step), 0.5])
         a, b = env.step(action), clone.step(action)
         np.testing.assert_array_equal(a[0]["image"], b[0]["image"])
+        assert (a[4]["x_m"], a[4]["v_x_mps"]) == (b[4]["x_m"], b[4]["v_x_mps"])
     env.close()
     clone.close()
 

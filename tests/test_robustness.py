@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -67,3 +68,10 @@ def test_a_second_state_network_beside_the_filters_is_refused():
             safety=FilterConfig(kind="cbf", state_source="learned:a.pt"),
             monitor_state_source="learned:b.pt",
         )
+
+
+def test_settings_with_tuples_resume(tmp_path: Path):
+    config = short("pure-pursuit", safety=FilterConfig(kind="cbf", state_noise=(0.05, 0.05)))
+    first = run_robustness(replace(config, presets=("none",)), tmp_path, progress=False)
+    both = run_robustness(config, tmp_path, progress=False)  # read back from JSON: lists
+    assert both[0] == first[0] and len(both) == 2

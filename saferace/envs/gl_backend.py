@@ -126,19 +126,22 @@ def check_gl_process() -> None:
 
     Mesa's EGL and OSMesa do not survive ``fork`` once a context exists (the child hangs
     in its first context), which is what ``gymnasium.make_vec(..., vectorization_mode=
-    "async")`` does by default on Linux; spawned children are fine. Record this process
-    as one that renders.
+    "async")`` does by default on Linux; spawned children are fine. :func:`note_gl_process`
+    records a process once it has a renderer.
     """
-    global _GL_OWNER_PID
-    pid = os.getpid()
-    if _GL_OWNER_PID is not None and pid != _GL_OWNER_PID:
+    if _GL_OWNER_PID is not None and os.getpid() != _GL_OWNER_PID:
         raise RenderingUnavailableError(
             f"this process was forked from process {_GL_OWNER_PID} after it rendered, and "
             "offscreen OpenGL does not survive a fork: start subprocesses with spawn, e.g. "
             'gymnasium.make_vec(..., vectorization_mode="async", '
             'vector_kwargs={"context": "spawn"})'
         )
-    _GL_OWNER_PID = pid
+
+
+def note_gl_process() -> None:
+    """Record this process as one that has made an OpenGL context."""
+    global _GL_OWNER_PID
+    _GL_OWNER_PID = os.getpid()
 
 
 def renderer_error(exc: BaseException) -> RenderingUnavailableError:

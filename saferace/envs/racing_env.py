@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import atexit
-import copy
 import dataclasses
 import functools
 import math
@@ -23,7 +22,7 @@ from saferace.envs.drivetrain import (
     rate_limited,
     wheel_torques,
 )
-from saferace.envs.gl_backend import check_gl_process, renderer_error
+from saferace.envs.gl_backend import check_gl_process, note_gl_process, renderer_error
 from saferace.envs.randomization import (
     PhysicsRandomization,
     VisualRandomization,
@@ -178,7 +177,8 @@ class RacingEnv(gym.Env):
         self.physics_randomize = physics_randomization(physics_randomize)
         self.track = track if isinstance(track, Track) else Track.load(track)
         self.reference = reference_line(self.track, self.reference_kind)
-        self.params = DrivetrainParams()
+        self.params = DrivetrainParams()  # nominal: what controllers may know of the car
+        self._drivetrain = self.params  # the car driven: varied by physics_randomize
         self.car_half_width_m = 0.5 * VehicleEnvelope().width_m
         self.image_size = (int(image_size[0]), int(image_size[1]))
         self.stereo = stereo
@@ -298,6 +298,12 @@ class RacingEnv(gym.Env):
             renderer.close()
         self._renderers.clear()
 
+    @property
+    def drivetrain(self) -> DrivetrainParams:
+        """The drivetrain of the car driven this episode (``params`` varied by
+        ``physics_randomize``; ``params`` stays nominal, as a controller knows it)."""
+        return self._drivetrain
+
     # ------------------------------------------------------------- pickling
     def __getstate__(self) -> dict[str, Any]:
         state = np.empty(mujoco.mj_stateSize(self.model, _STATE_SPEC))
@@ -315,31 +321,35 @@ class RacingEnv(gym.Env):
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(**state["kwargs"])
+        if state["variation_rng"] is not None:  # the same look and car, before any physics
+            generator = type(state["np_random"].bit_generator)()
+            generator.state = state["variation_rng"]
+            self._np_random = np.random.Generator(generator)
+            self._vary()
+            if self._look is not None:
+                self._look.noise_index = state["noise_index"]
         mujoco.mj_setState(self.model, self.data, state["physics"], _STATE_SPEC)
         mujoco.mj_forward(self.model, self.data)  # positions and sensors for the next step
         mujoco.mj_setState(self.model, self.data, state["physics"], _STATE_SPEC)  # warm start
         self._steer_target = state["steer_target"]
         self._episode = state["episode"]
         self._projector.set_state(state["projector"])
-        if state["variation_rng"] is not None:  # the same look and car again
-            self._np_random = np.random.Generator(np.random.PCG64())
-            self._np_random.bit_generator.state = state["variation_rng"]
-            self._vary()
-            if self._look is not None:
-                self._look.noise_index = state["noise_index"]
         self._np_random = state["np_random"]
 
     # ------------------------------------------------------------- internals
     def _vary(self) -> dict[str, dict[str, Any]]:
         """Draw this episode's look and car, apply them, and return the values drawn."""
         variations: dict[str, dict[str, Any]] = {}
-        self._variation_rng = copy.deepcopy(self.np_random.bit_generator.state)
+        if self._look is None and self._car is None:
+            return variations
+        self._variation_rng = self.np_random.bit_generator.state  # a copy
         if self._look is not None:
             variations["look"] = self._look.apply(self.np_random)
             for renderer in self._renderers.values():
                 self._look.upload(renderer)
         if self._car is not None:
-            self.params, variations["car"] = self._car.apply(self.np_random)
+            self._drivetrain, variations["car"] = self._car.apply(self.np_random)
+            mujoco.mj_setConst(self.model, self.data)  # what MuJoCo derives from the masses
         return variations
 
     def _place_car(self, s_m: float, speed_mps: float | None = None) -> None:
@@ -368,7 +378,7 @@ class RacingEnv(gym.Env):
         self._projector.reset(s_m)
 
     def _apply_controls(self, steer_cmd: float, accel_cmd: float) -> None:
-        params, data, ids = self.params, self.data, self._ids
+        params, data, ids = self._drivetrain, self.data, self._ids
         self._steer_target = rate_limited(
             steer_cmd, self._steer_target, params.max_steer_rate_radps, self.control_dt_s
         )
@@ -466,6 +476,7 @@ class RacingEnv(gym.Env):
                 renderer = mujoco.Renderer(self.model, *size)
             except Exception as exc:  # any GL failure gets the same advice
                 raise renderer_error(exc) from exc
+            note_gl_process()
             self._renderers[purpose] = renderer
             _close_renderers_at_exit()
         return renderer

@@ -5,8 +5,10 @@ markings, roadside objects, camera mounting, image noise); :class:`PhysicsRandom
 changes the car (mass, tyre friction, motor strength), kept apart because it also changes
 what the expert's and the filter's models assume. Each field is a closed range
 ``(low, high)`` drawn uniformly once per reset (a probability for yes/no choices); a
-range ``(x, x)`` is the scene as built. ``RacingEnv(randomize=..., physics_randomize=...)``
-takes a preset name (``none``, ``mild``, ``strong``) or an instance.
+range ``(x, x)`` keeps that value as built (any visual randomisation builds the
+randomizable scene, whose lines are not emissive: they dim with the light).
+``RacingEnv(randomize=..., physics_randomize=...)`` takes a preset name (``none``,
+``mild``, ``strong``) or an instance.
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ class RandomizationError(SafeRaceError, ValueError):
     """A randomisation range or preset that cannot be used."""
 
 
-def _check_range(name: str, value: Range, low: float, high: float) -> None:
-    """``value`` is a non-empty range of finite numbers within ``[low, high]``."""
+def _checked_range(name: str, value: Range, low: float, high: float) -> Range:
+    """``value`` as a tuple of floats, if it is a non-empty range of finite numbers within
+    ``[low, high]`` (a list is accepted: the fields stay hashable tuples)."""
     if not (isinstance(value, tuple | list) and len(value) == 2):
         raise RandomizationError(f"{name} must be a (low, high) pair, got {value!r}")
     lower, upper = value
@@ -34,8 +37,9 @@ def _check_range(name: str, value: Range, low: float, high: float) -> None:
         raise RandomizationError(f"{name} must hold two finite numbers, got {value!r}")
     if lower > upper:
         raise RandomizationError(f"{name} is an empty range: low {lower} > high {upper}")
-    if lower < low or upper > high:
+    if not low <= lower <= upper <= high:
         raise RandomizationError(f"{name} must lie within [{low}, {high}], got {value!r}")
+    return float(lower), float(upper)
 
 
 def _check_probability(name: str, value: float) -> None:
@@ -94,15 +98,17 @@ class VisualRandomization:
             "image_blur_sigma_px": (0.0, 10.0),
         }
         for field in fields(self):
-            value = getattr(self, field.name)
-            if field.name.endswith("_probability"):
-                _check_probability(field.name, value)
-            elif field.name.endswith("_tint"):
-                _check_range(field.name, value, 0.0, 1.0)
-            elif field.name.endswith(("_brightness", "_contrast")):
-                _check_range(field.name, value, 0.0, 3.0 if "brightness" in field.name else 1.0)
+            name, value = field.name, getattr(self, field.name)
+            if name.endswith("_probability"):
+                _check_probability(name, value)
+                continue
+            if name.endswith("_tint"):
+                limits = (0.0, 1.0)
+            elif name.endswith(("_brightness", "_contrast")):
+                limits = (0.0, 3.0 if "brightness" in name else 1.0)
             else:
-                _check_range(field.name, value, *bounds[field.name])
+                limits = bounds[name]
+            object.__setattr__(self, name, _checked_range(name, value, *limits))
 
     @property
     def is_identity(self) -> bool:
@@ -121,7 +127,8 @@ class PhysicsRandomization:
 
     def __post_init__(self) -> None:
         for field in fields(self):
-            _check_range(field.name, getattr(self, field.name), 0.2, 5.0)
+            value = _checked_range(field.name, getattr(self, field.name), 0.2, 5.0)
+            object.__setattr__(self, field.name, value)
 
     @property
     def is_identity(self) -> bool:

@@ -7,8 +7,9 @@ plane with a coarse grid, and some roadside cones and boxes for visual structure
 Shadows and multisampling are off. Only the car's tyres and chassis collide, with the
 ground plane; every other scene element is visual. A ``randomizable`` scene gives the
 asphalt a plain white texture and adds hidden dashed lines, which domain randomisation
-repaints, moves and shows in place (:mod:`saferace.envs.scene_look`). The texture costs a
-software rasteriser about 7% of a 64x64 step; every mesh vertex drawn costs too, so the
+repaints, moves and shows in place (:mod:`saferace.envs.scene_look`); its lines are not
+emissive, so that they dim with the randomised light. The texture costs a
+software rasteriser about 8% of a 64x64 step; every mesh vertex drawn costs too, so the
 dashed lines are drawn only when shown.
 """
 

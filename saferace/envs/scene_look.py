@@ -177,7 +177,7 @@ class SceneLook:
 
     def _asphalt_texture(self, contrast: float, rng: np.random.Generator) -> None:
         """White less ``contrast`` times smooth noise scaled to [0, 1]; none at contrast 0,
-        since sampling a texture costs a software rasteriser about 7% of a 64x64 step."""
+        since sampling a texture costs a software rasteriser about 8% of a 64x64 step."""
         self.model.mat_texid[self._asphalt, _RGB] = self._asphalt_texid if contrast else -1
         texels = self._texels(self._textures[0])
         noise = cv2.GaussianBlur(rng.random(texels.shape[:2]), (0, 0), 1.0)

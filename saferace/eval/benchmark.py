@@ -304,13 +304,16 @@ def validate_submission(data: object, source: str, version: int = SUITE_VERSION)
     if not isinstance(data["rows"], list) or not data["rows"]:
         raise SafeRaceError(f"{source}: no rows")
     for index, row in enumerate(data["rows"]):
+        if not isinstance(row, dict):
+            raise SafeRaceError(f"{source}: row {index} is not an object")
         absent = [name for name in ROW_FIELDS if name not in row]
         if absent:
             raise SafeRaceError(f"{source}: row {index} lacks {', '.join(absent)}")
         if row.get("suite_version", version) != version:
             raise SafeRaceError(f"{source}: row {index} is of suite v{row['suite_version']}")
-        if not math.isfinite(row["score"]):
-            raise SafeRaceError(f"{source}: row {index} has score {row['score']!r}")
+        score = row["score"]
+        if not (isinstance(score, int | float) and math.isfinite(score)):
+            raise SafeRaceError(f"{source}: row {index} has score {score!r}")
     return data
 
 

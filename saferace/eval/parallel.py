@@ -5,8 +5,8 @@ calls ``function(*job)`` for each job and hands ``keep(job, result)`` each resul
 arrives (in order when serial), so that the caller writes it down at once and a rerun
 skips it. Worker processes are spawned (a forked child would share its parent's OpenGL
 and PyTorch state). On Ray each job is one task (``ray_address="local"`` starts a Ray
-instance on this machine); a task that still fails after ``RAY_RETRIES`` retries is
-reported once all others have ended, never dropped.
+instance on this machine), retried ``RAY_RETRIES`` times. A run that fails is reported
+once all others have ended (their results kept), never dropped.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def run_jobs(
     describe: Callable[[Job], str] = str,
 ) -> None:
     """``keep(job, function(*job))`` for every job; ``advance()`` after each (a progress
-    bar); ``describe(job)`` names a job in the report of failures on Ray."""
+    bar); ``describe(job)`` names a job in the report of failures."""
     if ray_address is not None:
         _run_on_ray(function, jobs, keep, ray_address, advance, describe)
     elif workers <= 1:
@@ -42,11 +42,17 @@ def run_jobs(
             keep(job, function(*job))
             advance()
     else:
+        failures = []
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
             futures = {pool.submit(function, *job): job for job in jobs}
             for future in as_completed(futures):
-                keep(futures[future], future.result())
+                job = futures[future]
+                try:
+                    keep(job, future.result())
+                except Exception as error:  # keep the others' results, report it after
+                    failures.append(f"{describe(job)}: {type(error).__name__}: {error}")
                 advance()
+        _raise_failures(failures, "in worker processes")
 
 
 def _run_on_ray(
@@ -78,8 +84,12 @@ def _run_on_ray(
             except ray.exceptions.RayError as error:
                 failures.append(f"{describe(job)}: {str(error).strip().splitlines()[-1]}")
             advance()
+    _raise_failures(failures, f"on Ray after {RAY_RETRIES} retries")
+
+
+def _raise_failures(failures: list[str], where: str) -> None:
     if failures:
         raise SafeRaceError(
-            f"{len(failures)} run(s) failed on Ray after {RAY_RETRIES} retries (the rest are "
-            "kept; run again to retry them): " + "; ".join(failures)
+            f"{len(failures)} run(s) failed {where} (the rest are kept; run again to retry "
+            "them): " + "; ".join(failures)
         )

@@ -91,9 +91,9 @@ def run_robustness(
     """Drive every (preset, seed) not yet in ``out_dir/runs.jsonl``; all runs' rows."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    settings = {
-        key: value for key, value in config.as_dict().items() if key not in ("presets", "seeds")
-    }
+    settings = json.loads(  # as read back from runs.jsonl: tuples become lists
+        json.dumps({k: v for k, v in config.as_dict().items() if k not in ("presets", "seeds")})
+    )
     path = out_dir / RUNS_FILE
     done = read_jsonl(path) if path.exists() else []
     for row in done:
@@ -160,7 +160,9 @@ def drive_once(config: RobustnessConfig, preset: str, seed: int, progress: bool)
 class _StateErrors:
     """Collects a state network's samples against the truth, step by step."""
 
-    def __init__(self, sample: Callable[[dict, dict], tuple[np.ndarray, np.ndarray]] | None):
+    def __init__(
+        self, sample: Callable[[dict, dict], tuple[np.ndarray, np.ndarray, np.ndarray]] | None
+    ):
         self.sample = sample
         self.errors: list[np.ndarray] = []
         self.spreads: list[np.ndarray] = []

@@ -10,7 +10,8 @@ target_speed_mps, accel_mps2]``, the true Frenet state ``state`` ``[e_y_m, e_psi
 kappa_radpm]``, ``driver_action``, ``applied_action``, ``s_m``, ``time_s`` and
 ``intervened``. Rewards are the task's (``progress_m - deviation_m ** 2``, see
 :class:`~saferace.envs.racing_env.RacingEnv`), recomputed from the recorded states.
-Images are stored losslessly (no JPEG), so frames load back bit for bit.
+Images are stored losslessly (no JPEG), so frames load back bit for bit. Every episode
+ends truncated: the step that may have terminated it is the one dropped.
 """
 
 from __future__ import annotations
@@ -54,26 +55,32 @@ def export_minari(
         config = manifest["config"]
         drivers.add(config["agent"])
         revisions.add(f"saferace {config['saferace_version']} (git {config['git_revision']})")
-        settings.add((config["task"], config["track_argument"], tuple(manifest["image_shape"])))
+        look = config.get("randomize", "none")
+        settings.add(
+            (config["task"], config["track_argument"], tuple(manifest["image_shape"]), look)
+        )
         rewards = _rewards(config)
         seeds = [episode["seed"] for episode in config["episodes"]]
         for frames in episodes:
             if len(frames["s_m"]) < 2:
                 continue  # a one-frame episode has no step
-            buffers.append(_episode_buffer(EpisodeBuffer, frames, config, seeds, rewards))
+            buffers.append(_episode_buffer(EpisodeBuffer, frames, seeds, rewards))
     if len(settings) > 1:
         raise SafeRaceError(
             "a Minari dataset holds one task, track and camera; these rounds mix "
-            + "; ".join(f"{task} on {track} with {shape} images" for task, track, shape in settings)
+            + "; ".join(
+                f"{task} on {track} with {shape} images, {look} looks"
+                for task, track, shape, look in settings
+            )
         )
-    (task, track, image_shape) = settings.pop()
+    (task, track, image_shape, look) = settings.pop()
     with _datasets_root(datasets_dir):
         if dataset_id in minari.list_local_datasets():
             raise SafeRaceError(
                 f"a Minari dataset {dataset_id!r} exists already; delete it first "
                 f"(minari delete {dataset_id}) or give another name"
             )
-        spec = _env_spec(task, track, image_shape)
+        spec = _env_spec(task, track, image_shape, look)
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="`author_email` is set to None")
             return minari.create_dataset_from_buffers(
@@ -91,20 +98,18 @@ def export_minari(
             )
 
 
-def _episode_buffer(buffer_type, frames: dict, config: dict, seeds: list[int], rewards):
+def _episode_buffer(buffer_type, frames: dict, seeds: list[int], rewards):
     """One Minari episode of a round's episode (see the module docstring)."""
     count = len(frames["s_m"])
     episode = int(frames["episode"][0])
-    summary = config["episodes"][episode]
-    terminations = np.zeros(count - 1, bool)
     truncations = np.zeros(count - 1, bool)
-    (terminations if summary.get("terminated") else truncations)[-1] = True
+    truncations[-1] = True  # the episode's last step, which may have ended it, is dropped
     return buffer_type(
         seed=seeds[episode],
         observations={"image": frames["image"], "velocity": frames["velocity"]},
         actions=frames["applied_action"][:-1],
         rewards=rewards(frames),
-        terminations=terminations,
+        terminations=np.zeros(count - 1, bool),
         truncations=truncations,
         infos={name: frames[name] for name in INFO_FIELDS},
     )
@@ -134,12 +139,19 @@ def _rewards(config: dict):
     return rewards
 
 
-def _env_spec(task: str, track: str, image_shape: Sequence[int]) -> gym.envs.registration.EnvSpec:
+def _env_spec(
+    task: str, track: str, image_shape: Sequence[int], look: str
+) -> gym.envs.registration.EnvSpec:
     """The spec that makes the env the rounds were driven in (``recover_environment``)."""
     from saferace.eval.runner import task_id
 
     height, width, channels = image_shape
-    kwargs = {"track": str(track), "image_size": [height, width], "stereo": channels == 6}
+    kwargs = {
+        "track": str(track),
+        "image_size": [height, width],
+        "stereo": channels == 6,
+        "randomize": look,
+    }
     return dataclasses.replace(gym.spec(task_id(task)), kwargs=kwargs)
 
 
