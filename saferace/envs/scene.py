@@ -80,7 +80,7 @@ def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjS
         spec, "right_line", right + width * normals, right, LINE_RGBA, z_lines, line_emission
     )
     if options.randomizable:
-        _add_dashes(spec, track, dash_pieces(track, options), width, z_lines)
+        _add_dashes(spec, track, dash_pieces(track, s), width, z_lines)
     _add_start_line(spec, track)
     if options.roadside_objects:
         _add_roadside_objects(spec, track, options.roadside_spacing_m)
@@ -118,11 +118,10 @@ def _add_white_texture(spec: mujoco.MjSpec, name: str, texels: int) -> None:
     texture.data = bytes([255]) * (3 * texels * texels)
 
 
-def dash_pieces(track: Track, options: SceneOptions) -> np.ndarray:
+def dash_pieces(track: Track, mesh_s_m: np.ndarray) -> np.ndarray:
     """Start and end arc lengths (m) of the pieces of a dashed line: the lane meshes'
-    vertices split at every multiple of ``DASH_M``, keeping every other stretch."""
-    s = mesh_samples(track, options.mesh_chord_error_m, options.mesh_max_step_m)
-    s = np.union1d(s, np.arange(0.0, track.length_m, DASH_M))
+    vertices ``mesh_s_m`` split at every multiple of ``DASH_M``, keeping every other stretch."""
+    s = np.union1d(mesh_s_m, np.arange(0.0, track.length_m, DASH_M))
     ends = np.append(s[1:], track.length_m)
     in_dash = np.floor(0.5 * (s + ends) / DASH_M) % 2 == 0
     return np.column_stack([s[in_dash], ends[in_dash]])

@@ -44,9 +44,9 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
                 entry["score"],
                 entry["score_with_filter"],
                 None if rate is None else 100.0 * rate,
-                100.0 * float(np.mean([row["completion"] for row in plain])) if plain else None,
+                None if entry["completion"] is None else 100.0 * entry["completion"],
                 float(np.mean(ratios)) if ratios else None,
-                float(sum(row["time_outside_lane_s"] for row in plain)),
+                entry["time_outside_lane_s"],
                 len(entry["rows"]),
             ]
         )
