@@ -68,8 +68,7 @@ def points_outside(track: Track, line: np.ndarray, clearance_m: float) -> int:
     return outside
 
 
-def geometry_row(path: Path) -> list:
-    track = Track.load(path)
+def geometry_row(path: Path, track: Track) -> list:
     settings = RacingLineSettings()
     started = time.perf_counter()
     ours = racing_line(track, settings=settings).curvature_squared_integral
@@ -131,6 +130,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("results/real_tracks"))
     parser.add_argument("--geometry-only", action="store_true", help="load and racing line only")
     parser.add_argument(
+        "--smooth-rms-m",
+        type=float,
+        default=None,
+        help="smooth each centre line within this RMS distance (Track.load's smooth_rms_m)",
+    )
+    parser.add_argument(
         "--gains",
         default=DEFAULT_GAINS,
         help="the filter's settings (safety-table's --filter-gains)",
@@ -142,9 +147,15 @@ def main() -> None:
     )
     if not tracks:
         parser.error(f"{args.folder} holds no track CSV")
-    print(markdown_table(GEOMETRY_COLUMNS, [geometry_row(path) for path in tracks]))
+    loaded = {path: Track.load(path, smooth_rms_m=args.smooth_rms_m) for path in tracks}
+    print(markdown_table(GEOMETRY_COLUMNS, [geometry_row(*item) for item in loaded.items()]))
     if args.geometry_only:
         return
+    if args.smooth_rms_m is not None:
+        (args.out / "tracks").mkdir(parents=True, exist_ok=True)
+        tracks = [args.out / "tracks" / path.name for path in tracks]
+        for path, track in zip(tracks, loaded.values(), strict=True):
+            track.to_csv(path)
     rows = run_table([str(path) for path in tracks], args.out, laps=1, max_seconds=120.0,
                      gains=args.gains)  # fmt: skip
     print(

@@ -50,6 +50,35 @@ def test_smoothing_removes_the_noise_and_keeps_the_boundaries():
     assert given.smoothing is None and smooth.point_count == given.point_count
 
 
+def noisy_hairpins(radius_m: float = 1.6, straight_m: float = 100.0) -> np.ndarray:
+    """A 100 m stadium with 1.6 m hairpins, traced every 0.35 m with 2 cm of noise: the shape
+    of a 1/10-scale circuit's long straights and tight turns."""
+    step_m = 0.35
+    along = np.arange(0.0, straight_m, step_m)
+    turn = np.linspace(-0.5 * np.pi, 0.5 * np.pi, int(np.pi * radius_m / step_m), endpoint=False)
+    points = np.vstack(
+        [
+            np.column_stack([along, np.full(along.size, -radius_m)]),
+            np.column_stack([straight_m + radius_m * np.cos(turn), radius_m * np.sin(turn)]),
+            np.column_stack([straight_m - along, np.full(along.size, radius_m)]),
+            np.column_stack([-radius_m * np.cos(turn), -radius_m * np.sin(turn)]),
+        ]
+    )
+    return points + NOISE_M * np.random.default_rng(0).standard_normal(points.shape)
+
+
+def test_smoothing_keeps_the_hairpins_of_a_long_circuit():
+    """The penalised spline follows a 1.6 m hairpin between 100 m straights; FITPACK's
+    smoothing spline (``splprep``, few knots on a long lap) cut it to a 0.84 m radius and the
+    loader had to narrow the lane there (it did so on the F1TENTH circuits)."""
+    x, y = noisy_hairpins().T
+    smooth = Track.from_arrays(x, y, 1.1, 1.1, smooth_rms_m=NOISE_M)
+    assert smooth.min_turn_radius_m() > 0.75 * 1.6 and smooth.narrowing.points == 0
+    assert smooth.centerline.curvature_squared_integral() == pytest.approx(
+        2.0 * np.pi / 1.6, rel=0.15
+    )
+
+
 def test_a_non_positive_tolerance_is_refused():
     with pytest.raises(TrackError, match="smoothing tolerance must be positive"):
         Track.from_arrays(*noisy_circle(), 1.0, 1.0, smooth_rms_m=0.0)
