@@ -25,6 +25,7 @@ from saferace.eval.tables import markdown_table
 from saferace.safety.filter import DEFAULT_GAINS
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import RacingLineSettings, racing_line
+from saferace.track.smoothing import SMOOTHING_KEEPS
 
 RACELINE_SUFFIX = "_raceline"
 GEOMETRY_COLUMNS = (
@@ -136,6 +137,12 @@ def main() -> None:
         help="smooth each centre line within this RMS distance (Track.load's smooth_rms_m)",
     )
     parser.add_argument(
+        "--smooth-keeps",
+        choices=SMOOTHING_KEEPS,
+        default="widths",
+        help="what a smoothed lane keeps: the given widths or boundaries (Track.load's)",
+    )
+    parser.add_argument(
         "--gains",
         default=DEFAULT_GAINS,
         help="the filter's settings (safety-table's --filter-gains)",
@@ -147,7 +154,10 @@ def main() -> None:
     )
     if not tracks:
         parser.error(f"{args.folder} holds no track CSV")
-    loaded = {path: Track.load(path, smooth_rms_m=args.smooth_rms_m) for path in tracks}
+    loaded = {
+        path: Track.load(path, smooth_rms_m=args.smooth_rms_m, smooth_keeps=args.smooth_keeps)
+        for path in tracks
+    }
     print(markdown_table(GEOMETRY_COLUMNS, [geometry_row(*item) for item in loaded.items()]))
     if args.geometry_only:
         return

@@ -468,6 +468,7 @@ def _add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) 
 
 
 FILTER_GAINS = ("paper", "grip", "tuned")  # the keys of saferace.safety.filter.GAIN_PRESETS
+SMOOTHING_KEEPS = ("widths", "boundaries")  # saferace.track.smoothing.SMOOTHING_KEEPS
 
 
 def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
@@ -595,7 +596,14 @@ def _add_track_arguments(parser: argparse.ArgumentParser) -> None:
         "--smooth-rms-m",
         type=float,
         help="smooth a noisy centre line: a spline within this RMS distance of its points "
-        "(e.g. 0.02; boundaries kept in place)",
+        "(e.g. 0.05)",
+    )
+    parser.add_argument(
+        "--smooth-keeps",
+        choices=SMOOTHING_KEEPS,
+        default="widths",
+        help="what a smoothed lane keeps: the given widths (its boundaries move with the centre "
+        "line, as the F1TENTH collection's lanes) or the given boundaries (measured edges)",
     )
 
 
@@ -619,7 +627,11 @@ def _track_report(args: argparse.Namespace, smooth_rms_m: float | None):
             raise SafeRaceError(f"--margin-m must not be negative, got {args.margin_m}")
         settings = replace(settings, margin_m=args.margin_m)
     track = Track.load(
-        args.track, car_width_m=envelope.width_m, strict=args.strict, smooth_rms_m=smooth_rms_m
+        args.track,
+        car_width_m=envelope.width_m,
+        strict=args.strict,
+        smooth_rms_m=smooth_rms_m,
+        smooth_keeps=args.smooth_keeps,
     )
     return track_report(track, envelope, settings)
 

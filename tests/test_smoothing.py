@@ -37,7 +37,9 @@ def boundary_offsets_m(track: Track, x: np.ndarray, y: np.ndarray) -> list[np.nd
 def test_smoothing_removes_the_noise_and_keeps_the_boundaries():
     x, y = noisy_circle()
     given = Track.from_arrays(x, y, HALF_WIDTH_M, HALF_WIDTH_M)
-    smooth = Track.from_arrays(x, y, HALF_WIDTH_M, HALF_WIDTH_M, smooth_rms_m=NOISE_M)
+    smooth = Track.from_arrays(
+        x, y, HALF_WIDTH_M, HALF_WIDTH_M, smooth_rms_m=NOISE_M, smooth_keeps="boundaries"
+    )
     circle = 2.0 * np.pi / RADIUS_M  # integral of kappa^2 ds of the noiseless circle
     assert given.centerline.curvature_squared_integral() > 5.0 * circle
     assert smooth.centerline.curvature_squared_integral() == pytest.approx(circle, rel=0.1)
@@ -65,6 +67,22 @@ def noisy_hairpins(radius_m: float = 1.6, straight_m: float = 100.0) -> np.ndarr
         ]
     )
     return points + NOISE_M * np.random.default_rng(0).standard_normal(points.shape)
+
+
+def test_smoothing_keeps_the_widths_by_default():
+    """The lane of a circuit given by its centre line and widths (F1TENTH's) moves with the
+    smoothed centre line: its widths stay as given, so its boundaries lose the noise too."""
+    x, y = noisy_circle()
+    smooth = Track.from_arrays(x, y, HALF_WIDTH_M, HALF_WIDTH_M, smooth_rms_m=NOISE_M)
+    widths = smooth.widths(smooth.centerline.sample(0.05))
+    assert np.allclose(widths, HALF_WIDTH_M) and smooth.smoothing.keeps == "widths"
+    inner_left = (-HALF_WIDTH_M, HALF_WIDTH_M)  # the circle turns left: its left side is inside
+    for side, offset in zip(smooth.boundaries(0.02), inner_left, strict=True):
+        radius = np.hypot(*side.T)
+        assert radius.mean() == pytest.approx(RADIUS_M + offset, abs=NOISE_M)
+        assert np.ptp(radius) < 0.25 * np.ptp(np.hypot(x, y))  # the noise left both boundaries
+    with pytest.raises(TrackError, match="keeps one of"):
+        Track.from_arrays(x, y, 1.0, 1.0, smooth_rms_m=NOISE_M, smooth_keeps="edges")
 
 
 def test_smoothing_keeps_the_hairpins_of_a_long_circuit():

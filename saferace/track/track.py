@@ -20,7 +20,7 @@ from saferace.track import validation
 from saferace.track.frenet import FrenetProjector
 from saferace.track.path import ClosedPath
 from saferace.track.periodic import PeriodicInterpolator
-from saferace.track.smoothing import Smoothing, smooth_centerline
+from saferace.track.smoothing import Smoothing, SmoothingKeeps, smooth_centerline
 from saferace.track.track_io import read_track_csv, write_track_csv
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
@@ -76,11 +76,17 @@ class Track:
         car_width_m: float = VehicleEnvelope.width_m,
         strict: bool = False,
         smooth_rms_m: float | None = None,
+        smooth_keeps: SmoothingKeeps = "widths",
     ) -> Track:
-        """A built-in track by name, or a track CSV by path (``strict``, ``smooth_rms_m``:
-        see :meth:`from_arrays`)."""
+        """A built-in track by name, or a track CSV by path (``strict``, ``smooth_rms_m``,
+        ``smooth_keeps``: see :meth:`from_arrays`)."""
         text = str(name_or_path)
-        options = {"car_width_m": car_width_m, "strict": strict, "smooth_rms_m": smooth_rms_m}
+        options = {
+            "car_width_m": car_width_m,
+            "strict": strict,
+            "smooth_rms_m": smooth_rms_m,
+            "smooth_keeps": smooth_keeps,
+        }
         if text in builtin_track_names():
             return cls.from_csv(builtin_track_path(text), name=text, **options)
         path = Path(text)
@@ -98,6 +104,7 @@ class Track:
         name: str | None = None,
         strict: bool = False,
         smooth_rms_m: float | None = None,
+        smooth_keeps: SmoothingKeeps = "widths",
     ) -> Track:
         """Read and validate a track file (see :mod:`saferace.track.track_io`)."""
         table = read_track_csv(path)
@@ -117,6 +124,7 @@ class Track:
                 row_name=row,
                 strict=strict,
                 smooth_rms_m=smooth_rms_m,
+                smooth_keeps=smooth_keeps,
             )
         except TrackError as exc:
             message = str(exc)
@@ -136,11 +144,13 @@ class Track:
         row_name: validation.RowName = validation.default_row_name,
         strict: bool = False,
         smooth_rms_m: float | None = None,
+        smooth_keeps: SmoothingKeeps = "widths",
     ) -> Track:
         """Build and validate a track from centerline points and widths (scalars broadcast).
 
         ``smooth_rms_m``: replace a noisy centre line by a smoothing spline that passes
-        within this RMS distance of the points, boundaries kept in place
+        within this RMS distance of the points, keeping the given widths (the boundaries move
+        with the centre line) or, ``smooth_keeps="boundaries"``, the given boundaries
         (:func:`~saferace.track.smoothing.smooth_centerline`; off by default). Where a turn is
         tighter than its inner half width, the lane is narrowed there so that the boundary
         does not fold (:func:`~saferace.track.validation.narrow_folding_widths`, one warning
@@ -155,7 +165,7 @@ class Track:
         validation.check_points(x_m, y_m, w_right_m, w_left_m, row_name)
         smoothing = None
         if smooth_rms_m is not None:
-            lane = smooth_centerline(x_m, y_m, w_right_m, w_left_m, smooth_rms_m)
+            lane = smooth_centerline(x_m, y_m, w_right_m, w_left_m, smooth_rms_m, smooth_keeps)
             x_m, y_m, w_right_m, w_left_m = lane.x_m, lane.y_m, lane.w_right_m, lane.w_left_m
             smoothing = lane.smoothing
         centerline = ClosedPath(np.column_stack([x_m, y_m]))
