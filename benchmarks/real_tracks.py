@@ -6,9 +6,12 @@ the loader narrowed, the racing line's integral of kappa^2 ds against the one of
 of points outside our lane is given, since such a line cannot be driven), and the time the
 racing line took. Unless ``--geometry-only``, also what ``saferace safety-table`` measures on
 it (the expert's laps on both tasks, the reckless agents with and without the filter, oracle
-and noisy), resumable in ``--out``.
+and noisy), resumable in ``--out``. ``--smooth-rms-m`` measures the circuits with their
+centre lines smoothed (``Track.load``'s option); the lanes as loaded are written to a folder
+of ``--out`` named by the smoothing, and driven.
 
-    python benchmarks/real_tracks.py ../shared/tracks/f1tenth [--geometry-only] [--out DIR]
+    python benchmarks/real_tracks.py ../shared/tracks/f1tenth [--geometry-only]
+        [--smooth-rms-m 0.05 [--smooth-keeps widths|boundaries]] [--out DIR]
 """
 
 from __future__ import annotations
@@ -134,7 +137,7 @@ def main() -> None:
         "--smooth-rms-m",
         type=float,
         default=None,
-        help="smooth each centre line within this RMS distance (Track.load's smooth_rms_m)",
+        help="smooth each centre line by this RMS distance (Track.load's smooth_rms_m)",
     )
     parser.add_argument(
         "--smooth-keeps",
@@ -162,8 +165,9 @@ def main() -> None:
     if args.geometry_only:
         return
     if args.smooth_rms_m is not None:
-        (args.out / "tracks").mkdir(parents=True, exist_ok=True)
-        tracks = [args.out / "tracks" / path.name for path in tracks]
+        folder = args.out / f"tracks_smoothed_{args.smooth_rms_m}m_keeping_{args.smooth_keeps}"
+        folder.mkdir(parents=True, exist_ok=True)
+        tracks = [folder / path.name for path in tracks]
         for path, track in zip(tracks, loaded.values(), strict=True):
             track.to_csv(path)
     rows = run_table([str(path) for path in tracks], args.out, laps=1, max_seconds=120.0,

@@ -595,20 +595,19 @@ def _add_track_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--smooth-rms-m",
         type=float,
-        help="smooth a noisy centre line: a spline within this RMS distance of its points "
+        help="smooth a noisy centre line: a spline that moves its points by this RMS distance "
         "(e.g. 0.05)",
     )
     parser.add_argument(
         "--smooth-keeps",
         choices=SMOOTHING_KEEPS,
-        default="widths",
-        help="what a smoothed lane keeps: the given widths (its boundaries move with the centre "
-        "line, as the F1TENTH collection's lanes) or the given boundaries (measured edges)",
+        help="what a smoothed lane keeps: the given widths (default: its boundaries move with the "
+        "centre line, as the F1TENTH collection's lanes) or the given boundaries (measured edges)",
     )
 
 
 def _track_report(args: argparse.Namespace, smooth_rms_m: float | None):
-    """The track of ``args`` (smoothed within ``smooth_rms_m``) and its report, as
+    """The track of ``args`` (smoothed by ``smooth_rms_m``) and its report, as
     ``_add_track_arguments`` asked."""
     from dataclasses import replace
 
@@ -616,6 +615,8 @@ def _track_report(args: argparse.Namespace, smooth_rms_m: float | None):
     from saferace.track.raceline import RacingLineSettings
     from saferace.track.report import track_report
 
+    if args.smooth_keeps and args.smooth_rms_m is None:
+        raise SafeRaceError("--smooth-keeps says what a smoothed lane keeps: add --smooth-rms-m")
     envelope = VehicleEnvelope()
     if args.car_width_m is not None:
         if args.car_width_m <= 0:
@@ -631,7 +632,7 @@ def _track_report(args: argparse.Namespace, smooth_rms_m: float | None):
         car_width_m=envelope.width_m,
         strict=args.strict,
         smooth_rms_m=smooth_rms_m,
-        smooth_keeps=args.smooth_keeps,
+        smooth_keeps=args.smooth_keeps or "widths",
     )
     return track_report(track, envelope, settings)
 

@@ -40,6 +40,7 @@ class TrackReport:
         rows = []
         if track.smoothing:
             rows += [
+                ["smoothed lane keeps the given", track.smoothing.keeps],
                 ["centre line smoothed: most moved [m]", track.smoothing.max_shift_m],
                 ["centre line smoothed: RMS moved [m]", track.smoothing.rms_shift_m],
             ]

@@ -1,14 +1,15 @@
-"""Smoothing a noisy centre line with a regression spline, the lane's boundaries kept in place.
+"""Smoothing a noisy centre line with a curvature-penalised regression spline.
 
 Real circuits are traced from maps or GPS, and the noise of those points is curvature the car
 would have to steer. The smoothed centre line is the cubic smoothing spline ``c(s)`` that
-minimises ``sum_i |p_i - c(s_i)|^2 + lam * integral |c''(s)|^2 ds`` over the closed line's
-points ``p_i`` at their chord-length positions ``s_i``: as ``s`` is close to arc length,
-``|c''|^2`` is the curvature squared, so the spline trades the distance it moves the points
-against exactly the ``integral kappa^2 ds`` the car steers (a penalised spline, as TUM's track
-preparation smooths with a regression spline; FITPACK's ``splprep`` places few knots and left
-0.3 m radii at the F1TENTH circuits' hairpins). ``lam`` is found so that the points move
-``rms_m`` in the root-mean-square sense.
+minimises ``sum_i w_i |p_i - c(s_i)|^2 + lam * integral |c''(s)|^2 ds`` over the closed
+line's points ``p_i`` at their chord-length positions ``s_i`` (``w_i``: each point's share of
+the lap): where ``s`` is close to arc length, ``|c''|^2`` is about the curvature squared, so
+the spline trades the distance it moves the points against about the ``integral kappa^2 ds``
+the car steers (a penalised spline, as TUM's track preparation smooths with a regression
+spline; FITPACK's ``splprep``, used before, places few knots on a long lap and left 0.3 m
+radii at the F1TENTH circuits' hairpins). ``lam`` is found so that the points move ``rms_m``
+in the (weighted) root-mean-square sense, and the new points are spaced evenly along it.
 
 What the lane keeps (``keeps``): ``"widths"`` (the default) gives each new centre point the
 widths given at the nearest point of the old one, so the boundaries move with the centre line:
@@ -37,8 +38,8 @@ _PROJECTION_STEP_M = 0.005
 #: What a smoothed lane keeps of the given one.
 SmoothingKeeps = Literal["widths", "boundaries"]
 SMOOTHING_KEEPS: tuple[str, ...] = ("widths", "boundaries")
-#: Range of log10(lam) searched, and the tolerance on it.
-_LOG_LAM_RANGE = (-8.0, 8.0)
+#: Range of log10(lam / mean spacing^3) searched, and the tolerance on it.
+_LOG_LAM_RANGE = (-6.0, 14.0)
 _LOG_LAM_TOL = 0.01
 
 
@@ -72,8 +73,9 @@ def smooth_centerline(
     rms_m: float,
     keeps: SmoothingKeeps = "widths",
 ) -> SmoothedLane:
-    """The curvature-penalised smoothing spline whose points lie ``rms_m`` (RMS) from the closed
-    centre line's, one per given point, with the given widths or boundaries (``keeps``)."""
+    """The curvature-penalised smoothing spline that moves the closed centre line
+    by ``rms_m`` (RMS), as many points evenly spaced, with the given widths or boundaries
+    (``keeps``)."""
     if not rms_m > 0.0:
         raise TrackError(f"the smoothing tolerance must be positive, got {rms_m} m")
     if keeps not in SMOOTHING_KEEPS:
@@ -103,28 +105,51 @@ def smooth_centerline(
 
 
 def _penalised_fit(points: np.ndarray, rms_m: float) -> np.ndarray:
-    """The closed line's points on the penalised spline whose RMS distance from them is
-    ``rms_m``: the line is laid out three times along its chord length (so the middle lap's
-    spline is periodic to rounding) and ``lam`` is found by Brent's method on ``log10(lam)``."""
+    """As many points, evenly spaced along the closed line's penalised spline whose weighted
+    RMS distance from the given points is ``rms_m``.
+
+    Each point weighs its share of the lap (half its two chords), so a cluster of points counts
+    as the stretch it covers. The line is laid out three times along its chord length, so the
+    middle lap's spline is periodic to rounding. ``lam`` is scaled by the mean spacing cubed
+    (the penalty's units against the residuals') and found by Brent's method on its logarithm.
+    """
     closed = np.vstack([points, points[:1]])
     chords = np.linalg.norm(np.diff(closed, axis=0), axis=1)
+    if np.any(chords <= 0.0):
+        raise TrackError(
+            f"the centre line repeats point {int(np.argmin(chords))}: cannot smooth it"
+        )
     s = np.concatenate([[0.0], np.cumsum(chords[:-1])])
     period = float(chords.sum())
+    weights = 0.5 * (chords + np.roll(chords, 1))
+    weights = weights / weights.mean()
     s_tiled = np.concatenate([s - period, s, s + period])
-    points_tiled = np.vstack([points, points, points])
+    weights_tiled = np.tile(weights, 3)
+    lam_unit = (period / len(points)) ** 3
 
-    def fitted(log_lam: float) -> np.ndarray:
-        return make_smoothing_spline(s_tiled, points_tiled, lam=10.0**log_lam)(s)
+    def splines(log_lam: float) -> list:
+        return [
+            make_smoothing_spline(
+                s_tiled, np.tile(points[:, axis], 3), w=weights_tiled, lam=lam_unit * 10.0**log_lam
+            )
+            for axis in (0, 1)
+        ]
 
-    def excess_m(log_lam: float) -> float:
-        return float(np.sqrt(np.mean(np.sum((fitted(log_lam) - points) ** 2, axis=1)))) - rms_m
+    def rms_moved_m(log_lam: float) -> float:
+        moved_sq = sum(
+            (spline(s) - points[:, axis]) ** 2 for axis, spline in enumerate(splines(log_lam))
+        )
+        return float(np.sqrt(np.sum(weights * moved_sq) / np.sum(weights)))
 
     low, high = _LOG_LAM_RANGE
-    if excess_m(high) < 0.0:
+    most, least = rms_moved_m(high), rms_moved_m(low)
+    if not least <= rms_m <= most:
         raise TrackError(
-            f"the smoothing tolerance {rms_m} m is more than the centre line's distance from "
-            "a straight line: nothing of the track would be left"
+            f"the smoothing tolerance {rms_m} m is outside what smoothing this centre line can "
+            f"move it by ({least:.2g} to {most:.3g} m RMS)"
         )
-    if excess_m(low) > 0.0:
-        return points.copy()
-    return fitted(brentq(excess_m, low, high, xtol=_LOG_LAM_TOL))
+    x_spline, y_spline = splines(
+        brentq(lambda v: rms_moved_m(v) - rms_m, low, high, xtol=_LOG_LAM_TOL)
+    )
+    s_even = np.linspace(0.0, period, len(points), endpoint=False)
+    return np.column_stack([x_spline(s_even), y_spline(s_even)])

@@ -149,7 +149,7 @@ class Track:
         """Build and validate a track from centerline points and widths (scalars broadcast).
 
         ``smooth_rms_m``: replace a noisy centre line by a smoothing spline that passes
-        within this RMS distance of the points, keeping the given widths (the boundaries move
+        this RMS distance from the points, keeping the given widths (the boundaries move
         with the centre line) or, ``smooth_keeps="boundaries"``, the given boundaries
         (:func:`~saferace.track.smoothing.smooth_centerline`; off by default). Where a turn is
         tighter than its inner half width, the lane is narrowed there so that the boundary
