@@ -23,7 +23,7 @@ shrinks by ``d`` and its right one grows by ``d``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
@@ -37,7 +37,7 @@ from saferace.track.path import ClosedPath
 _PROJECTION_STEP_M = 0.005
 #: What a smoothed lane keeps of the given one.
 SmoothingKeeps = Literal["widths", "boundaries"]
-SMOOTHING_KEEPS: tuple[str, ...] = ("widths", "boundaries")
+SMOOTHING_KEEPS: tuple[str, ...] = get_args(SmoothingKeeps)
 #: Range of log10(lam / mean spacing^3) searched, and the tolerance on it.
 _LOG_LAM_RANGE = (-6.0, 14.0)
 _LOG_LAM_TOL = 0.01
@@ -49,7 +49,7 @@ class Smoothing:
     line moved."""
 
     rms_m: float
-    keeps: str
+    keeps: SmoothingKeeps
     max_shift_m: float
     rms_shift_m: float
 
