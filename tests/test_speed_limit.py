@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import math
+from pathlib import Path
+
+import gymnasium as gym
 import numpy as np
 import pytest
 
-from saferace.safety.speed_limit import braking_speed_limit
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.safety.filter import SafetyFilter
+from saferace.safety.speed_limit import LaneSpeedLimit, braking_speed_limit
 from saferace.track import Track
-from saferace.track.raceline import racing_line
+from saferace.track.raceline import ReferenceLine, racing_line
 
 
 @pytest.mark.parametrize("decel", [1.0, 2.0, 4.0])
@@ -53,3 +59,100 @@ def test_bad_settings_are_refused():
         braking_speed_limit(reference, 1.1, 0.0, 7.0)
     with pytest.raises(ValueError, match="positive"):
         braking_speed_limit(reference, 1.1, 2.0, -1.0)
+
+
+def rounded_square(radius_m: float = 2.0, side_m: float = 15.0) -> Track:
+    """Four straights joined by quarter turns, in a 2.2 m lane like the F1TENTH circuits':
+    the racing line cuts each turn, turning several times more gently than the centre."""
+    points, position = [], np.zeros(2)
+    for heading in np.arange(4) * np.pi / 2:
+        direction = np.array([np.cos(heading), np.sin(heading)])
+        left = np.array([-direction[1], direction[0]])
+        points += [position + d * direction for d in np.arange(0.0, side_m, 0.2)]
+        centre = position + side_m * direction + radius_m * left
+        angles = np.arange(0.0, np.pi / 2, 0.2 / radius_m)
+        points += [centre + radius_m * (np.sin(a) * direction - np.cos(a) * left) for a in angles]
+        position = centre + radius_m * direction
+    x, y = np.array(points).T
+    return Track.from_arrays(x, y, 1.1, 1.1, name="rounded-square")
+
+
+@pytest.fixture(scope="module")
+def cut_turn_limit() -> tuple[Track, ReferenceLine, LaneSpeedLimit]:
+    track = rounded_square()
+    reference = racing_line(track)
+    return track, reference, LaneSpeedLimit(track, reference, 1.1, 2.0, 7.0, 6.05)
+
+
+def test_on_the_reference_line_the_lane_limit_is_the_reference_limit(cut_turn_limit):
+    """A car on its line is not slowed, not even at apexes, where the parallels are tighter."""
+    _, reference, limit = cut_turn_limit
+    s = np.asarray(reference.center_s_m)[::7]
+    on_line = [limit(float(x), float(reference.offset_at(x))) for x in s]
+    expected = braking_speed_limit(reference, 1.1, 2.0, 7.0)(s)
+    np.testing.assert_allclose(on_line, expected, atol=1e-12)
+    # The centre's parallel through an apex is tighter than the line there: without the
+    # blend, the car on the line would be held below the reference's limit.
+    apex = s[np.abs(reference.offset_at(s)) > 0.25]
+    parallel_at_line = [limit.parallel_limit(float(x), float(reference.offset_at(x))) for x in apex]
+    assert np.min(parallel_at_line - limit.reference_limit(apex)) < -0.3
+
+
+def test_riding_the_centre_of_a_turn_the_line_cuts_is_limited_to_the_centre(cut_turn_limit):
+    """Far from the line, the car is held to what the lane's own curve allows."""
+    track, reference, limit = cut_turn_limit
+    s = np.asarray(reference.center_s_m)
+    kappa = np.abs(track.centerline.curvature(s))
+    far = np.abs(reference.offset_at(s)) > limit.far_m + 0.05
+    tightest = s[far][np.argmax(kappa[far])]
+    centre_corner_speed = math.sqrt(6.05 / kappa[far].max())
+    assert limit(float(tightest), 0.0) <= centre_corner_speed + 1e-6
+    assert float(limit.reference_limit(tightest)) > centre_corner_speed + 0.5
+    # Between near_m and far_m from the line the limit blends continuously.
+    offset = float(reference.offset_at(tightest))
+    toward_centre = -np.sign(offset)
+    blended = [limit(float(tightest), offset + toward_centre * d) for d in np.linspace(0, 1, 41)]
+    assert np.max(np.abs(np.diff(blended))) < 0.5
+    assert blended[0] == pytest.approx(float(limit.reference_limit(tightest)))
+
+
+def test_parallel_limits_are_slower_inside_a_turn_and_braked_for(cut_turn_limit):
+    track, reference, limit = cut_turn_limit
+    s = np.asarray(reference.center_s_m)
+    kappa = track.centerline.curvature(s)
+    turn = s[np.argmax(np.abs(kappa))]
+    inside = math.copysign(0.3, kappa[np.argmax(np.abs(kappa))])
+    assert limit.parallel_limit(turn, inside) < limit.parallel_limit(turn, 0.0)
+    assert limit.parallel_limit(turn, 0.0) < limit.parallel_limit(turn, -inside)
+    # Along each parallel the limit falls no faster than braking at 2 m/s^2 allows.
+    gaps = np.diff(np.append(s, s[0] + track.length_m))
+    for offset, row in zip(limit.offsets_m, limit.parallel_limits, strict=True):
+        v = row(s)
+        stretch = np.maximum(1.0 - offset * kappa, 0.05)
+        assert np.all(v**2 <= np.roll(v, -1) ** 2 + 2 * 2.0 * stretch * gaps + 1e-9)
+
+
+def test_lane_limit_settings_are_checked(cut_turn_limit):
+    track, reference, _ = cut_turn_limit
+    with pytest.raises(ValueError, match="positive"):
+        LaneSpeedLimit(track, reference, 1.1, 2.0, 7.0, 0.0)
+    with pytest.raises(ValueError, match="near_m < far_m"):
+        LaneSpeedLimit(track, reference, 1.1, 2.0, 7.0, 6.05, near_m=0.6, far_m=0.3)
+
+
+def test_the_filter_brakes_a_car_riding_the_centre_of_a_cut_turn(tmp_path: Path):
+    """The speed barrier reads the car's offset: at the racing line's speed, the same car is
+    left alone on the line and braked at the centre, where the turn is tighter."""
+    track_csv = tmp_path / "rounded_square.csv"
+    rounded_square().to_csv(track_csv)
+    env = SafetyFilter(gym.make("saferace/RacingLine-v0", track=str(track_csv), max_laps=1))
+    reference = env.unwrapped.reference
+    s = np.asarray(reference.center_s_m)
+    kappa = np.abs(env.unwrapped.track.centerline.curvature(s))
+    turn = float(s[np.argmax(kappa * (np.abs(reference.offset_at(s)) > 0.65))])
+    observation, info = env.reset(seed=0, options={"start_s_m": turn})
+    on_line = env.certify(observation, info, np.array([0.0, 0.0]))
+    centred = env.certify(observation, {**info, "e_y_m": 0.0}, np.array([0.0, 0.0]))
+    assert on_line.barriers["speed"] > 0.0 > centred.barriers["speed"] + 0.5
+    assert centred.filtered_action[1] < on_line.filtered_action[1] - 1.0
+    env.close()

@@ -24,9 +24,10 @@ from saferace.safety.chance import (
 )
 from saferace.safety.models import MIN_SPEED_MPS, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, solve_filter_qp
-from saferace.safety.speed_limit import braking_speed_limit
+from saferace.safety.speed_limit import LaneSpeedLimit
 from saferace.safety.state_sources import OracleStateSource, StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
+from saferace.track.vehicle_envelope import VehicleEnvelope
 
 #: Fallback when a solve fails: brake at this rate and steer toward the centerline.
 FALLBACK_BRAKE_MPS2 = 2.0
@@ -169,19 +170,21 @@ class SafetyFilter(gym.Wrapper):
     the barrier ``h_speed = v_limit(s) - v_x``: the task's reference speed profile (planned
     for 5 m/s^2 of lateral acceleration; 1.1x the speed is 6 m/s^2, well inside the tyres'
     grip of about 9.8), braked for within the friction ellipse ``SPEED_LIMIT_DECEL_MPS2``
-    by ``SPEED_LIMIT_LATERAL_MPS2`` before corners (:mod:`saferace.safety.speed_limit`),
-    with the CBF condition ``dh/dt + lam_1 h >= 0``,
+    by ``SPEED_LIMIT_LATERAL_MPS2`` before corners; a car far from the reference line is
+    held to the same lateral acceleration along the centre line's parallel through its
+    offset, since a racing line's profile holds on the line only
+    (:mod:`saferace.safety.speed_limit`), with the CBF condition ``dh/dt + lam_1 h >= 0``,
     i.e. ``accel <= lam_1 h + dv_limit/ds * v_x``. It needs the car's arc length on the
-    track map (localisation, ``info["s_m"]``), not the perceived state; ``None`` turns it
-    off. The lane barriers take the half widths' slopes along the track from the map at
-    the same ``s`` (see :mod:`saferace.safety.barriers`); with ``width_preview_s`` they take
-    the narrowest width the car reaches within that time (and its slope) instead, since a
-    second-order barrier cannot see a narrowing coming: a lane narrowed at a real circuit's
-    kink widens and narrows again within metres. ``map_curvature=True`` takes the
-    centerline's curvature from the map at ``s`` too, instead of the state source's: a
-    learned state network judges the curvature under the car worst (off by 0.1-0.4 1/m on
-    lab, against 0.02-0.03 m for ``e_y``), and a wrong curvature turns the lane barriers'
-    steering the wrong way.
+    track map (localisation, ``info["s_m"]``) and takes the lowest limit over the state
+    samples' offsets; ``None`` turns it off. The lane barriers take the half widths' slopes
+    along the track from the map at the same ``s`` (see :mod:`saferace.safety.barriers`);
+    with ``width_preview_s`` they take the narrowest width the car reaches within that time
+    (and its slope) instead, since a second-order barrier cannot see a narrowing coming: a
+    lane narrowed at a real circuit's kink widens and narrows again within metres.
+    ``map_curvature=True`` takes the centerline's curvature from the map at ``s`` too,
+    instead of the state source's: a learned state network judges the curvature under the
+    car worst (off by 0.1-0.4 1/m on lab, against 0.02-0.03 m for ``e_y``), and a wrong
+    curvature turns the lane barriers' steering the wrong way.
     """
 
     def __init__(
@@ -249,11 +252,13 @@ class SafetyFilter(gym.Wrapper):
         self.width_preview_s = width_preview_s
         self.track = env.unwrapped.track
         self.speed_limit = (
-            braking_speed_limit(
+            LaneSpeedLimit(
+                self.track,
                 env.unwrapped.reference,
                 speed_limit_factor,
                 SPEED_LIMIT_DECEL_MPS2,
                 SPEED_LIMIT_LATERAL_MPS2,
+                path_lateral_mps2=speed_limit_factor**2 * VehicleEnvelope().a_lat_max_mps2,
             )
             if speed_limit_factor
             else None
@@ -326,7 +331,7 @@ class SafetyFilter(gym.Wrapper):
             kappa = np.full(len(lane), self.track.centerline.curvature_scalar(float(info["s_m"])))
         lower, upper = self._action_box(float(observation["velocity"][0]))
         speed = (
-            self._speed_constraint(info, observation["velocity"])
+            self._speed_constraint(info, observation["velocity"], lane[:, 0])
             if self.speed_limit_factor
             else None
         )
@@ -405,7 +410,7 @@ class SafetyFilter(gym.Wrapper):
             a_mean = np.vstack([a_mean, speed_row])
             b_mean = np.append(b_mean, speed_bound)
             h = np.column_stack([h, np.full(len(h), speed_h)])
-            if covariance is not None:  # measured speed, known map: no spread
+            if covariance is not None:  # measured speed, the samples' lowest limit: no spread
                 covariance = np.concatenate([covariance, np.zeros((1, 3, 3))])
         problem = FilterProblem(
             u_mean=nominal,
@@ -469,12 +474,14 @@ class SafetyFilter(gym.Wrapper):
         return (left_ahead - left_behind) * scale, (right_ahead - right_behind) * scale
 
     def _speed_constraint(
-        self, info: dict[str, Any], velocity: np.ndarray
+        self, info: dict[str, Any], velocity: np.ndarray, e_y_m: np.ndarray
     ) -> tuple[np.ndarray, float, float]:
-        """Row, bound and barrier value of ``accel <= lam_1 h + dv_limit/ds * v_x``."""
+        """Row, bound and barrier value of ``accel <= lam_1 h + dv_limit/ds * v_x``, at the
+        lane offset (of the samples ``e_y_m``) with the lowest limit. The offset's own rate
+        is left out: the limit's fall with the offset is a blend, not a dynamics."""
         s, v_x = float(info["s_m"]), float(velocity[0])
-        limit = self.speed_limit(s)
-        ahead = self.speed_limit(s + MAP_DS_M)
+        limit, e_y = min((self.speed_limit(s, float(e_y)), float(e_y)) for e_y in e_y_m)
+        ahead = self.speed_limit(s + MAP_DS_M, e_y)
         slope = (ahead - limit) / MAP_DS_M
         h = limit - v_x
         return np.array([0.0, 1.0]), self.speed_gain * h + slope * max(v_x, 0.0), h

@@ -6,6 +6,12 @@ no faster than a friction ellipse allows: ``decel_mps2`` on a straight, less whe
 limit already turns with ``v^2 kappa`` of the ellipse's ``lateral_mps2``. So a car held
 below it has braked before it turns in, and does not brake hard while it turns (braking
 in a corner near the grip limit spins this car: its rear brakes take 40% of the braking).
+
+The reference's profile holds on the reference line only. A racing line cuts its corners,
+so a car far from it, riding the centre of a tight turn, turns tighter than the line at
+the same speed (on Spielberg's 2.1 m turn the racing line's limit is 6.6 m/s, the centre's
+4). :class:`LaneSpeedLimit` therefore also bounds a car away from the reference by the
+same profile computed along the parallel of the centre line through the car's offset.
 """
 
 from __future__ import annotations
@@ -16,6 +22,13 @@ import numpy as np
 
 from saferace.track.periodic import PeriodicInterpolator
 from saferace.track.raceline import ReferenceLine
+from saferace.track.track import Track
+
+#: Curvature below which a path is straight for the limit (1/m): caps its speed at 1 km/s.
+STRAIGHT_CURVATURE_RADPM = 1e-6
+#: The least ``1 - kappa e_y`` a parallel path keeps: offsets beyond a turn's centre, outside
+#: the lane there, get a very tight path instead of a folded one.
+MIN_PARALLEL_STRETCH = 0.05
 
 
 def braking_speed_limit(
@@ -25,20 +38,98 @@ def braking_speed_limit(
     ahead, less ``2 decel sqrt(1 - (v^2 kappa / lateral)^2)`` per metre to it (a backward
     pass, twice round the closed track; ``kappa`` is the reference line's curvature).
     """
-    if min(factor, decel_mps2, lateral_mps2) <= 0.0:
-        raise ValueError(
-            "factor, decel_mps2 and lateral_mps2 must be positive, "
-            f"got {factor}, {decel_mps2}, {lateral_mps2}"
-        )
+    _check_positive(factor=factor, decel_mps2=decel_mps2, lateral_mps2=lateral_mps2)
     s = np.asarray(reference.center_s_m, dtype=float)
-    limit_sq = ((factor * np.asarray(reference.center_vx_mps, dtype=float)) ** 2).tolist()
-    curvature = np.abs(np.asarray(reference.center_kappa_radpm, dtype=float)).tolist()
-    gaps = np.diff(np.append(s, s[0] + reference.track_length_m)).tolist()
-    count = len(s)
+    limit_sq = (factor * np.asarray(reference.center_vx_mps, dtype=float)) ** 2
+    curvature = np.abs(np.asarray(reference.center_kappa_radpm, dtype=float))
+    gaps = np.diff(np.append(s, s[0] + reference.track_length_m))
+    limit = braked(limit_sq[None], curvature[None], gaps[None], decel_mps2, lateral_mps2)[0]
+    return PeriodicInterpolator(s, limit, reference.track_length_m)
+
+
+def braked(
+    limit_sq: np.ndarray,
+    curvature_radpm: np.ndarray,
+    gaps_m: np.ndarray,
+    decel_mps2: float,
+    lateral_mps2: float,
+) -> np.ndarray:
+    """Speed limits (rows: paths, columns: samples ``gaps_m`` apart round a closed path) no
+    faster than ``sqrt(limit_sq)`` anywhere ahead, braked for within the friction ellipse."""
+    limit_sq = np.array(limit_sq, dtype=float)
+    count = limit_sq.shape[1]
     for k in range(2 * count, 0, -1):
-        i = (k - 1) % count
-        j = k % count
-        grip_used = min(1.0, limit_sq[j] * curvature[j] / lateral_mps2)
-        reachable = limit_sq[j] + 2.0 * decel_mps2 * math.sqrt(1.0 - grip_used**2) * gaps[i]
-        limit_sq[i] = min(limit_sq[i], reachable)
-    return PeriodicInterpolator(s, np.sqrt(limit_sq), reference.track_length_m)
+        i, j = (k - 1) % count, k % count
+        grip_used = np.minimum(1.0, limit_sq[:, j] * curvature_radpm[:, j] / lateral_mps2)
+        reachable = limit_sq[:, j] + 2.0 * decel_mps2 * np.sqrt(1.0 - grip_used**2) * gaps_m[:, i]
+        limit_sq[:, i] = np.minimum(limit_sq[:, i], reachable)
+    return np.sqrt(limit_sq)
+
+
+class LaneSpeedLimit:
+    """``v_limit(s, e_y)``: the reference's braked limit where the car is near the reference
+    line; from ``near_m`` to ``far_m`` away from it, blending into the lower of that and the
+    limit of the centre line's parallel through ``e_y``.
+
+    The parallel at offset ``d`` has curvature ``kappa / (1 - kappa d)`` and arc length
+    ``(1 - kappa d) ds``; its limit is ``sqrt(path_lateral_mps2 / |kappa_d|)``, braked for
+    as :func:`braking_speed_limit` brakes (computed on a grid of offsets ``offset_step_m``
+    apart across the widest lane, linear in between). The parallels alone would slow a car
+    on the racing line at every apex, where the line turns more gently than the parallel
+    of the inner edge it touches; hence the blend by distance from the reference.
+    """
+
+    def __init__(
+        self,
+        track: Track,
+        reference: ReferenceLine,
+        factor: float,
+        decel_mps2: float,
+        lateral_mps2: float,
+        path_lateral_mps2: float,
+        near_m: float = 0.3,
+        far_m: float = 0.6,
+        offset_step_m: float = 0.1,
+    ) -> None:
+        _check_positive(path_lateral_mps2=path_lateral_mps2, offset_step_m=offset_step_m)
+        if not 0.0 <= near_m < far_m:
+            raise ValueError(f"need 0 <= near_m < far_m, got {near_m}, {far_m}")
+        self.reference_limit = braking_speed_limit(reference, factor, decel_mps2, lateral_mps2)
+        self.reference_offset = reference.offset_at
+        self.near_m, self.far_m = near_m, far_m
+        s = np.asarray(reference.center_s_m, dtype=float)
+        right, left = track.widths(s)
+        count = 1 + math.ceil((np.max(right) + np.max(left)) / offset_step_m)
+        self.offsets_m = np.linspace(-np.max(right), np.max(left), max(count, 2))
+        kappa = track.centerline.curvature(s)
+        stretch = np.maximum(1.0 - np.outer(self.offsets_m, kappa), MIN_PARALLEL_STRETCH)
+        path_curvature = np.maximum(np.abs(kappa) / stretch, STRAIGHT_CURVATURE_RADPM)
+        gaps = np.diff(np.append(s, s[0] + track.length_m)) * stretch
+        limits = braked(
+            path_lateral_mps2 / path_curvature, path_curvature, gaps, decel_mps2, lateral_mps2
+        )
+        self.parallel_limits = [PeriodicInterpolator(s, row, track.length_m) for row in limits]
+
+    def __call__(self, s_m: float, e_y_m: float) -> float:
+        limit = float(self.reference_limit(s_m))
+        away = abs(e_y_m - float(self.reference_offset(s_m)))
+        weight = min(1.0, max(0.0, (away - self.near_m) / (self.far_m - self.near_m)))
+        if weight == 0.0:
+            return limit
+        return limit - weight * max(0.0, limit - self.parallel_limit(s_m, e_y_m))
+
+    def parallel_limit(self, s_m: float, e_y_m: float) -> float:
+        """The braked limit along the centre line's parallel through ``e_y_m``."""
+        position = float(np.interp(e_y_m, self.offsets_m, np.arange(len(self.offsets_m))))
+        below = min(int(position), len(self.offsets_m) - 2)
+        fraction = position - below
+        low = float(self.parallel_limits[below](s_m))
+        high = float(self.parallel_limits[below + 1](s_m))
+        return low + fraction * (high - low)
+
+
+def _check_positive(**values: float) -> None:
+    bad = {name: value for name, value in values.items() if value <= 0.0}
+    if bad:
+        names = ", ".join(values)
+        raise ValueError(f"{names} must be positive, got {', '.join(map(str, values.values()))}")
