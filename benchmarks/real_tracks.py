@@ -11,7 +11,7 @@ centre lines smoothed (``Track.load``'s option); the lanes as loaded are written
 of ``--out`` named by the smoothing, and driven.
 
     python benchmarks/real_tracks.py ../shared/tracks/f1tenth [--geometry-only]
-        [--smooth-rms-m 0.05 [--smooth-keeps widths|boundaries]] [--out DIR]
+        [--smooth-rms-m 0.08 [--smooth-keeps widths|boundaries]] [--out DIR]
 """
 
 from __future__ import annotations
