@@ -349,6 +349,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     _add_gains_argument(dagger)
     _add_map_curvature_argument(dagger)
+    _add_fuse_odometry_argument(dagger)
     dagger.add_argument(
         "--calibrate-spread",
         action="store_true",
@@ -504,6 +505,7 @@ def _add_filter_arguments(parser: argparse.ArgumentParser) -> None:
         help="filter on the samples' mean instead of with chance constraints",
     )
     _add_map_curvature_argument(parser)
+    _add_fuse_odometry_argument(parser)
     _add_gains_argument(parser)
     parser.add_argument(
         "--spread-scale",
@@ -521,6 +523,15 @@ def _add_map_curvature_argument(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the filter takes the centerline's curvature from the map at the car's s instead "
         "of from the state source (a state network judges it worst)",
+    )
+
+
+def _add_fuse_odometry_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--fuse-odometry",
+        action="store_true",
+        help="fuse the state samples with odometry (yaw rate, speed, the map's curvature) in a "
+        "Kalman filter that leaves out outliers",
     )
 
 
@@ -559,12 +570,19 @@ def _filter_config(args: argparse.Namespace):
         raise SafeRaceError(f"--state-noise must not be negative, got {noise}")
     scale = args.spread_scale
     if args.filter == "none" and (
-        noisy or args.deterministic or source != "oracle" or args.map_curvature or scale
+        noisy
+        or args.deterministic
+        or source != "oracle"
+        or args.map_curvature
+        or scale
+        or args.fuse_odometry
     ):
         raise SafeRaceError(
-            "--state-source, --state-noise, --deterministic, --map-curvature and --spread-scale "
-            "need --filter cbf"
+            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale and "
+            "--fuse-odometry need --filter cbf"
         )
+    if args.fuse_odometry and source == "oracle":
+        raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
     if scale is not None and min(scale) <= 0.0:
         raise SafeRaceError(f"--spread-scale needs 3 positive factors, got {scale}")
     return FilterConfig(
@@ -577,6 +595,7 @@ def _filter_config(args: argparse.Namespace):
         state_source=source if learned else None,
         map_curvature=args.map_curvature,
         spread_scale=None if scale is None else tuple(scale),
+        fuse_odometry=args.fuse_odometry,
     )
 
 
@@ -947,6 +966,11 @@ def _dagger(args: argparse.Namespace) -> int:
         raise SafeRaceError("--fork-of makes a filtered fork: add --filter cbf")
     if args.calibrate_spread and args.filter != "cbf":
         raise SafeRaceError("--calibrate-spread widens what the filter believes: add --filter cbf")
+    if args.fuse_odometry and (args.filter != "cbf" or args.state_source != "learned"):
+        raise SafeRaceError(
+            "--fuse-odometry fuses the state network's samples: add --filter cbf "
+            "(and keep --state-source learned)"
+        )
     config = DaggerConfig(
         task=args.task,
         track=args.track,
@@ -969,6 +993,7 @@ def _dagger(args: argparse.Namespace) -> int:
         filter_gains=args.filter_gains,
         map_curvature=args.map_curvature,
         calibrate_spread=args.calibrate_spread,
+        fuse_odometry=args.fuse_odometry,
         mc_samples=args.mc_samples,
         beta_rampdown=args.beta_rampdown,
         max_seconds=args.max_seconds,

@@ -8,6 +8,7 @@ import gymnasium as gym
 
 from saferace.eval.agents import load_entry_point
 from saferace.safety.filter import DEFAULT_GAINS, GAIN_PRESETS, SafetyFilter
+from saferace.safety.state_fusion import OdometryFusedStateSource
 from saferace.safety.state_sources import (
     NoisyOracleStateSource,
     OracleStateSource,
@@ -33,7 +34,9 @@ class FilterConfig:
     ``map_curvature`` takes the curvature from the track map instead of the state source;
     ``spread_scale`` ``(e_y, e_psi, kappa)`` widens the state source's samples about their
     mean (a calibration of the MC-dropout spread, see
-    :class:`~saferace.safety.state_sources.SpreadScaledStateSource`).
+    :class:`~saferace.safety.state_sources.SpreadScaledStateSource`); ``fuse_odometry``
+    fuses the source's samples with odometry in a Kalman filter that gates outliers
+    (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`).
     """
 
     kind: str = "none"
@@ -46,6 +49,7 @@ class FilterConfig:
     state_source: str | None = None
     map_curvature: bool = False
     spread_scale: tuple[float, float, float] | None = None
+    fuse_odometry: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in FILTER_KINDS:
@@ -101,6 +105,9 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         source = NoisyOracleStateSource((e_y_std, e_psi_std, 0.0), config.samples, seed)
     if config.spread_scale is not None:
         source = SpreadScaledStateSource(source, config.spread_scale)
+    if config.fuse_odometry:
+        base = env.unwrapped
+        source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
     return SafetyFilter(
         env,
         state_source=source,

@@ -64,6 +64,7 @@ FILTER_SETTINGS = (
     "filter_gains",
     "map_curvature",
     "calibrate_spread",
+    "fuse_odometry",
 )
 #: Columns of ``metrics.csv`` (the held-out part's are prefixed ``held_out_``).
 METRIC_COLUMNS = (
@@ -92,7 +93,9 @@ class DaggerConfig:
     ``laps`` per drive (the first counts for the tables); ``expert_perturb``: steering noise
     (rad) on the expert's iteration 0, so that its frames show the car off its line (the
     paper's expert drove clean); ``map_curvature``: the filter takes the curvature from the
-    map rather than from the state network (see :class:`~saferace.safety.filter.SafetyFilter`).
+    map rather than from the state network (see :class:`~saferace.safety.filter.SafetyFilter`);
+    ``fuse_odometry``: the filter fuses the state network's samples with odometry
+    (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`).
     """
 
     task: str = "CenterLine"
@@ -117,6 +120,7 @@ class DaggerConfig:
     filter_gains: str = "paper"
     map_curvature: bool = False
     calibrate_spread: bool = False
+    fuse_odometry: bool = False
     mc_samples: int = 10
     beta_rampdown: int = 0
     max_seconds: float = 60.0
@@ -154,12 +158,12 @@ class DaggerConfig:
         unfiltered run is the same whatever filter its forks will use."""
         values = asdict(self)
         del values["iterations"]
-        for name, default in (("randomize", "none"), ("episodes", 1)):
-            if values[name] == default:  # the same run as one made before the option existed
+        for name, default in (("randomize", "none"), ("episodes", 1), ("fuse_odometry", False)):
+            if values.get(name) == default:  # the same run as one made before the option existed
                 del values[name]
         if self.filter == "none":
             for name in FILTER_SETTINGS:
-                del values[name]
+                values.pop(name, None)
         return values
 
     def filtered(self, iteration: int) -> bool:
@@ -283,6 +287,7 @@ class DaggerRun:
                 samples=config.mc_samples,
                 state_source=f"learned:{checkpoint}" if learned else None,
                 map_curvature=config.map_curvature,
+                fuse_odometry=learned and config.fuse_odometry,
                 spread_scale=(
                     spread_scale_of(self.out_dir, iteration, config.mc_samples, config.seed)
                     if config.calibrates_spread
