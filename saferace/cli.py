@@ -581,7 +581,7 @@ def _filter_config(args: argparse.Namespace):
             "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale and "
             "--fuse-odometry need --filter cbf"
         )
-    if args.fuse_odometry and source == "oracle":
+    if args.fuse_odometry and not (noisy or learned):
         raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
     if scale is not None and min(scale) <= 0.0:
         raise SafeRaceError(f"--spread-scale needs 3 positive factors, got {scale}")

@@ -121,6 +121,17 @@ def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
     assert same.run() == unfiltered.metrics()  # nothing driven or trained again
 
 
+def test_odometry_fusion_belongs_to_the_perceived_state_forks_only():
+    """Runs made before the option existed, and the forks it does nothing to, keep their
+    fingerprint; a perceived-state fork that fuses is another run."""
+    fused = replace(TINY, fuse_odometry=True)
+    for config in (TINY, fused, replace(fused, filter="cbf", state_source="oracle")):
+        assert "fuse_odometry" not in config.fingerprint
+    learned = replace(fused, filter="cbf", state_source="learned")
+    assert learned.fingerprint["fuse_odometry"] is True
+    assert "fuse_odometry" not in replace(learned, fuse_odometry=False).fingerprint
+
+
 def test_a_calibrated_fork_widens_the_spread_fitted_on_the_held_out_part_of_the_lap(
     unfiltered: DaggerRun, tmp_path: Path
 ):

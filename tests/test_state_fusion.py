@@ -13,7 +13,7 @@ from cli_helpers import run_cli
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.agents.pure_pursuit import PurePursuit
 from saferace.eval.filters import FilterConfig, apply_filter
-from saferace.safety.state_fusion import OdometryFusedStateSource
+from saferace.safety.state_fusion import OdometryFusedStateSource, frenet_step
 from saferace.safety.state_sources import NoisyOracleStateSource, true_lane_state
 
 
@@ -41,18 +41,22 @@ class BiasedSource:
 
 
 def drive(
-    source_of, steps: int = 120, **settings
+    source_of, steps: int = 120, gyro_bias: tuple[int, int, float] = (0, 0, 0.0), **settings
 ) -> tuple[np.ndarray, np.ndarray, OdometryFusedStateSource]:
-    """Pure pursuit round ``lab``; the fused and the true ``[e_y, e_psi]`` at each step."""
+    """Pure pursuit round ``lab``; the fused and the true ``[e_y, e_psi]`` at each step. The
+    fused source's yaw rate is off by ``bias`` rad/s from step ``start`` to ``stop``."""
     env = gym.make("saferace/CenterLine-v0", track="lab", max_laps=1)
     base = env.unwrapped
     fused = OdometryFusedStateSource(source_of(), base.track, base.control_dt_s, **settings)
     agent = PurePursuit.for_env(env)
     observation, info = env.reset(seed=0)
     fused.reset(0)
+    start, stop, bias = gyro_bias
     estimates, truths = [], []
-    for _ in range(steps):
-        estimates.append(fused.samples(observation, info)[:, :2].mean(axis=0))
+    for step in range(steps):
+        velocity = observation["velocity"] + np.array([0.0, 0.0, bias * (start <= step < stop)])
+        seen = {**observation, "velocity": velocity}
+        estimates.append(fused.samples(seen, info)[:, :2].mean(axis=0))
         truths.append(true_lane_state(info)[:2])
         observation, _, terminated, truncated, info = env.step(agent.act(observation, info))
         assert not (terminated or truncated)
@@ -64,7 +68,7 @@ def test_fused_state_tracks_the_truth_from_a_noisy_source():
     estimates, truths, fused = drive(lambda: NoisyOracleStateSource((0.05, 0.05, 0.0), 10, seed=0))
     errors = np.abs(estimates - truths)
     assert errors[10:].mean(axis=0) == pytest.approx([0.0, 0.0], abs=0.025)
-    assert errors[10:].max(axis=0).tolist() < [0.08, 0.1]
+    assert np.all(errors[10:].max(axis=0) < [0.08, 0.1])
     assert fused.gated < 5  # an honest source is hardly ever gated
 
 
@@ -78,11 +82,42 @@ def test_a_confident_wrong_source_is_gated_and_odometry_carries_the_state():
     heading_error = np.abs(estimates[during, 1] - truths[during, 1]).max()
     assert np.abs(estimates[during, 0] - truths[during, 0]).max() < 0.08 and heading_error < 0.1
     # After the source is right again, it is taken back at once.
-    assert np.abs(estimates[stop + 5 :] - truths[stop + 5 :]).max(axis=0).tolist() < [0.08, 0.1]
+    assert np.all(np.abs(estimates[stop + 5 :] - truths[stop + 5 :]).max(axis=0) < [0.08, 0.1])
     # Without the gate the same source drags the estimate off.
     ungated, truths, fused = drive(lambda: BiasedSource((0.2, 0.3), start, stop), gate_chi2=1e9)
     assert fused.gated == 0
     assert np.abs(ungated[during, 1] - truths[during, 1]).max() > 2 * heading_error
+
+
+def test_after_a_gyro_fault_the_source_is_taken_back():
+    """Odometry is trusted over the source for ``max_gated_steps`` steps, not for ever: with
+    a yaw rate 2 rad/s off for 1.5 s, the dead-reckoned heading runs away, the honest source
+    is gated, and then taken back (1 s after the fault); trusting odometry for ever, the
+    estimate stays lost."""
+    fault = (40, 70, 2.0)
+    honest = lambda: NoisyOracleStateSource((0.03, 0.03, 0.0), 10, seed=0)  # noqa: E731
+    estimates, truths, fused = drive(honest, gyro_bias=fault)
+    assert fused.gated >= fused.max_gated_steps
+    assert np.all(np.abs(estimates[90:] - truths[90:]).max(axis=0) < [0.08, 0.1])
+    stubborn, truths, _ = drive(honest, gyro_bias=fault, max_gated_steps=10**6)
+    assert np.abs(stubborn[90:, 1] - truths[90:, 1]).min() > 0.3
+
+
+def test_frenet_step_jacobian_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        state = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.5, 0.5)])
+        velocity = np.array([rng.uniform(0.5, 7.0), rng.uniform(-0.4, 0.4), rng.uniform(-2, 2)])
+        kappa = rng.uniform(-1.0, 1.0)
+        _, jacobian = frenet_step(state, velocity, kappa, 0.05)
+        numeric = np.column_stack(
+            [
+                (frenet_step(state + step, velocity, kappa, 0.05)[0]
+                 - frenet_step(state - step, velocity, kappa, 0.05)[0]) / 2e-6
+                for step in np.eye(2) * 1e-6
+            ]
+        )  # fmt: skip
+        np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
 
 
 def test_filter_config_fuses_the_source_it_builds():
@@ -97,6 +132,14 @@ def test_filter_config_fuses_the_source_it_builds():
     _, _, _, _, info = env.step(np.array([0.0, 0.0]))
     assert info["safety"]["n_samples"] == 10
     env.close()
+
+
+def test_fusing_the_truth_is_refused_and_fused_runs_are_told_apart():
+    with pytest.raises(ValueError, match="not the truth"):
+        FilterConfig(kind="cbf", fuse_odometry=True)
+    noisy = FilterConfig(kind="cbf", state_noise=(0.05, 0.05))
+    fused = FilterConfig(kind="cbf", state_noise=(0.05, 0.05), fuse_odometry=True)
+    assert (noisy.label, fused.label) == ("noisy-prob", "noisy-fused-prob")
 
 
 def test_bad_settings_are_refused():

@@ -67,6 +67,8 @@ class FilterConfig:
                 )
             if self.state_noise is not None:
                 raise ValueError("a learned state source takes no state_noise")
+        if self.fuse_odometry and self.state_source is None and self.state_noise is None:
+            raise ValueError("fuse_odometry fuses an uncertain state source, not the truth")
         if self.spread_scale is not None and (
             len(self.spread_scale) != 3 or min(self.spread_scale) <= 0.0
         ):
@@ -77,13 +79,14 @@ class FilterConfig:
     @property
     def label(self) -> str:
         """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
-        ``learned-prob`` or ``learned-det``."""
+        ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused)."""
         if self.kind == "none":
             return "none"
         if self.state_source is None and self.state_noise is None:
             return "oracle"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
-        return f"{source}-{'prob' if self.probabilistic else 'det'}"
+        fused = "-fused" if self.fuse_odometry else ""
+        return f"{source}{fused}-{'prob' if self.probabilistic else 'det'}"
 
     def as_dict(self) -> dict:
         return asdict(self)

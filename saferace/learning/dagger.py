@@ -153,11 +153,18 @@ class DaggerConfig:
         return self.calibrate_spread and self.filter == "cbf" and self.state_source == "learned"
 
     @property
+    def fuses_odometry(self) -> bool:
+        """Whether the filtered drives fuse the state network with odometry
+        (``fuse_odometry`` does nothing to the oracle state)."""
+        return self.fuse_odometry and self.filter == "cbf" and self.state_source == "learned"
+
+    @property
     def fingerprint(self) -> dict:
         """What makes two runs the same run: the iterations may be extended, and an
         unfiltered run is the same whatever filter its forks will use."""
         values = asdict(self)
         del values["iterations"]
+        values["fuse_odometry"] = self.fuses_odometry
         for name, default in (("randomize", "none"), ("episodes", 1), ("fuse_odometry", False)):
             if values.get(name) == default:  # the same run as one made before the option existed
                 del values[name]
@@ -287,7 +294,7 @@ class DaggerRun:
                 samples=config.mc_samples,
                 state_source=f"learned:{checkpoint}" if learned else None,
                 map_curvature=config.map_curvature,
-                fuse_odometry=learned and config.fuse_odometry,
+                fuse_odometry=config.fuses_odometry,
                 spread_scale=(
                     spread_scale_of(self.out_dir, iteration, config.mc_samples, config.seed)
                     if config.calibrates_spread

@@ -37,11 +37,16 @@ class OdometryFusedStateSource:
     ``de_y/dt = v_x sin e_psi + v_y cos e_psi``, ``de_psi/dt = r - kappa(s) ds/dt`` with
     ``ds/dt = (v_x cos e_psi - v_y sin e_psi) / (1 - kappa e_y)`` and the map's curvature at
     ``info["s_m"]``; white process noise ``process_std`` (per sqrt(s)) covers slip and map
-    error. Update: the mean and covariance of ``source``'s samples, the latter at least
-    ``min_measurement_std`` per component (MC-dropout samples can agree by chance), unless
-    gated out. Returned: ``source``'s samples moved to the posterior mean, their spread
-    widened to the posterior's where that is wider (after gated steps), and their curvature.
-    ``gated`` counts the measurements left out since the last reset.
+    error. Update: the mean and covariance of ``source``'s samples, ``min_measurement_std``
+    added to the latter (MC-dropout samples can agree by chance), unless gated out. After
+    ``max_gated_steps`` gated in a row the filter starts again from the measurement: a
+    source that disagrees for that long is more likely right than odometry that drifted.
+    Returned: ``source``'s samples moved to the posterior mean, their spread widened to the
+    posterior's where that is wider, and their curvature. ``gated`` counts the measurements
+    left out since the last reset.
+
+    The gate catches a source that jumps away from the truth; one that drifts away over
+    seconds moves the estimate with it (the gain on ``e_y`` is about 0.2 per step).
     """
 
     def __init__(
@@ -52,10 +57,12 @@ class OdometryFusedStateSource:
         process_std: tuple[float, float] = (0.02, 0.02),
         min_measurement_std: tuple[float, float] = (0.03, 0.05),
         gate_chi2: float = GATE_CHI2_2DOF_99,
+        max_gated_steps: int = 20,
     ) -> None:
-        if control_dt_s <= 0.0 or gate_chi2 <= 0.0:
+        if control_dt_s <= 0.0 or gate_chi2 <= 0.0 or max_gated_steps < 1:
             raise ValueError(
-                f"need positive control_dt_s and gate_chi2, got {control_dt_s}, {gate_chi2}"
+                "need positive control_dt_s, gate_chi2 and max_gated_steps, got "
+                f"{control_dt_s}, {gate_chi2}, {max_gated_steps}"
             )
         if min(process_std) <= 0.0 or min(min_measurement_std) <= 0.0:
             raise ValueError("process_std and min_measurement_std must be positive")
@@ -65,13 +72,16 @@ class OdometryFusedStateSource:
         self.process_cov = np.diag(np.square(process_std)) * control_dt_s
         self.min_measurement_cov = np.diag(np.square(min_measurement_std))
         self.gate_chi2 = gate_chi2
+        self.max_gated_steps = max_gated_steps
+        self._mean: np.ndarray | None = None
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
         self.source.reset(seed)
-        self._mean: np.ndarray | None = None
+        self._mean = None
         self._cov = np.zeros((2, 2))
         self._velocity = np.zeros(3)
+        self._gated_in_a_row = 0
         self.gated = 0
 
     def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
@@ -80,17 +90,21 @@ class OdometryFusedStateSource:
         measured_cov = self.min_measurement_cov.copy()
         if len(perceived) > 1:
             measured_cov += np.cov(perceived[:, :2], rowvar=False)
-        if self._mean is None:
+        if self._mean is None or self._gated_in_a_row >= self.max_gated_steps:
             mean, cov = measured, measured_cov
+            self._gated_in_a_row = 0
         else:
             kappa = self.track.centerline.curvature_scalar(float(info["s_m"]))
             velocity = 0.5 * (self._velocity + np.asarray(observation["velocity"], dtype=float))
-            mean, cov = self._predict(kappa, velocity)
+            mean, jacobian = frenet_step(self._mean, velocity, kappa, self.control_dt_s)
+            cov = jacobian @ self._cov @ jacobian.T + self.process_cov
             innovation = measured - mean
             innovation_cov = cov + measured_cov
             if innovation @ np.linalg.solve(innovation_cov, innovation) > self.gate_chi2:
                 self.gated += 1
+                self._gated_in_a_row += 1
             else:
+                self._gated_in_a_row = 0
                 gain = cov @ np.linalg.inv(innovation_cov)
                 mean = mean + gain @ innovation
                 cov = (np.eye(2) - gain) @ cov
@@ -103,22 +117,28 @@ class OdometryFusedStateSource:
         deviations = deviations * np.where(spread > 0.0, np.maximum(widen, 1.0), 1.0)
         return np.column_stack([mean + deviations, perceived[:, 2]])
 
-    def _predict(self, kappa: float, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The last posterior moved one control step at ``velocity`` ``[v_x, v_y, r]``."""
-        e_y, e_psi = self._mean
-        v_x, v_y, yaw_rate = velocity
-        dt = self.control_dt_s
-        sin, cos = math.sin(e_psi), math.cos(e_psi)
-        stretch = max(1.0 - kappa * e_y, 1e-3)
-        along = v_x * cos - v_y * sin
-        across = v_x * sin + v_y * cos
-        s_rate = along / stretch
-        mean = np.array([e_y + dt * across, e_psi + dt * (yaw_rate - kappa * s_rate)])
-        jacobian = np.eye(2) + dt * np.array(
-            [[0.0, along], [-(kappa**2) * s_rate / stretch, kappa * across / stretch]]
-        )
-        return mean, jacobian @ self._cov @ jacobian.T + self.process_cov
-
     def describe(self) -> dict:
         inner = getattr(self.source, "describe", dict)()
-        return {**inner, "fused_with_odometry": True}
+        return {**inner, "fused_with_odometry": True, "gated_steps": self.gated}
+
+
+def frenet_step(
+    lane_state: np.ndarray, velocity: np.ndarray, kappa_radpm: float, dt_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``[e_y, e_psi]`` after ``dt_s`` at body velocity ``[v_x, v_y, r]`` over a centre line of
+    curvature ``kappa_radpm`` (one Euler step), and the step's Jacobian in ``[e_y, e_psi]``."""
+    e_y, e_psi = lane_state
+    v_x, v_y, yaw_rate = velocity
+    sin, cos = math.sin(e_psi), math.cos(e_psi)
+    stretch = max(1.0 - kappa_radpm * e_y, 1e-3)
+    along = v_x * cos - v_y * sin
+    across = v_x * sin + v_y * cos
+    s_rate = along / stretch
+    moved = np.array([e_y + dt_s * across, e_psi + dt_s * (yaw_rate - kappa_radpm * s_rate)])
+    jacobian = np.eye(2) + dt_s * np.array(
+        [
+            [0.0, along],
+            [-(kappa_radpm**2) * s_rate / stretch, kappa_radpm * across / stretch],
+        ]
+    )
+    return moved, jacobian
