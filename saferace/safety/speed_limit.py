@@ -9,9 +9,10 @@ in a corner near the grip limit spins this car: its rear brakes take 40% of the 
 
 The reference's profile holds on the reference line only. A racing line cuts its corners,
 so a car far from it, riding the centre of a tight turn, turns tighter than the line at
-the same speed (on Spielberg's 2.1 m turn the racing line's limit is 6.6 m/s, the centre's
-4). :class:`LaneSpeedLimit` therefore also bounds a car away from the reference by the
-same profile computed along the parallel of the centre line through the car's offset.
+the same speed (on Spielberg's 2.1 m turn, smoothed by 5 cm, the racing line's limit is
+6.6 m/s, the centre's 4). :class:`LaneSpeedLimit` therefore also bounds a car away from
+the reference by the same profile computed along the parallel of the centre line through
+the car's offset.
 """
 
 from __future__ import annotations
