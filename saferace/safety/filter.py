@@ -480,7 +480,7 @@ class SafetyFilter(gym.Wrapper):
         lane offset (of the samples ``e_y_m``) with the lowest limit. The offset's own rate
         is left out: the limit's fall with the offset is a blend, not a dynamics."""
         s, v_x = float(info["s_m"]), float(velocity[0])
-        limit, e_y = min((self.speed_limit(s, float(e_y)), float(e_y)) for e_y in e_y_m)
+        limit, e_y = self.speed_limit.lowest(s, e_y_m)
         ahead = self.speed_limit(s + MAP_DS_M, e_y)
         slope = (ahead - limit) / MAP_DS_M
         h = limit - v_x

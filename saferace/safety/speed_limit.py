@@ -122,12 +122,19 @@ class LaneSpeedLimit:
         self.parallel_limits = [PeriodicInterpolator(s, row, track.length_m) for row in limits]
 
     def __call__(self, s_m: float, e_y_m: float) -> float:
+        return self.lowest(s_m, np.array([e_y_m]))[0]
+
+    def lowest(self, s_m: float, e_y_m: np.ndarray) -> tuple[float, float]:
+        """The lowest limit at ``s_m`` over the offsets ``e_y_m``, and the offset it is at."""
         limit = float(self.reference_limit(s_m))
-        away = abs(e_y_m - float(self.reference_offset(s_m)))
-        weight = min(1.0, max(0.0, (away - self.near_m) / (self.far_m - self.near_m)))
-        if weight == 0.0:
-            return limit
-        return limit - weight * max(0.0, limit - self.parallel_limit(s_m, e_y_m))
+        away = np.abs(e_y_m - float(self.reference_offset(s_m)))
+        weights = np.clip((away - self.near_m) / (self.far_m - self.near_m), 0.0, 1.0)
+        lowest, at = limit, float(e_y_m[0])
+        for weight, e_y in zip(weights[weights > 0.0], e_y_m[weights > 0.0], strict=True):
+            blended = limit - weight * max(0.0, limit - self.parallel_limit(s_m, float(e_y)))
+            if blended < lowest:
+                lowest, at = blended, float(e_y)
+        return lowest, at
 
     def parallel_limit(self, s_m: float, e_y_m: float) -> float:
         """The braked limit along the centre line's parallel through ``e_y_m``."""
