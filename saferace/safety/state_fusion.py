@@ -12,6 +12,11 @@ to the fused mean, so the chance constraints keep the network's (calibrated) spr
 Kalman filter that takes a network's errors for independent ones would shrink it to a
 fraction of the real error (seen on ``lab``: 1.5 cm against errors of up to 9 cm, and a
 lane exit that the unfused filter did not have).
+
+It does not help a network that is poor from its first frame: on a random track it never
+saw, started from a heading 0.2 rad off and then trusting its dead reckoning over the
+network's 0.15-0.8 rad heading spread, it let a racing-line policy out of the lane that
+the unfused filter kept inside (see :class:`~saferace.learning.paper_tables.Preset`).
 """
 
 from __future__ import annotations
