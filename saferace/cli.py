@@ -309,6 +309,14 @@ def _parser() -> argparse.ArgumentParser:
         metavar="N",
         help="at least N gradient steps per training, adding epochs while the frames are few",
     )
+    dagger.add_argument(
+        "--max-train-steps",
+        type=int,
+        default=0,
+        metavar="N",
+        help="at most N gradient steps per training (0: no bound), so that a warm-started "
+        "iteration costs the same however large the aggregate",
+    )
     dagger.add_argument("--batch-size", type=int, default=32, help="frames per Adam step")
     dagger.add_argument(
         "--from-scratch",
@@ -980,6 +988,7 @@ def _dagger(args: argparse.Namespace) -> int:
         state_source=args.state_source,
         epochs=args.epochs,
         min_train_steps=args.min_train_steps,
+        max_train_steps=args.max_train_steps,
         batch_size=args.batch_size,
         warm_start=not args.from_scratch,
         stereo=args.stereo,

@@ -121,6 +121,24 @@ def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
     assert same.run() == unfiltered.metrics()  # nothing driven or trained again
 
 
+def test_the_true_state_fork_keeps_the_state_network_it_forked_with(
+    unfiltered: DaggerRun, tmp_path: Path
+):
+    oracle = replace(TINY, filter="cbf", filter_from=0, state_source="oracle")
+    forked = DaggerRun(tmp_path / "oracle", oracle, fork_of=unfiltered.out_dir, progress=False)
+    forked.run()
+    shared, trained = (load_checkpoint(forked.checkpoint_path(i)) for i in (1, 2))
+    for name, weights in shared.state.state_dict().items():
+        assert torch.equal(weights, trained.state.state_dict()[name]), name
+    assert not torch.equal(shared.control.output_layer.weight, trained.control.output_layer.weight)
+    assert oracle.fingerprint["trained_networks"] == ["control"]
+    both = (TINY, replace(oracle, state_source="learned"), replace(oracle, warm_start=False))
+    for config in both:
+        assert "trained_networks" not in config.fingerprint  # both, as before the option
+    with pytest.raises(SafeRaceError, match="above max_train_steps"):
+        replace(TINY, min_train_steps=8, max_train_steps=4)
+
+
 def test_odometry_fusion_belongs_to_the_perceived_state_forks_only():
     """Runs made before the option existed, and the forks it does nothing to, keep their
     fingerprint; a perceived-state fork that fuses is another run."""

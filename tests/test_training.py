@@ -49,9 +49,38 @@ def test_few_frames_train_for_at_least_min_steps(frames):
     history = fit(network, data, None, config, "state", progress=False)
     assert len(history["train_loss"]) == 3  # ceil(7 / 3) epochs
     assert len(history["batch_loss"]) == 9
-    assert replace(config, epochs=4).epochs_for(20) == 4  # enough steps already
+    assert replace(config, epochs=4).steps_for(20) == 12  # enough steps already
     with pytest.raises(SafeRaceError, match="min_steps"):
         TrainConfig(min_steps=-1)
+
+
+def test_max_steps_cuts_the_last_epoch_short(frames):
+    data = network_data(frames.subset(np.arange(20)))["state"]  # 3 batches of 8
+    network = DrivingNetwork(state_config())
+    network.set_normalisation(normalisation(data, seed=0))
+    config = TrainConfig(epochs=4, batch_size=8, max_steps=5)
+    history = fit(network, data, None, config, "state", progress=False)
+    assert len(history["batch_loss"]) == 5
+    assert len(history["train_loss"]) == 2  # a whole epoch and two batches of the next
+    assert TrainConfig(epochs=1, batch_size=8, min_steps=5, max_steps=5).steps_for(400) == 5
+    with pytest.raises(SafeRaceError, match="above max_steps"):
+        TrainConfig(min_steps=6, max_steps=5)
+
+
+def test_a_network_left_out_is_taken_unchanged_from_init(frames, tmp_path: Path):
+    few = frames.subset(np.arange(24))
+    control, state, metadata = train_networks(few, FEW, progress=False)
+    init = save_checkpoint(tmp_path / "init.pt", control, state, metadata)
+    only_control = replace(FEW, init=str(init), networks=("control",))
+    new_control, kept_state, new_metadata = train_networks(few, only_control, progress=False)
+    for name, weights in state.state_dict().items():
+        assert torch.equal(weights, kept_state.state_dict()[name]), name
+    assert not torch.equal(control.output_layer.weight, new_control.output_layer.weight)
+    assert list(new_metadata["history"]) == ["control"]
+    with pytest.raises(SafeRaceError, match="--init"):
+        replace(FEW, networks=("control",))
+    with pytest.raises(SafeRaceError, match="networks must be"):
+        replace(FEW, init=str(init), networks=("steering",))
 
 
 def test_same_seed_same_weights(frames):

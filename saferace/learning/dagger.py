@@ -47,7 +47,7 @@ from saferace.learning.calibration import inside_lane, spread_scale
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint, write_text_atomically
 from saferace.learning.collect import CollectionConfig, Perturbation, collect_round
 from saferace.learning.rounds import HELD_OUT_FILE, load_rounds
-from saferace.learning.training import TrainConfig, train_networks
+from saferace.learning.training import NETWORKS, TrainConfig, train_networks
 from saferace.track import Track
 
 RUN_FILE = "run.json"
@@ -95,7 +95,9 @@ class DaggerConfig:
     paper's expert drove clean); ``map_curvature``: the filter takes the curvature from the
     map rather than from the state network (see :class:`~saferace.safety.filter.SafetyFilter`);
     ``fuse_odometry``: the filter fuses the state network's samples with odometry
-    (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`).
+    (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`);
+    ``min_train_steps``/``max_train_steps`` (0: none): bounds on each training's gradient
+    steps (see :class:`~saferace.learning.training.TrainConfig`).
     """
 
     task: str = "CenterLine"
@@ -106,6 +108,7 @@ class DaggerConfig:
     state_source: str = "learned"
     epochs: int = 9
     min_train_steps: int = 0
+    max_train_steps: int = 0
     batch_size: int = 32
     learning_rate: float = 1e-3
     warm_start: bool = True
@@ -140,6 +143,13 @@ class DaggerConfig:
             raise SafeRaceError("iterations, filter_from and beta_rampdown must not be negative")
         if self.max_seconds <= 0:
             raise SafeRaceError(f"max_seconds must be positive, got {self.max_seconds}")
+        if self.min_train_steps < 0 or self.max_train_steps < 0:
+            raise SafeRaceError("min_train_steps and max_train_steps must not be negative")
+        if self.max_train_steps and self.min_train_steps > self.max_train_steps:
+            raise SafeRaceError(
+                f"min_train_steps {self.min_train_steps} is above max_train_steps "
+                f"{self.max_train_steps}"
+            )
         if self.calibrates_spread and self.train_fraction >= 1.0:
             raise SafeRaceError(
                 "calibrate_spread fits on the part of the lap no network trained on: it needs "
@@ -159,13 +169,28 @@ class DaggerConfig:
         return self.fuse_odometry and self.filter == "cbf" and self.state_source == "learned"
 
     @property
+    def trained_networks(self) -> tuple[str, ...]:
+        """The networks each warm-started iteration trains: the true-state fork drives and
+        filters without its state network, so it keeps the one it forked with."""
+        if self.filter == "cbf" and self.state_source == "oracle" and self.warm_start:
+            return ("control",)
+        return NETWORKS
+
+    @property
     def fingerprint(self) -> dict:
         """What makes two runs the same run: the iterations may be extended, and an
         unfiltered run is the same whatever filter its forks will use."""
         values = asdict(self)
         del values["iterations"]
         values["fuse_odometry"] = self.fuses_odometry
-        for name, default in (("randomize", "none"), ("episodes", 1), ("fuse_odometry", False)):
+        values["trained_networks"] = list(self.trained_networks)
+        for name, default in (
+            ("randomize", "none"),
+            ("episodes", 1),
+            ("fuse_odometry", False),
+            ("max_train_steps", 0),
+            ("trained_networks", list(NETWORKS)),
+        ):
             if values.get(name) == default:  # the same run as one made before the option existed
                 del values[name]
         if self.filter == "none":
@@ -263,6 +288,8 @@ class DaggerRun:
         training = TrainConfig(
             epochs=config.epochs,
             min_steps=config.min_train_steps,
+            max_steps=config.max_train_steps,
+            networks=NETWORKS if init is None else config.trained_networks,
             batch_size=config.batch_size,
             learning_rate=config.learning_rate,
             seed=config.seed,

@@ -45,6 +45,8 @@ from saferace.learning.rounds import FrameSet
 LOG = logging.getLogger(__name__)
 #: Frames sampled to estimate the images' per-channel mean and spread.
 IMAGE_STATISTICS_FRAMES = 2000
+#: The networks a training run makes, in the order they are trained.
+NETWORKS = ("control", "state")
 #: Floor of an output's or input's standard deviation (a constant curvature on an oval).
 MIN_STD = 1e-3
 
@@ -55,11 +57,15 @@ class TrainConfig:
 
     ``min_steps``: at least this many gradient steps, by adding epochs when the data are few
     (a DAgger run's first iterations train on a lap or two of frames: three epochs of them
-    are a dozen steps, and the networks learn next to nothing).
+    are a dozen steps, and the networks learn next to nothing). ``max_steps`` (0: none): at
+    most this many, the last epoch cut short, so that a warm-started DAgger iteration costs
+    the same however large the aggregate has grown. ``networks``: the networks trained; any
+    other is taken unchanged from ``init``.
     """
 
     epochs: int = 10
     min_steps: int = 0
+    max_steps: int = 0
     batch_size: int = 32
     learning_rate: float = 1e-3
     seed: int = 0
@@ -67,6 +73,7 @@ class TrainConfig:
     dropout: float = 0.2
     init: str | None = None
     backbone_weights: str | None = None
+    networks: tuple[str, ...] = NETWORKS
 
     def __post_init__(self) -> None:
         start, end = self.val_stretch or (0.0, 1.0)
@@ -77,8 +84,20 @@ class TrainConfig:
             )
         if self.epochs < 1 or self.batch_size < 1 or self.learning_rate <= 0.0:
             raise SafeRaceError("epochs, batch_size and learning_rate must be positive")
-        if self.min_steps < 0:
-            raise SafeRaceError(f"min_steps must not be negative, got {self.min_steps}")
+        if self.min_steps < 0 or self.max_steps < 0:
+            raise SafeRaceError(
+                f"min_steps and max_steps must not be negative, got {self.min_steps} and "
+                f"{self.max_steps}"
+            )
+        if self.max_steps and self.min_steps > self.max_steps:
+            raise SafeRaceError(f"min_steps {self.min_steps} is above max_steps {self.max_steps}")
+        if not set(self.networks) <= set(NETWORKS) or not self.networks:
+            raise SafeRaceError(f"networks must be some of {NETWORKS}, got {self.networks}")
+        if set(self.networks) != set(NETWORKS) and not self.init:
+            raise SafeRaceError(
+                f"training only {', '.join(self.networks)} takes the other network from "
+                "--init: give one"
+            )
         if self.init and self.backbone_weights:
             raise SafeRaceError(
                 "--init and --backbone-weights both set the starting weights: choose one"
@@ -87,10 +106,12 @@ class TrainConfig:
     def as_dict(self) -> dict:
         return asdict(self)
 
-    def epochs_for(self, frames: int) -> int:
-        """Epochs over ``frames`` training frames: ``epochs``, or more to reach ``min_steps``."""
+    def steps_for(self, frames: int) -> int:
+        """Gradient steps over ``frames`` training frames: ``epochs`` of them, or more to
+        reach ``min_steps``, or fewer to stay within ``max_steps``."""
         batches = math.ceil(frames / self.batch_size)
-        return max(self.epochs, math.ceil(self.min_steps / batches))
+        steps = batches * max(self.epochs, math.ceil(self.min_steps / batches))
+        return min(steps, self.max_steps) if self.max_steps else steps
 
 
 @dataclass(frozen=True)
@@ -167,9 +188,10 @@ def fit(
         history, first_epoch = resume["history"], resume["epochs_done"]
     targets = network.normalise_outputs(torch.as_tensor(train.targets, dtype=torch.float32))
     batches = math.ceil(len(train) / config.batch_size)
-    epochs = config.epochs_for(len(train))
+    steps = config.steps_for(len(train))
+    epochs = math.ceil(steps / batches)
     bar = tqdm(
-        total=epochs * batches,
+        total=steps,
         initial=first_epoch * batches,
         desc=f"train {label}",
         unit="batch",
@@ -179,8 +201,9 @@ def fit(
         for epoch in range(first_epoch, epochs):
             network.train()
             order = torch.randperm(len(train), generator=generator).numpy()
+            order = order[: (steps - epoch * batches) * config.batch_size]  # the last epoch's cut
             total = 0.0
-            for start in range(0, len(train), config.batch_size):
+            for start in range(0, len(order), config.batch_size):
                 index = order[start : start + config.batch_size]
                 loss = functional.mse_loss(_forward(network, train, index), targets[index])
                 optimizer.zero_grad(set_to_none=True)
@@ -191,7 +214,7 @@ def fit(
                 total += value * len(index)
                 bar.update()
                 bar.set_postfix(epoch=epoch + 1, loss=f"{value:.4f}")
-            history["train_loss"].append(total / len(train))
+            history["train_loss"].append(total / len(order))
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
                 bar.set_postfix(epoch=epoch + 1, val=f"{history['val_loss'][-1]:.4f}")
@@ -237,6 +260,7 @@ def train_networks(
     """Train the control and the state network; return them and the run's metadata.
 
     ``resume_file``: where to keep the run's state after every epoch, and to continue from.
+    The metadata's ``history`` holds the networks trained (see ``TrainConfig.networks``).
     """
     held_out = held_out_mask(frames, config.val_stretch)
     if held_out.all() or (config.val_stretch is not None and not held_out.any()):
@@ -257,11 +281,13 @@ def train_networks(
         "data": [(str(Path(m["path"]).resolve()), m["frame_count"]) for m in frames.manifests],
     }
     run = _resumed_run(resume_file, fingerprint)
-    for index, (name, make_config) in enumerate(
-        (("control", control_config), ("state", state_config))
-    ):
+    makers = (control_config, state_config)
+    for index, (name, make_config) in enumerate(zip(NETWORKS, makers, strict=True)):
         torch.manual_seed(config.seed + index)
         network = DrivingNetwork(make_config(stereo, config.dropout))
+        if name not in config.networks:
+            networks[name] = getattr(initial, name)
+            continue
         if name in run["done"]:
             network.load_state_dict(run["done"][name]["weights"])
             network.eval()
