@@ -314,8 +314,8 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         metavar="N",
-        help="at most N gradient steps per training (0: no bound), so that a warm-started "
-        "iteration costs the same however large the aggregate",
+        help="at most N gradient steps per training (0: no bound; from scratch too), so that "
+        "an iteration costs the same however large the aggregate",
     )
     dagger.add_argument("--batch-size", type=int, default=32, help="frames per Adam step")
     dagger.add_argument(

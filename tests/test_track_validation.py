@@ -142,9 +142,11 @@ def test_a_hairpin_tighter_than_the_half_width_is_narrowed_with_one_warning(capl
     with pytest.raises(TrackError, match="the left boundary folds over itself"):
         Track.from_arrays(x, y, 1.0, 1.0, strict=True)
     with caplog.at_level(logging.WARNING, logger="saferace.track.track"):
-        track = Track.from_arrays(x, y, 1.0, 1.0, name="hairpin")
+        track = Track.from_arrays(x, y, 1.0, 1.0, name="hairpin warned once")
+        again = Track.from_arrays(x, y, 1.0, 1.0, name="hairpin warned once")  # no repeat
     (warning,) = caplog.records
     assert f"narrowed the lane at {track.narrowing.points} of 240 points" in warning.message
+    assert again.narrowing == track.narrowing
     assert 0.0 < track.narrowing.max_m < 1.0
     s = track.centerline.knot_s_m[:-1]
     kappa = track.centerline.curvature(s)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 from pathlib import Path
 
@@ -62,9 +63,29 @@ def test_max_steps_cuts_the_last_epoch_short(frames):
     history = fit(network, data, None, config, "state", progress=False)
     assert len(history["batch_loss"]) == 5
     assert len(history["train_loss"]) == 2  # a whole epoch and two batches of the next
+    assert history["epoch_end_step"] == [3, 5]
+    assert history["train_loss"][1] == pytest.approx(np.mean(history["batch_loss"][3:5]))
     assert TrainConfig(epochs=1, batch_size=8, min_steps=5, max_steps=5).steps_for(400) == 5
     with pytest.raises(SafeRaceError, match="above max_steps"):
         TrainConfig(min_steps=6, max_steps=5)
+
+
+def test_a_training_resumed_before_its_cut_epoch_ends_with_the_same_weights(frames):
+    data = network_data(frames.subset(np.arange(20)))["state"]
+    config = TrainConfig(epochs=4, batch_size=8, max_steps=5)
+    runs, states = [], []
+
+    def keep(state: dict) -> None:  # as a resume file would, not the live tensors
+        states.append(copy.deepcopy(state))
+
+    for resume in (None, "after the first epoch"):
+        torch.manual_seed(0)
+        network = DrivingNetwork(state_config())
+        network.set_normalisation(normalisation(data, seed=0))
+        fit(network, data, None, config, "state", False, states[0] if resume else None, keep)
+        runs.append(network)
+    for name, weights in runs[0].state_dict().items():
+        assert torch.equal(weights, runs[1].state_dict()[name]), name
 
 
 def test_a_network_left_out_is_taken_unchanged_from_init(frames, tmp_path: Path):
@@ -77,6 +98,7 @@ def test_a_network_left_out_is_taken_unchanged_from_init(frames, tmp_path: Path)
         assert torch.equal(weights, kept_state.state_dict()[name]), name
     assert not torch.equal(control.output_layer.weight, new_control.output_layer.weight)
     assert list(new_metadata["history"]) == ["control"]
+    assert new_metadata["kept"] == {"state": str(init)}
     with pytest.raises(SafeRaceError, match="--init"):
         replace(FEW, networks=("control",))
     with pytest.raises(SafeRaceError, match="networks must be"):

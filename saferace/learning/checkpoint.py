@@ -1,9 +1,10 @@
-"""Checkpoints of the learned driver: both networks, their normalisation and their history.
+"""Checkpoints of the learned driver: both networks, their normalisation and their training.
 
 One file holds the control network and the state network (weights with their
 normalisation buffers, and each one's :class:`~saferace.learning.networks.NetworkConfig`)
-and metadata: the training configuration, the data rounds' manifests, the loss history,
-the validation table, the git revision and package versions. It is written to a temporary
+and metadata: the training configuration, the data rounds' manifests, the loss history of
+each network trained (one kept unchanged is named with its source), the validation table,
+the git revision and package versions. It is written to a temporary
 file and renamed into place, so an interrupted save never leaves a truncated checkpoint,
 and it loads with ``torch.load(weights_only=True)``: plain data only, no pickled code.
 """

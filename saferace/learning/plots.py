@@ -18,21 +18,18 @@ STATE_LABELS = {
 
 
 def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) -> None:
-    """Per network: the loss of every batch, and each epoch's training and validation loss."""
+    """Per network: the loss of every batch, and each epoch's training and validation loss
+    at the step it ended."""
     fig, axes = plt.subplots(1, len(history), figsize=(6 * len(history), 4), squeeze=False)
     for ax, (name, losses) in zip(axes[0], history.items(), strict=True):
         batches = np.asarray(losses["batch_loss"])
-        epochs = len(losses["train_loss"])
-        per_epoch = len(batches) / max(epochs, 1)
-        ax.plot(
-            np.arange(1, len(batches) + 1) / per_epoch, batches, color="0.75", lw=0.6, label="batch"
-        )
-        epoch_axis = np.arange(1, epochs + 1)
-        ax.plot(epoch_axis, losses["train_loss"], "o-", label="training (dropout on)")
+        ax.plot(np.arange(1, len(batches) + 1), batches, color="0.75", lw=0.6, label="batch")
+        epoch_ends = losses["epoch_end_step"]
+        ax.plot(epoch_ends, losses["train_loss"], "o-", label="training epoch (dropout on)")
         if losses["val_loss"]:
-            ax.plot(epoch_axis, losses["val_loss"], "s-", label="held-out stretch")
+            ax.plot(epoch_ends, losses["val_loss"], "s-", label="held-out stretch")
         ax.set_yscale("log")
-        ax.set_xlabel("epoch")
+        ax.set_xlabel("gradient step")
         ax.set_ylabel("MSE of normalised targets")
         ax.set_title(f"{name} network")
         ax.grid(alpha=0.3, which="both")

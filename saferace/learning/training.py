@@ -170,7 +170,8 @@ def fit(
     resume: dict | None = None,
     on_epoch: Callable[[dict], None] | None = None,
 ) -> dict[str, list[float]]:
-    """Adam on the MSE of normalised targets; returns per-batch and per-epoch losses.
+    """Adam on the MSE of normalised targets; returns per-batch and per-epoch losses, and the
+    step each epoch ended at (the last one may be cut short, see ``TrainConfig.max_steps``).
 
     After each epoch ``on_epoch`` gets the state to continue from (weights, optimiser,
     generators, losses, epochs done); ``resume`` is such a state.
@@ -178,7 +179,12 @@ def fit(
     network.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
     generator = torch.Generator().manual_seed(config.seed)
-    history: dict[str, list[float]] = {"batch_loss": [], "train_loss": [], "val_loss": []}
+    history: dict[str, list[float]] = {
+        "batch_loss": [],
+        "train_loss": [],
+        "val_loss": [],
+        "epoch_end_step": [],
+    }
     first_epoch = 0
     if resume is not None:
         network.load_state_dict(resume["weights"])
@@ -192,7 +198,7 @@ def fit(
     epochs = math.ceil(steps / batches)
     bar = tqdm(
         total=steps,
-        initial=first_epoch * batches,
+        initial=min(first_epoch * batches, steps),
         desc=f"train {label}",
         unit="batch",
         disable=None if progress else True,  # None: a bar on a terminal, not in logs
@@ -215,6 +221,7 @@ def fit(
                 bar.update()
                 bar.set_postfix(epoch=epoch + 1, loss=f"{value:.4f}")
             history["train_loss"].append(total / len(order))
+            history["epoch_end_step"].append(len(history["batch_loss"]))
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
                 bar.set_postfix(epoch=epoch + 1, val=f"{history['val_loss'][-1]:.4f}")
@@ -260,7 +267,8 @@ def train_networks(
     """Train the control and the state network; return them and the run's metadata.
 
     ``resume_file``: where to keep the run's state after every epoch, and to continue from.
-    The metadata's ``history`` holds the networks trained (see ``TrainConfig.networks``).
+    The metadata's ``history`` holds the networks trained, ``kept`` where the others came
+    from (see ``TrainConfig.networks``).
     """
     held_out = held_out_mask(frames, config.val_stretch)
     if held_out.all() or (config.val_stretch is not None and not held_out.any()):
@@ -285,8 +293,15 @@ def train_networks(
     for index, (name, make_config) in enumerate(zip(NETWORKS, makers, strict=True)):
         torch.manual_seed(config.seed + index)
         network = DrivingNetwork(make_config(stereo, config.dropout))
+        if initial is not None:
+            source = getattr(initial, name)
+            if source.config != network.config:
+                raise SafeRaceError(
+                    f"--init {config.init} has a {name} network {source.config}, "
+                    f"the data need {network.config}"
+                )
         if name not in config.networks:
-            networks[name] = getattr(initial, name)
+            networks[name] = source
             continue
         if name in run["done"]:
             network.load_state_dict(run["done"][name]["weights"])
@@ -295,12 +310,6 @@ def train_networks(
             networks[name] = network
             continue
         if initial is not None:
-            source = getattr(initial, name)
-            if source.config != network.config:
-                raise SafeRaceError(
-                    f"--init {config.init} has a {name} network {source.config}, "
-                    f"the data need {network.config}"
-                )
             network.load_state_dict(source.state_dict())  # its normalisation too
         else:
             if config.backbone_weights:
@@ -325,6 +334,7 @@ def train_networks(
         "frames": {"train": len(train_frames), "validation": len(validation_frames)},
         "data": [_round_summary(manifest) for manifest in frames.manifests],
         "history": history,
+        "kept": {name: config.init for name in NETWORKS if name not in config.networks},
         "train_seconds": time.perf_counter() - started,
         "saferace_version": saferace.__version__,
         "git_revision": git_revision(),

@@ -25,6 +25,8 @@ from saferace.track.track_io import read_track_csv, write_track_csv
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
 LOG = logging.getLogger(__name__)
+#: Narrowings already warned about in this process (a table loads its track on every run).
+_REPORTED_NARROWINGS: set[tuple] = set()
 TRACKS_PACKAGE = "saferace.assets.tracks"
 #: Samples used to check the boundaries for crossings, at most.
 _MAX_CHECK_SAMPLES = 2000
@@ -154,7 +156,7 @@ class Track:
         (:func:`~saferace.track.smoothing.smooth_centerline`; off by default). Where a turn is
         tighter than its inner half width, the lane is narrowed there so that the boundary
         does not fold (:func:`~saferace.track.validation.narrow_folding_widths`, one warning
-        says how much); ``strict=True`` refuses such a track instead.
+        per process says how much); ``strict=True`` refuses such a track instead.
         """
         x_m = np.asarray(x_m, dtype=float).ravel()
         y_m = np.asarray(y_m, dtype=float).ravel()
@@ -181,8 +183,10 @@ class Track:
                 w_right_m,
                 w_left_m,
             )
+            reported = (name, len(x_m), narrowing.points, round(narrowing.max_m, 6))
             if narrowing.points:
-                LOG.warning(
+                LOG.log(
+                    logging.DEBUG if reported in _REPORTED_NARROWINGS else logging.WARNING,
                     "%s: narrowed the lane at %d of %d points, by up to %.3f m, where turns are "
                     "tighter than the half width (Track.load(..., strict=True) refuses instead)",
                     name,
@@ -190,6 +194,7 @@ class Track:
                     len(x_m),
                     narrowing.max_m,
                 )
+                _REPORTED_NARROWINGS.add(reported)
         validation.check_lane_width(w_right_m, w_left_m, car_width_m, row_name)
         track = cls(name, centerline, w_right_m, w_left_m, narrowing, smoothing)
         track._validate_geometry(row_name)
