@@ -13,6 +13,7 @@ from rerun.chunk import RrdReader
 
 from saferace.learning.paper_tables import (
     CELL_NAMES,
+    FROM_1,
     RUN_KINDS,
     TABLE_2,
     TASKS,
@@ -89,9 +90,16 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
                 assert float(text.rstrip("*")) == pytest.approx(row[key], rel=1e-2, abs=1e-9)
     text = (out / "table2.md").read_text()
     claims = [line for line in text.splitlines() if line.startswith("- ")]
-    assert len(claims) == len(TASKS) * len(RUN_KINDS)
+    assert len(claims) == len(TASKS) * (len(RUN_KINDS) + 1)
     assert sum("lane exits in filtered iterations" in claim for claim in claims) == 4
     assert sum("laps completed in iterations 2-2: " in claim for claim in claims) == 4
+    for task in TASKS:  # iteration 1 again, behind the filter: a fork with k = 0
+        first, unfiltered = metrics(out, task, FROM_1)[1], metrics(out, task, "none")[1]
+        assert first["filtered"] and first["intervention_rate"] is not None
+        assert not unfiltered["filtered"]
+        (claim,) = [line for line in claims if line.startswith(f"- {task}, seed 0, iteration 1")]
+        for row in (first, unfiltered):
+            assert f"{row['time_outside_lane_s']:.2f} s outside the lane" in claim
 
 
 def test_the_forks_share_the_unfiltered_iterations(tables):

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from cli_helpers import run_cli
 
-from saferace.eval.metrics import lap_metrics, summarize
+from saferace.eval.metrics import lap_metrics, summarize, thinned_trajectory
+from saferace.eval.track_plots import plot_path, plt
 
 DT = 0.05
 
@@ -41,6 +42,23 @@ def test_lap_metrics_by_hand():
     summary = summarize(laps)
     assert summary["laps_completed"] == 1 and summary["best_lap_time_s"] == 0.27
     assert summary["time_outside_lane_s"] == pytest.approx(3 * DT)
+
+
+def test_a_thinned_path_keeps_a_one_step_exit_and_the_plot_marks_it():
+    x_m = np.arange(1000, dtype=float)
+    cost = np.zeros(1000)
+    cost[503] = 1.0  # one step outside, between two kept points
+    trajectory = thinned_trajectory({"x_m": x_m, "y_m": -x_m, "cost": cost}, ("x_m", "y_m"))
+    assert len(trajectory["x_m"]) == len(trajectory["outside"]) == 500
+    assert trajectory["x_m"][:2] == [0.0, 2.0]
+    assert np.flatnonzero(trajectory["outside"]).tolist() == [251]  # steps 502-503
+    figure, ax = plt.subplots()
+    plot_path(ax, trajectory, color="tab:blue")
+    plot_path(ax, {"x_m": [0.0, 1.0], "y_m": [0.0, 1.0]})  # a result without ``outside``
+    path, cross, _without_crosses = ax.lines
+    assert cross.get_marker() == "x" and cross.get_color() == path.get_color()
+    assert cross.get_xdata().tolist() == [502.0]
+    plt.close(figure)
 
 
 def test_no_steps_no_laps():

@@ -41,6 +41,7 @@ import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
+from saferace.eval.metrics import thinned_trajectory
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     append_jsonl,
@@ -175,7 +176,6 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
     speed_ratio = (completion * route_m / driven_s) / (route_m / expert_s) if driven_s else 0.0
     outside = summary["time_outside_lane_s"]
     lap_time = summary["mean_lap_time_s"]
-    stride = max(1, len(result.steps["x_m"]) // TRAJECTORY_POINTS)
     return {
         "suite_version": suite.version,
         **asdict(spec),
@@ -192,9 +192,9 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
         "mean_steer_correction_rad": summary.get("mean_steer_correction_rad"),
         "mean_accel_correction_mps2": summary.get("mean_accel_correction_mps2"),
         "score": completion * speed_ratio * math.exp(-outside / OUTSIDE_SCALE_S),
-        "trajectory": {
-            name: result.steps[name][::stride].round(3).tolist() for name in ("x_m", "y_m")
-        },
+        "trajectory": thinned_trajectory(
+            result.steps, ("x_m", "y_m"), decimals=3, points=TRAJECTORY_POINTS
+        ),
     }
 
 

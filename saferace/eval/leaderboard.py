@@ -70,7 +70,7 @@ def write_leaderboard_csv(rows: list[dict], path: str | Path) -> None:
 
 def plot_trajectories(rows: list[dict], path: str | Path) -> None:
     """Per track: driven paths over the track (paper Fig. 4), and speed against ``s``."""
-    from saferace.eval.track_plots import plot_track, plt
+    from saferace.eval.track_plots import plot_path, plot_track, plt
     from saferace.track import Track
 
     by_track: dict[str, list[dict]] = defaultdict(list)
@@ -83,9 +83,9 @@ def plot_trajectories(rows: list[dict], path: str | Path) -> None:
         for row in track_rows:
             label = f"{row['agent']} / {row['task']} / seed {row['seed']}"
             trajectory = row["trajectory"]
-            ax_map.plot(trajectory["x_m"], trajectory["y_m"], lw=1.2, label=label)
+            plot_path(ax_map, trajectory, lw=1.2, label=label)
             ax_speed.plot(trajectory["s_m"], trajectory["v_x_mps"], ".", ms=2, label=label)
-        ax_map.set_title(f"{track.name}: driven trajectories")
+        ax_map.set_title(f"{track.name}: driven trajectories (x: outside the lane)")
         ax_map.legend(fontsize=7, loc="upper right")
         ax_speed.set_xlabel("centerline arc length s [m]")
         ax_speed.set_ylabel("speed [m/s]")

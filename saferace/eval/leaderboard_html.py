@@ -55,7 +55,7 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
 
 def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:
     """Per track, a base64 PNG of every agent's unfiltered paths (first seed) over it."""
-    from saferace.eval.track_plots import plot_track, plt
+    from saferace.eval.track_plots import plot_path, plot_track, plt
     from saferace.track import Track
 
     paths: dict[str, list[tuple[str, dict]]] = defaultdict(list)
@@ -70,9 +70,8 @@ def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:
         figure, axis = plt.subplots(figsize=(6, 5))
         plot_track(axis, Track.load(suite.track_argument(track_name)))
         for label, row in paths[track_name]:
-            trajectory = row["trajectory"]
-            axis.plot(trajectory["x_m"], trajectory["y_m"], lw=1.2, label=label)
-        axis.set_title(f"{track_name}: driven paths, no filter")
+            plot_path(axis, row["trajectory"], lw=1.2, label=label)
+        axis.set_title(f"{track_name}: driven paths, no filter (x: outside the lane)")
         axis.legend(fontsize=6, loc="upper right")
         buffer = io.BytesIO()
         figure.tight_layout()

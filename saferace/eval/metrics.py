@@ -92,6 +92,28 @@ def lap_metrics(
     return metrics
 
 
+#: About how many points of a drive's path a result row keeps (enough to draw it).
+TRAJECTORY_POINTS = 500
+
+
+def thinned_trajectory(
+    steps: dict[str, np.ndarray],
+    names: tuple[str, ...],
+    decimals: int = 4,
+    points: int = TRAJECTORY_POINTS,
+) -> dict[str, list]:
+    """Every ``stride``-th step of ``names`` (about ``points`` in all) and ``outside``:
+    whether the car was outside its lane at any step of each stride, so that thinning never
+    hides a short exit."""
+    count = len(steps[names[0]])
+    stride = max(1, count // points)
+    trajectory = {name: np.round(steps[name][::stride], decimals).tolist() for name in names}
+    outside = np.asarray(steps["cost"])[:count] > 0
+    starts = np.arange(0, count, stride)
+    trajectory["outside"] = np.logical_or.reduceat(outside, starts).tolist() if count else []
+    return trajectory
+
+
 def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: float) -> dict:
     """The :class:`LapMetrics` of the steps ``mask`` selects (a lap, or a stretch of the
     track such as DAgger's held-out part), bar the lap number and time."""

@@ -27,6 +27,7 @@ from saferace.eval.metrics import (
     lap_metrics,
     safety_step_record,
     summarize,
+    thinned_trajectory,
 )
 from saferace.safety.filter import SafetyFilter, nominal_parts
 
@@ -187,7 +188,6 @@ def result_row(
     agent, task, track_name, track_arg, seed, laps, model, result: EpisodeResult
 ) -> dict:
     """The JSON row of one evaluated episode."""
-    stride = max(1, len(result.steps["x_m"]) // 500)
     return {
         "agent": agent,
         "task": task,
@@ -196,10 +196,7 @@ def result_row(
         "summary": result.summary,
         "laps": [lap.as_dict() for lap in result.laps],
         "terminated": result.terminated,
-        "trajectory": {
-            name: result.steps[name][::stride].round(4).tolist()
-            for name in ("x_m", "y_m", "s_m", "v_x_mps")
-        },
+        "trajectory": thinned_trajectory(result.steps, ("x_m", "y_m", "s_m", "v_x_mps")),
         "config": {"track": str(track_arg), "laps": laps, "model": model},
         "saferace_version": saferace.__version__,
         "git_revision": git_revision(),

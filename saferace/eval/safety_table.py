@@ -268,7 +268,7 @@ def plot_reckless_paths(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from saferace.eval.track_plots import plot_track
+    from saferace.eval.track_plots import plot_path, plot_track
     from saferace.track import Track
 
     reckless = [row for row in rows if row["agent"] in RECKLESS_TASKS]
@@ -288,9 +288,8 @@ def plot_reckless_paths(rows: list[dict], path: Path) -> None:
                 if row["track_arg"] != track_arg or row["agent"] != agent:
                     continue
                 colour, label = FILTER_STYLES[filter_label(row)]
-                trajectory = row["trajectory"]
-                ax.plot(trajectory["x_m"], trajectory["y_m"], color=colour, lw=1.0, label=label)
-            ax.set_title(f"{agent} on {track.name}")
+                plot_path(ax, row["trajectory"], color=colour, lw=1.0, label=label)
+            ax.set_title(f"{agent} on {track.name} (x: outside the lane)")
             ax.set_aspect("equal")
             ax.set_axis_off()
     handles, labels = axes[0, 0].get_legend_handles_labels()

@@ -37,6 +37,17 @@ def plot_track(ax: plt.Axes, track: Track) -> None:
     ax.set_ylabel("y [m]")
 
 
+def plot_path(ax: plt.Axes, trajectory: dict, style: str = "-", **line) -> None:
+    """A driven path on ``ax`` and, in its colour, a cross wherever the car was outside its
+    lane (``trajectory["outside"]``, see :func:`~saferace.eval.metrics.thinned_trajectory`;
+    results written before it have none), so that an exit shows on a circuit drawn small."""
+    x_m, y_m = np.asarray(trajectory["x_m"]), np.asarray(trajectory["y_m"])
+    (drawn,) = ax.plot(x_m, y_m, style, **line)
+    outside = np.asarray(trajectory.get("outside", []), bool)
+    if outside.any():
+        ax.plot(x_m[outside], y_m[outside], "x", color=drawn.get_color(), ms=6, mew=1.5, zorder=4)
+
+
 def plot_reference_lines(
     track: Track, center: ReferenceLine, racing: ReferenceLine, out_path: str | Path
 ) -> None:

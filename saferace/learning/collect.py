@@ -28,7 +28,7 @@ from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.filters import FilterConfig
-from saferace.eval.metrics import span_metrics
+from saferace.eval.metrics import span_metrics, thinned_trajectory
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     EpisodeResult,
@@ -324,8 +324,5 @@ def episode_summary(
         summary["held_out"] = (
             span_metrics(steps, held_out, dt_s) if held_out.any() else {"steps": 0}
         )
-    stride = max(1, len(steps["x_m"]) // 500)
-    summary["trajectory"] = {
-        name: steps[name][::stride].round(4).tolist() for name in ("x_m", "y_m", "s_m")
-    }
+    summary["trajectory"] = thinned_trajectory(steps, ("x_m", "y_m", "s_m"))
     return summary

@@ -23,7 +23,7 @@ from saferace.eval.drive import drive
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import evaluate, max_steps_for
 from saferace.eval.tables import markdown_table, write_csv
-from saferace.eval.track_plots import plot_track, plt
+from saferace.eval.track_plots import plot_path, plot_track, plt
 from saferace.learning.dagger import DaggerConfig, DaggerRun, final_checkpoint, spread_scale_of
 from saferace.track import Track
 from saferace.track.random_track import write_random_track
@@ -192,6 +192,40 @@ def run_lines(
     return rows
 
 
+#: The folder of the one-iteration fork filtered from iteration 1 (see :func:`filtered_from_1`).
+FROM_1 = "cbf_from_1"
+
+
+def filtered_from_1(
+    preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, progress: bool
+) -> dict[tuple[str, int], dict]:
+    """Iteration 1 of each line driven behind the perceived-state filter (a fork with
+    ``k = 0``, one iteration long): the paper's headline asks whether the filter lets the
+    learned driver lap earlier, and the forks of the table start after ``k``. Its networks
+    are the unfiltered run's of iteration 1, so this drive is exactly the first of a fork
+    filtered from the start. Its metric row by (task, seed), for lines with ``k >= 1``."""
+    rows = {}
+    for task in TASKS:
+        if setting.filter_from[task] < 1:
+            continue
+        for seed in seeds:
+            config = replace(
+                dagger_config(preset, setting, task, seed),
+                filter="cbf",
+                filter_from=0,
+                iterations=1,
+            )
+            run = DaggerRun(
+                run_dir(out_dir, setting, task, seed, FROM_1),
+                config,
+                run_dir(out_dir, setting, task, seed, "none"),
+                progress,
+                f"{setting.name} {task} seed {seed} filtered from 1",
+            )
+            rows[(task, seed)] = run.run()[1]
+    return rows
+
+
 def table_lines(
     setting: TableSetting, rows: dict[tuple[str, int, str], list[dict]], seeds: list[int]
 ) -> list[list]:
@@ -257,10 +291,15 @@ def _spread(values: list[float | None]) -> str:
     return f"{np.mean(values):.3g} +- {np.std(values):.2g}"
 
 
-def claims(setting: TableSetting, rows: dict[tuple[str, int, str], list[dict]]) -> list[str]:
+def claims(
+    setting: TableSetting,
+    rows: dict[tuple[str, int, str], list[dict]],
+    from_1: dict[tuple[str, int], dict],
+) -> list[str]:
     """The paper's claims, measured: first completed lap with and without the filter, laps
     completed in the filtered iterations against the unfiltered run's same iterations, lane
-    exits in filtered iterations, the final lap time against the expert's."""
+    exits in filtered iterations, the final lap time against the expert's; and, from
+    ``from_1`` (:func:`filtered_from_1`), whether iteration 1 laps behind the filter."""
     lines = []
     order = [kind for kind, _, _ in RUN_KINDS]
     for (task, seed, kind), runs in sorted(rows.items(), key=lambda item: (
@@ -292,7 +331,19 @@ def claims(setting: TableSetting, rows: dict[tuple[str, int, str], list[dict]]) 
         else:
             text += "; final iteration did not complete its lap"
         lines.append(text)
+    for (task, seed), row in sorted(from_1.items()):
+        unfiltered = rows[(task, seed, "none")][1]
+        lines.append(
+            f"- {task}, seed {seed}, iteration 1 behind the perceived-state filter (a fork "
+            f"with k = 0): {_drive(row)}; without the filter {_drive(unfiltered)}"
+        )
     return lines
+
+
+def _drive(row: dict) -> str:
+    """One drive in words: lapped or not, time outside the lane."""
+    done = f"lapped in {row['lap_time_s']:.2f} s" if row["completed"] else "did not lap"
+    return f"{done}, {row['time_outside_lane_s']:.2f} s outside the lane"
 
 
 def plot_iterations(
@@ -310,12 +361,10 @@ def plot_iterations(
             runs = rows.get((task, seed, kind), [])
             colours = plt.cm.viridis(np.linspace(0, 1, max(len(runs), 2)))
             for row, colour in zip(runs, colours, strict=False):
-                trajectory = row["trajectory"]
                 style = "--" if row["iteration"] == 0 else "-"
                 label = "0 (expert)" if row["iteration"] == 0 else str(row["iteration"])
                 label += "" if row["completed"] else "*"
-                ax.plot(trajectory["x_m"], trajectory["y_m"], style, color=colour, lw=1.1,
-                        label=label)  # fmt: skip
+                plot_path(ax, row["trajectory"], style, color=colour, lw=1.1, label=label)
             ax.set_title(f"{task}, {RUN_LABELS[kind]}")
             ax.legend(
                 fontsize=7,
@@ -326,7 +375,9 @@ def plot_iterations(
                 bbox_to_anchor=(0.5, 0.0),
             )
             ax.set_axis_off()
-    figure.suptitle(f"{setting.title}, seed {seed} (*: did not complete the lap)")
+    figure.suptitle(
+        f"{setting.title}, seed {seed} (*: did not complete the lap; x: outside the lane)"
+    )
     figure.tight_layout()
     figure.savefig(path, dpi=100)
     plt.close(figure)
@@ -462,6 +513,8 @@ def run_paper_tables(
     unseen = []
     for setting in preset.settings:
         rows = run_lines(preset, setting, seeds, out_dir, progress)
+        from_1 = filtered_from_1(preset, setting, seeds, out_dir, progress)
+        timings["collection"] += sum(row["collect_seconds"] or 0.0 for row in from_1.values())
         for (task, _, kind), runs in rows.items():
             shared = -1 if kind == "none" else setting.filter_from[task]
             for row in runs:
@@ -469,7 +522,7 @@ def run_paper_tables(
                     continue  # a fork's shared rows are the unfiltered run's
                 timings["collection"] += row["collect_seconds"] or 0.0
                 timings["training"] += row["train_seconds"] or 0.0
-        written += write_table(preset, setting, rows, seeds, out_dir)
+        written += write_table(preset, setting, rows, from_1, seeds, out_dir)
         started = time.perf_counter()
         unseen += unseen_track_rows(preset, setting, seeds, out_dir, tracks)
         timings["unseen tracks"] += time.perf_counter() - started
@@ -484,6 +537,7 @@ def write_table(
     preset: Preset,
     setting: TableSetting,
     rows: dict[tuple[str, int, str], list[dict]],
+    from_1: dict[tuple[str, int], dict],
     seeds: list[int],
     out_dir: Path,
 ) -> list[Path]:
@@ -496,7 +550,7 @@ def write_table(
         + "; * did not complete the lap (its time is how long the car drove)\n\n"
         + markdown_table(header, lines)
         + "\n\n## Claims, measured\n\n"
-        + "\n".join(claims(setting, rows))
+        + "\n".join(claims(setting, rows, from_1))
         + "\n"
     )
     table_path = out_dir / f"{setting.name}.md"
