@@ -65,8 +65,8 @@ class Preset:
     gradient steps (three epochs of the first iterations' few hundred frames are a dozen
     steps: on lab's racing line the networks of iterations 1-4 crashed within a second, and
     the state network's heading error was 0.2-0.5 rad), and, for time, at most
-    ``max_train_steps``: warm-started, an iteration then trains in about 40 s on these 2
-    cores whatever the aggregate (three epochs of technical's grew from 57 s at iteration 1
+    ``max_train_steps``: warm-started, an iteration then trained in 45-70 s on 2 CPU cores
+    whatever the aggregate (three epochs of technical's grew from 57 s at iteration 1
     to 269 s at iteration 10, and the full preset to about 2.5 h); ``calibrate_spread`` widens its
     MC-dropout spread, 3 to 20 times smaller than its error, by the factor that matches it
     to its error on the part of the lap it never trained on (:mod:`saferace.learning.calibration`).
