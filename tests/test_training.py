@@ -32,11 +32,17 @@ def frames(tiny_checkpoint):
     return load_rounds([tiny_checkpoint()[1]])
 
 
+def state_network_for(data) -> DrivingNetwork:
+    """An untrained state network normalised for ``data``."""
+    network = DrivingNetwork(state_config())
+    network.set_normalisation(normalisation(data, seed=0))
+    return network
+
+
 def test_overfits_a_tiny_dataset(frames):
     data = network_data(frames.subset(np.arange(16)))["state"]
     torch.manual_seed(0)
-    network = DrivingNetwork(state_config())
-    network.set_normalisation(normalisation(data, seed=0))
+    network = state_network_for(data)
     config = TrainConfig(epochs=30, batch_size=8)
     history = fit(network, data, None, config, "state", progress=False)
     assert history["train_loss"][-1] < history["train_loss"][0] / 10.0
@@ -44,8 +50,7 @@ def test_overfits_a_tiny_dataset(frames):
 
 def test_few_frames_train_for_at_least_min_steps(frames):
     data = network_data(frames.subset(np.arange(20)))["state"]  # 3 batches of 8
-    network = DrivingNetwork(state_config())
-    network.set_normalisation(normalisation(data, seed=0))
+    network = state_network_for(data)
     config = TrainConfig(epochs=1, batch_size=8, min_steps=7)
     history = fit(network, data, None, config, "state", progress=False)
     assert len(history["train_loss"]) == 3  # ceil(7 / 3) epochs
@@ -57,8 +62,7 @@ def test_few_frames_train_for_at_least_min_steps(frames):
 
 def test_max_steps_cuts_the_last_epoch_short(frames):
     data = network_data(frames.subset(np.arange(20)))["state"]  # 3 batches of 8
-    network = DrivingNetwork(state_config())
-    network.set_normalisation(normalisation(data, seed=0))
+    network = state_network_for(data)
     config = TrainConfig(epochs=4, batch_size=8, max_steps=5)
     history = fit(network, data, None, config, "state", progress=False)
     assert len(history["batch_loss"]) == 5
@@ -80,8 +84,7 @@ def test_a_training_resumed_before_its_cut_epoch_ends_with_the_same_weights(fram
 
     for resume in (None, "after the first epoch"):
         torch.manual_seed(0)
-        network = DrivingNetwork(state_config())
-        network.set_normalisation(normalisation(data, seed=0))
+        network = state_network_for(data)
         fit(network, data, None, config, "state", False, states[0] if resume else None, keep)
         runs.append(network)
     for name, weights in runs[0].state_dict().items():
