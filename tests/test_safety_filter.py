@@ -312,6 +312,30 @@ def test_the_filter_config_widens_the_spread():
         FilterConfig(kind="cbf", spread_scale=(1.0, 0.0, 1.0))
 
 
+class _HeadingSpread:
+    """The truth, with the heading spread over +-0.3 rad: a state network unsure of it."""
+
+    def reset(self, seed=None) -> None:
+        """Nothing to reset."""
+
+    def samples(self, observation, info):
+        samples = np.tile(true_lane_state(info), (9, 1))
+        samples[:, 1] += np.linspace(-0.3, 0.3, 9)
+        return samples
+
+
+def test_the_filter_does_not_brake_to_shrink_its_heading_spread():
+    """Centred and straight at 3 m/s, neither lane side is feasible for that spread;
+    braking would narrow the spread by a quarter, but the filter keeps the agent's
+    acceleration and leaves the slack (see ``spread_at_accel`` in SafetyFilter)."""
+    env = SafetyFilter(make_env(), _HeadingSpread(), map_curvature=True, **GAIN_PRESETS["tuned"])
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 3.0})
+    decision = env.certify(observation, info, np.array([0.0, 2.0]))
+    assert decision.filtered_action == pytest.approx([0.0, 2.0], abs=0.01)
+    assert min(decision.slacks["lane_left"], decision.slacks["lane_right"]) > 1.0
+    env.close()
+
+
 class _WrongCurvature:
     """The truth, but with a curvature far from the track's (a state network's worst)."""
 

@@ -11,6 +11,7 @@ from saferace.safety.chance import (
     confidence_quantile,
     constraint_statistics,
     constraint_std,
+    spread_at_accel,
     tightening,
 )
 from saferace.safety.qp import FilterProblem, solve_filter_qp, solve_filter_qp_linearised
@@ -120,6 +121,26 @@ def test_chance_constraint_holds_with_the_requested_probability():
     holds = np.mean(d[:, :2] @ u <= d[:, 2])
     assert holds == pytest.approx(0.95, abs=0.01)
     assert constraint_std(statistics, u)[0] > 0.0
+
+
+def test_the_spread_at_a_fixed_acceleration_keeps_the_mean():
+    """Same mean constraint everywhere; the spread at any ``u`` is the one at ``[u_steer, a]``."""
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(12, 4, 2)) * [5.0, 0.5]
+    b = rng.normal(size=(12, 4)) * 2.0
+    exact = constraint_statistics(a, b)
+    fixed = constraint_statistics(*spread_at_accel(a, b, -1.5))
+    np.testing.assert_allclose(fixed.a_mean, exact.a_mean, atol=1e-12)
+    np.testing.assert_allclose(fixed.b_mean, exact.b_mean, atol=1e-12)
+    for steer, accel in ((0.2, 3.0), (-0.1, -4.0), (0.0, -1.5)):
+        np.testing.assert_allclose(
+            constraint_std(fixed, np.array([steer, accel])),
+            constraint_std(exact, np.array([steer, -1.5])),
+            atol=1e-12,
+        )
+    assert not np.allclose(
+        constraint_std(exact, np.array([0.2, 3.0])), constraint_std(exact, np.array([0.2, -1.5]))
+    )
 
 
 def test_invalid_problems_are_refused_or_flagged():

@@ -9,6 +9,9 @@ samples, normalised by ``n`` as in the paper), ``Pr(d^T c(u) <= 0) >= eta`` is e
 
 a second-order cone: the mean constraint tightened by ``z`` standard deviations of its
 value at ``u`` (a norm, not the squared norm the paper prints).
+
+:func:`spread_at_accel` fixes the acceleration at which the spread is taken (see
+:class:`~saferace.safety.filter.SafetyFilter` for why the filter takes the agent's).
 """
 
 from __future__ import annotations
@@ -42,6 +45,19 @@ def constraint_statistics(a: np.ndarray, b: np.ndarray) -> ConstraintStatistics:
     centred = d - mean
     covariance = np.einsum("nbi,nbj->bij", centred, centred) / len(d)
     return ConstraintStatistics(a_mean=mean[:, :2], b_mean=mean[:, 2], covariance=covariance)
+
+
+def spread_at_accel(
+    a: np.ndarray, b: np.ndarray, accel_mps2: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample constraints ``a (n, B, 2)``, ``b (n, B)`` rewritten so that their mean is
+    the same but their spread at any ``u`` is the spread at ``[u_steer, accel_mps2]``: each
+    sample's acceleration coefficient is replaced by the samples' mean, and its deviation
+    from the mean, times ``accel_mps2``, is moved into ``b``."""
+    deviation = a[:, :, 1] - a[:, :, 1].mean(axis=0)
+    fixed = a.copy()
+    fixed[:, :, 1] -= deviation
+    return fixed, b - deviation * accel_mps2
 
 
 def constraint_std(statistics: ConstraintStatistics, u: np.ndarray) -> np.ndarray:
