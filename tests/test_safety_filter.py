@@ -211,6 +211,25 @@ def test_the_filter_brakes_to_a_stop_but_never_reverses():
     env.close()
 
 
+def test_a_stopped_car_heading_for_the_edge_creeps_away_on_full_lock():
+    """At a standstill the steering drops out of the lane barrier, and accelerating heads
+    for the edge: without the creep rule the filter holds the car there for good."""
+    held, creeping = (SafetyFilter(make_env(), creep_speed_mps=speed) for speed in (0.0, 0.5))
+    decisions = {}
+    for name, env in (("held", held), ("creeping", creeping)):
+        observation, info = env.reset(seed=0, options={"start_speed_mps": 0.0})
+        observation = {**observation, "velocity": np.zeros(3, dtype=np.float32)}
+        info = {**info, "e_y_m": 0.2, "e_psi_rad": 0.2}  # on the barrier, heading out
+        decisions[name] = env.certify(observation, info, np.array([-0.1, 4.0])).filtered_action
+        if name == "creeping":  # an agent that brakes is not made to creep
+            braking = env.certify(observation, info, np.array([-0.1, -1.0])).filtered_action
+            assert braking[1] == pytest.approx(0.0, abs=1e-6)  # no braking past standstill
+        env.close()
+    assert decisions["held"][1] == pytest.approx(0.0, abs=1e-3)
+    assert decisions["creeping"][1] == pytest.approx(filter_module.CREEP_ACCEL_MPS2)
+    assert decisions["creeping"][0] == pytest.approx(-0.36)  # full lock away from the edge
+
+
 def test_bad_arguments_are_refused():
     with pytest.raises(KeyError):
         SafetyFilter(make_env(), model="bicycle")
@@ -222,6 +241,8 @@ def test_bad_arguments_are_refused():
         SafetyFilter(make_env(), lam=(8.0, -1.0))
     with pytest.raises(ValueError, match="lateral_decel_mps2"):
         SafetyFilter(make_env(), lateral_decel_mps2=0.0)
+    with pytest.raises(ValueError, match="creep_speed_mps"):
+        SafetyFilter(make_env(), creep_speed_mps=-1.0)
     env = SafetyFilter(make_env())
     with pytest.raises(gym.error.ResetNeeded):
         env.step(np.zeros(2))
