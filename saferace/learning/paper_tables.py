@@ -124,7 +124,7 @@ TABLE_2 = TableSetting(
 PRESETS = {
     "quick": Preset(
         name="quick",
-        settings=(replace(TABLE_2, filter_from={"CenterLine": 1, "RacingLine": 1}),),
+        settings=(replace(TABLE_2, filter_from={"CenterLine": 2, "RacingLine": 2}),),
         iterations=3,
         epochs=4,
         unseen_tracks=("oval",),
