@@ -230,6 +230,19 @@ def test_a_stopped_car_heading_for_the_edge_creeps_away_on_full_lock():
     assert decisions["creeping"][0] == pytest.approx(-0.36)  # full lock away from the edge
 
 
+def test_a_failed_solve_brakes_below_the_creep_speed(monkeypatch):
+    def failing(problem):
+        return FilterSolution(problem.u_mean, np.zeros(len(problem.b)), "max_iterations", 60)
+
+    monkeypatch.setattr(filter_module, "solve_filter_qp", failing)
+    env = SafetyFilter(make_env())
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 0.3})
+    decision = env.certify(observation, info, np.array([0.0, 4.0]))
+    assert decision.fallback
+    assert decision.filtered_action[1] == pytest.approx(-filter_module.FALLBACK_BRAKE_MPS2)
+    env.close()
+
+
 def test_bad_arguments_are_refused():
     with pytest.raises(KeyError):
         SafetyFilter(make_env(), model="bicycle")
@@ -347,7 +360,7 @@ class _HeadingSpread:
 
 def test_the_filter_does_not_brake_to_shrink_its_heading_spread():
     """Centred and straight at 3 m/s, neither lane side is feasible for that spread;
-    braking would narrow the spread by a quarter, but the filter keeps the agent's
+    braking from +2 to -4 would narrow the spread by a quarter, but the filter keeps the agent's
     acceleration and leaves the slack (see ``spread_at_accel`` in SafetyFilter)."""
     env = SafetyFilter(make_env(), _HeadingSpread(), map_curvature=True, **GAIN_PRESETS["tuned"])
     observation, info = env.reset(seed=0, options={"start_speed_mps": 3.0})

@@ -91,11 +91,12 @@ class SafetyDecision:
     """What the filter did in one step (``info["safety"]``); per-barrier values by name.
 
     ``barriers`` are the estimated ``h`` (mean over state samples; m for the lanes, rad for
-    the heading); ``constraints`` the HOCBF condition ``psi_m`` at the filtered action
-    (mean over samples, ``>= 0`` holds); ``tightening`` the chance-constraint margin
-    ``Phi^-1(eta) * std``; ``slacks`` what each constraint needed. ``state_mean`` and
-    ``state_std`` are the ``[e_y, e_psi, kappa]`` the filter believed (the curvature from the
-    map where it takes it from there), ``state_true`` the simulator's at the same moment.
+    the heading); ``constraints`` the HOCBF condition ``psi_m`` at the filtered action (mean
+    over samples, ``>= 0`` holds); ``tightening`` the chance-constraint margin
+    ``Phi^-1(eta) * std`` (the spread at the agent's acceleration, see below); ``slacks`` what each
+    constraint needed. ``state_mean`` and ``state_std`` are the ``[e_y, e_psi, kappa]`` the
+    filter believed (the curvature from the map where it takes it from there),
+    ``state_true`` the simulator's at the same moment.
     """
 
     nominal_action: list[float]
@@ -134,7 +135,8 @@ class SafetyFilter(gym.Wrapper):
     within the actuator limits (:mod:`saferace.safety.qp`), less any braking that would stop
     the car within the control step: the filter never drives the car backwards. Below
     ``creep_speed_mps`` it accelerates at least ``CREEP_ACCEL_MPS2``, or as the agent does if
-    that is less (0 turns the rule off): at a standstill the steering drops out of the lane
+    that is less, so it brakes no harder than the agent there (0 turns the rule off; a failed
+    solve still brakes): at a standstill the steering drops out of the lane
     barriers, so a car stopped heading for an edge may not accelerate and cannot be steered
     away, and the filter held it there for good (measured: a racing-line policy on lab
     behind the perceived state stood 53 s of its 60 at one spot; creeping off on full lock
@@ -146,16 +148,16 @@ class SafetyFilter(gym.Wrapper):
     In the lane barriers the acceleration's coefficient, ``-/+ sin(e_psi + beta)``, varies
     with the sampled heading in step with the heading's own term, ``k v sin(e_psi)`` (``k``
     the barrier's gain on ``dh/dt``, about 8 1/s at lab's centre with the tuned gains), so
-    braking by ``da`` shrinks the spread by about ``da / (k v)`` of itself: a quarter for
-    full braking at 3 m/s. The effect is real (braking slows the lateral drift whichever
-    way the car heads) but lasts one step, and where a wide heading spread at speed leaves
-    neither lane side feasible, the slack weight made it worth braking at full force, step
-    after step; from a standstill, where accelerating widens the spread, it held the car
-    still. Measured on lab's racing line behind a calibrated state network: the final
-    policy of ``paper-tables``' Table 2 braked at -4 m/s^2 in 44 of its 158 steps and
-    lapped in 7.85 s (7.06 s unfiltered); the policy of an earlier iteration stood still
-    for 16 s of a 28.3 s lap. With the spread at the agent's acceleration: 7.40 and 9.12 s,
-    both inside the lane. The acceleration still acts through the constraints' mean.
+    braking by ``da`` shrinks the spread by about ``da / (k v)`` of itself: a quarter when
+    an agent's +2 m/s^2 becomes -4 at 3 m/s. The effect is real (braking slows the lateral
+    drift whichever way the car heads) but lasts one step, and where a wide heading spread
+    at speed leaves neither lane side feasible, the slack weight made it worth braking at
+    full force, step after step; from a standstill, where accelerating widens the spread, it
+    held the car still. Measured on lab's racing line behind a calibrated state network: the
+    final policy of ``paper-tables``' Table 2 braked at -4 m/s^2 in 44 of its 158 steps and
+    lapped in 7.85 s (7.06 s unfiltered); the policy of an earlier iteration stood still for
+    16 s of a 28.3 s lap. With the spread at the agent's acceleration: 7.40 and 9.12 s, both
+    inside the lane. The acceleration still acts through the constraints' mean.
 
     ``info["safety"]`` holds a :class:`SafetyDecision` as a dict every step. A failed solve
     falls back to braking at ``FALLBACK_BRAKE_MPS2`` while steering toward the centerline
@@ -384,7 +386,11 @@ class SafetyFilter(gym.Wrapper):
         a_mean, b_mean = problem.a, problem.b
 
         fallback = not solution.solved
-        filtered = self._fallback(lane.mean(axis=0), lower, upper) if fallback else solution.u
+        if fallback:  # brakes whatever the creep rule asks
+            v_x = float(observation["velocity"][0])
+            filtered = self._fallback(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
+        else:
+            filtered = solution.u
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         count = len(self.constraint_names)
         spread_at_u = np.zeros(count)
@@ -474,7 +480,8 @@ class SafetyFilter(gym.Wrapper):
 
     def _action_box(self, v_x: float, agent_accel: float) -> tuple[np.ndarray, np.ndarray]:
         """The actuator box, less braking than stops the car within one control step, and
-        below ``creep_speed_mps`` less than ``min(agent_accel, CREEP_ACCEL_MPS2)``.
+        below ``creep_speed_mps`` an acceleration of at least ``min(agent_accel,
+        CREEP_ACCEL_MPS2)``.
 
         The models hold for forward driving only, and a filter that brakes past standstill
         would reverse the car (an infeasible lane constraint asks for braking every step).
@@ -483,7 +490,7 @@ class SafetyFilter(gym.Wrapper):
         """
         lower, upper = self.lower.copy(), self.upper.copy()
         lower[1] = max(lower[1], -max(v_x, 0.0) / self.control_dt_s)
-        if v_x < self.creep_speed_mps:
+        if self.creep_speed_mps > 0.0 and v_x < self.creep_speed_mps:
             lower[1] = max(lower[1], min(agent_accel, CREEP_ACCEL_MPS2))
         if self.max_lateral_accel_mps2 is not None:
             speed_sq = max(v_x, MIN_SPEED_MPS) ** 2
