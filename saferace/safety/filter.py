@@ -345,7 +345,8 @@ class SafetyFilter(gym.Wrapper):
             lane = lane.mean(axis=0, keepdims=True)
         states = self._model_states(lane, observation["velocity"])
         s_m = float(info["s_m"])
-        preview_m = self.width_preview_s * max(float(observation["velocity"][0]), 0.0)
+        v_x = float(observation["velocity"][0])
+        preview_m = self.width_preview_s * max(v_x, 0.0)
         w_right, w_left = self._lane_widths(s_m, preview_m)
         w_left_slope, w_right_slope = self._width_slopes(s_m, preview_m)
         context = BarrierContext(
@@ -361,7 +362,7 @@ class SafetyFilter(gym.Wrapper):
         kappa, kappa_std = lane[:, 2], float(samples[:, 2].std())
         if self.map_curvature:
             kappa = np.full(len(lane), self.track.centerline.curvature_scalar(float(info["s_m"])))
-        lower, upper = self._action_box(float(observation["velocity"][0]), float(u0[1]))
+        lower, upper = self._action_box(v_x, float(u0[1]))
         speed = (
             self._speed_constraint(info, observation["velocity"], lane[:, 0])
             if self.speed_limit_factor
@@ -387,7 +388,6 @@ class SafetyFilter(gym.Wrapper):
 
         fallback = not solution.solved
         if fallback:  # brakes whatever the creep rule asks
-            v_x = float(observation["velocity"][0])
             filtered = self._fallback(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
         else:
             filtered = solution.u
