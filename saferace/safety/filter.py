@@ -361,7 +361,7 @@ class SafetyFilter(gym.Wrapper):
         )
         kappa, kappa_std = lane[:, 2], float(samples[:, 2].std())
         if self.map_curvature:
-            kappa = np.full(len(lane), self.track.centerline.curvature_scalar(float(info["s_m"])))
+            kappa = np.full(len(lane), self.track.centerline.curvature_scalar(s_m))
         lower, upper = self._action_box(v_x, float(u0[1]))
         speed = (
             self._speed_constraint(info, observation["velocity"], lane[:, 0])
