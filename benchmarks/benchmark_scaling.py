@@ -16,7 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from saferace.eval.benchmark import load_suite, run_benchmark
+from saferace.experiments.benchmark import load_suite, run_benchmark
 from saferace.eval.tables import markdown_table
 
 

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from saferace.eval.safety_table import filter_label, run_table
+from saferace.experiments.safety_table import filter_label, run_table
 from saferace.eval.tables import markdown_table
-from saferace.safety.filter import DEFAULT_GAINS
+from saferace.names import DEFAULT_GAINS
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import RacingLineSettings, racing_line
 from saferace.track.smoothing import SMOOTHING_KEEPS

@@ -10,7 +10,7 @@ __version__ = "0.1.0"
 
 def register_envs() -> None:
     """Register the gymnasium task ids (also the ``gymnasium.envs`` entry point)."""
-    from saferace.envs.registry import register_tasks
+    from saferace.registry import register_tasks
 
     register_tasks()
 

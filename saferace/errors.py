@@ -11,3 +11,15 @@ class TrackError(SafeRaceError, ValueError):
 
 class RacingLineError(SafeRaceError, RuntimeError):
     """The racing-line optimisation could not produce a line inside the lane."""
+
+
+class ConfigError(SafeRaceError, ValueError):
+    """A config field with a value it cannot take.
+
+    ``field`` names the config field; the command line shows its option in its place.
+    """
+
+    def __init__(self, field: str, problem: str) -> None:
+        super().__init__(f"{field} {problem}")
+        self.field = field
+        self.problem = problem

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 
 from saferace.eval.agents import make_agent
-from saferace.eval.benchmark import SUITE_VERSION, suite_folder
+from saferace.experiments.benchmark import SUITE_VERSION, suite_folder
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import make_task_env, max_steps_for, run_episode
 from saferace.track import Track, builtin_track_names

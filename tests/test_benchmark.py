@@ -11,14 +11,14 @@ from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
 from saferace.eval import benchmark
-from saferace.eval.benchmark import (
+from saferace.experiments.benchmark import (
     SUITE_VERSION,
     RunSpec,
     load_suite,
     run_benchmark,
     validate_submission,
 )
-from saferace.eval.leaderboard_html import leaderboard_html, leaderboard_rows
+from saferace.experiments.benchmark_page import leaderboard_html, leaderboard_rows
 from saferace.track import Track, builtin_track_names
 
 LAB_RUNS = [RunSpec("lab", "CenterLine", 0, "none"), RunSpec("lab", "CenterLine", 1, "cbf")]

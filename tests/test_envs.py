@@ -10,7 +10,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import saferace  # noqa: F401  - registers the tasks
-from saferace.envs.registry import TASKS
+from saferace.registry import TASKS
 from saferace.errors import SafeRaceError
 from saferace.track import Track, builtin_track_names
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from saferace.eval.benchmark import RunSpec, load_suite, run_benchmark
-from saferace.eval.leaderboard_html import leaderboard_html
+from saferace.experiments.benchmark import RunSpec, load_suite, run_benchmark
+from saferace.experiments.benchmark_page import leaderboard_html
 
 #: Appended to a copy of the page: once it has loaded, click "agent" (sort ascending) and
 #: "score" twice (descending), then write what the table and the images show into the DOM.

@@ -11,16 +11,11 @@ import pytest
 from cli_helpers import run_cli
 from rerun.chunk import RrdReader
 
-from saferace.learning.paper_tables import (
-    CELL_NAMES,
-    FROM_1,
-    RUN_KINDS,
-    TABLE_2,
-    TASKS,
-    Preset,
-    run_dir,
-    run_paper_tables,
-)
+from saferace.experiments.paper import Preset, run_paper_tables
+from saferace.experiments.paper.presets import RUN_KINDS, TABLE_2
+from saferace.experiments.paper.report import CELL_NAMES
+from saferace.experiments.paper.runs import FROM_1, run_dir
+from saferace.names import TASKS
 
 #: Two iterations of 3 s drives on 32x32 images, the fork filtered in iteration 2; frames
 #: past 0.2 of the lap (reached within the 3 s) are held out to calibrate the state network.

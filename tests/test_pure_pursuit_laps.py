@@ -7,7 +7,7 @@ import pytest
 
 import saferace  # noqa: F401
 from saferace.agents.pure_pursuit import PurePursuit
-from saferace.envs.registry import TASKS
+from saferace.registry import TASKS
 from saferace.track import builtin_track_names
 
 

@@ -20,7 +20,7 @@ from saferace.envs.randomization import (
     RandomizationError,
     VisualRandomization,
 )
-from saferace.envs.registry import TASKS
+from saferace.registry import TASKS
 
 TASK_IDS = sorted(TASKS)
 

@@ -10,7 +10,7 @@ import pytest
 from saferace.errors import SafeRaceError
 from saferace.eval import robustness
 from saferace.eval.filters import FilterConfig
-from saferace.eval.robustness import (
+from saferace.experiments.robustness import (
     TABLE_COLUMNS,
     RobustnessConfig,
     plot_robustness,

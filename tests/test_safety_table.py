@@ -8,7 +8,7 @@ import pytest
 from cli_helpers import run_cli
 
 from saferace.eval.runner import read_jsonl
-from saferace.eval.safety_table import (
+from saferace.experiments.safety_table import (
     RANDOM_TRACK_RADIUS_M,
     RECKLESS_TASKS,
     filter_label,

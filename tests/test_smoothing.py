@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from cli_helpers import run_cli
 
-from saferace.cli import SMOOTHING_KEEPS
+from saferace.names import SMOOTHING_KEEPS
 from saferace.errors import TrackError
 from saferace.track import Track, smoothing
 from saferace.track.track_io import write_track_csv

@@ -15,17 +15,23 @@ the car in, and a drive that left the lane ends with frames unlike any the netwo
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 
 from saferace.errors import SafeRaceError
+from saferace.learning.checkpoint import load_checkpoint, write_text_atomically
 from saferace.learning.networks import DrivingNetwork
-from saferace.learning.rounds import FrameSet
+from saferace.learning.rounds import HELD_OUT_FILE, FrameSet, load_rounds
+from saferace.learning.run_layout import RunLayout
 from saferace.learning.training import network_data
 from saferace.learning.validation import predict_frames
 from saferace.track import Track, VehicleEnvelope
 
 #: Floor of a frame's spread in the ratio (a constant output gives no spread at all).
 MIN_SPREAD = 1e-6
+#: Held-out frames a state network's spread is calibrated on, at least.
+MIN_CALIBRATION_FRAMES = 20
 
 
 def spread_scale(
@@ -49,3 +55,39 @@ def inside_lane(
     w_right, w_left = track.widths(frames["s_m"])
     half = 0.5 * car_width_m
     return (e_y + half <= w_left) & (e_y - half >= -w_right)
+
+
+def spread_scale_of(
+    layout: RunLayout, iteration: int, mc_samples: int, seed: int
+) -> tuple[float, float, float]:
+    """The calibration of the state network of a run's ``iteration``, fitted on the held-out
+    frames (the part of the lap it never trained on, with the car inside its lane) of the
+    latest round that has at least :data:`MIN_CALIBRATION_FRAMES` of them; written once
+    beside the checkpoint, read back afterwards."""
+    path = layout.spread_scale(iteration)
+    if not path.exists():
+        network = load_checkpoint(layout.checkpoint(iteration)).state
+        for previous in range(iteration - 1, -1, -1):
+            round_dir = layout.round(previous)
+            manifest = json.loads(layout.manifest(previous).read_text())
+            if manifest.get("held_out_frame_count", 0) < MIN_CALIBRATION_FRAMES:
+                continue
+            frames = load_rounds([round_dir], held_out=True)
+            track = Track.load(manifest["config"]["track_argument"])
+            inside = inside_lane(frames, track)
+            if inside.sum() >= MIN_CALIBRATION_FRAMES:
+                break
+        else:
+            raise SafeRaceError(
+                f"no round of {layout.root} holds {MIN_CALIBRATION_FRAMES} held-out frames with "
+                "the car inside its lane to calibrate the state network on (is the train "
+                "fraction below 1?)"
+            )
+        scale = spread_scale(network, frames.subset(inside), mc_samples, seed=seed)
+        record = {
+            "spread_scale": scale.tolist(),
+            "fitted_on": f"{round_dir.name} ({HELD_OUT_FILE})",
+            "frames": int(inside.sum()),
+        }
+        write_text_atomically(path, json.dumps(record, indent=2) + "\n")
+    return tuple(json.loads(path.read_text())["spread_scale"])

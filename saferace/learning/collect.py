@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +25,7 @@ import numpy as np
 
 import saferace
 from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
-from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
-from saferace.eval.filters import FilterConfig
 from saferace.eval.metrics import span_metrics, thinned_trajectory
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
@@ -38,29 +36,10 @@ from saferace.eval.runner import (
     package_versions,
     run_episode,
 )
+from saferace.learning.configs import CollectionConfig, Perturbation
 from saferace.learning.rounds import FRAME_FIELDS, write_round
 from saferace.safety.filter import NominalAction, nominal_parts
 from saferace.safety.state_sources import true_lane_state
-
-
-@dataclass(frozen=True)
-class Perturbation:
-    """Steering noise added to the driver's action: an Ornstein-Uhlenbeck process.
-
-    ``steer_std_rad`` is its stationary standard deviation, ``correlation_time_s`` how long
-    a push lasts: correlated noise moves the car off its line far enough to need a
-    recovery, where white noise at the control rate would average out.
-    """
-
-    steer_std_rad: float = 0.0
-    correlation_time_s: float = 0.5
-
-    def __post_init__(self) -> None:
-        if self.steer_std_rad < 0.0 or self.correlation_time_s <= 0.0:
-            raise SafeRaceError(
-                "--perturb needs a non-negative steering std (rad) and a positive correlation "
-                f"time (s), got {self.steer_std_rad} and {self.correlation_time_s}"
-            )
 
 
 class SteeringNoise:
@@ -155,40 +134,6 @@ class LabellingDriver:
 
 
 @dataclass(frozen=True)
-class CollectionConfig:
-    """What one round records: driver, task, track, episodes, camera and noise."""
-
-    agent: str = "expert"
-    task: str = "RacingLine"
-    track: str = "technical"
-    seeds: tuple[int, ...] = (0,)
-    laps: int = 3
-    max_seconds: float | None = None
-    perturbation: Perturbation = Perturbation()
-    safety: FilterConfig = field(default_factory=FilterConfig)
-    expert_model: str = "dynamic"
-    image_size: tuple[int, int] = (64, 64)
-    stereo: bool = False
-    mc_samples: int = 10
-    train_fraction: float = 1.0
-    beta: float = 0.0
-    randomize: str = "none"  # a domain-randomisation preset: each episode's look by its seed
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.train_fraction <= 1.0:
-            raise SafeRaceError(f"train_fraction must be in (0, 1], got {self.train_fraction}")
-        if not 0.0 <= self.beta <= 1.0:
-            raise SafeRaceError(f"beta must be in [0, 1], got {self.beta}")
-        if self.laps < 1:
-            raise SafeRaceError(f"laps must be at least 1, got {self.laps}")
-
-    def as_dict(self) -> dict:
-        values = asdict(self)
-        values["safety"] = self.safety.as_dict()
-        return values
-
-
-@dataclass(frozen=True)
 class CollectedRound:
     """Where a round was written, its size and each episode's lap summary."""
 
@@ -264,25 +209,26 @@ def collect_episode(
     config: CollectionConfig, episode: int, seed: int, progress: bool = False
 ) -> CollectedEpisode:
     """Drive and label episode ``episode`` of a round (seeded by ``seed``)."""
+    settings = config.episode
     env = make_task_env(
         config.task,
         config.track,
-        config.laps,
+        settings.laps,
         config.safety,
         seed,
-        max_steps=max_steps_for(config.max_seconds),
-        image_size=tuple(config.image_size),
-        stereo=config.stereo,
-        randomize=config.randomize,
+        max_steps=max_steps_for(settings.max_seconds),
+        image_size=(settings.image_size, settings.image_size),
+        stereo=settings.stereo,
+        randomize=settings.randomize,
     )
     try:
         base = env.unwrapped
         track_length = base.track.length_m
-        expert = MPCExpert.for_env(env, model=config.expert_model)
+        expert = MPCExpert.for_env(env, model=settings.expert_model)
         driver = (
             None
             if config.agent == "expert"
-            else make_agent(config.agent, env, config.expert_model, config.mc_samples, seed)
+            else make_agent(config.agent, env, settings.expert_model, settings.mc_samples, seed)
         )
         noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
         labeller = LabellingDriver(
@@ -294,12 +240,12 @@ def collect_episode(
     finally:
         env.close()
     frames = labeller.arrays()
-    kept = np.mod(frames["s_m"] / track_length, 1.0) < config.train_fraction
+    kept = np.mod(frames["s_m"] / track_length, 1.0) < settings.train_fraction
     return CollectedEpisode(
         frames={name: values[kept] for name, values in frames.items()},
         held_out={name: values[~kept] for name, values in frames.items()},
         summary=episode_summary(
-            seed, result, track_length, config.train_fraction, base.control_dt_s
+            seed, result, track_length, settings.train_fraction, base.control_dt_s
         ),
         track_name=base.track.name,
         track_length_m=track_length,

@@ -22,7 +22,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,7 @@ import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
 from saferace.learning.checkpoint import load_checkpoint, save_atomically
+from saferace.learning.configs import NETWORKS, TrainConfig
 from saferace.learning.networks import (
     DrivingNetwork,
     control_config,
@@ -45,73 +46,8 @@ from saferace.learning.rounds import FrameSet
 LOG = logging.getLogger(__name__)
 #: Frames sampled to estimate the images' per-channel mean and spread.
 IMAGE_STATISTICS_FRAMES = 2000
-#: The networks a training run makes, in the order they are trained.
-NETWORKS = ("control", "state")
 #: Floor of an output's or input's standard deviation (a constant curvature on an oval).
 MIN_STD = 1e-3
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation, hold-out and initialisation of one training run.
-
-    ``min_steps``: at least this many gradient steps, by adding epochs when the data are few
-    (a DAgger run's first iterations train on a lap or two of frames: three epochs of them
-    are a dozen steps, and the networks learn next to nothing). ``max_steps`` (0: none): at
-    most this many, the last epoch cut short, so that a warm-started DAgger iteration costs
-    the same however large the aggregate has grown. ``networks``: the networks trained; any
-    other is taken unchanged from ``init``.
-    """
-
-    epochs: int = 10
-    min_steps: int = 0
-    max_steps: int = 0
-    batch_size: int = 32
-    learning_rate: float = 1e-3
-    seed: int = 0
-    val_stretch: tuple[float, float] | None = (0.55, 0.7)
-    dropout: float = 0.2
-    init: str | None = None
-    backbone_weights: str | None = None
-    networks: tuple[str, ...] = NETWORKS
-
-    def __post_init__(self) -> None:
-        start, end = self.val_stretch or (0.0, 1.0)
-        if not 0.0 <= start < end <= 1.0:
-            raise SafeRaceError(
-                f"val_stretch must be fractions of the lap 0 <= start < end <= 1, got "
-                f"{self.val_stretch}"
-            )
-        if self.epochs < 1 or self.batch_size < 1 or self.learning_rate <= 0.0:
-            raise SafeRaceError("epochs, batch_size and learning_rate must be positive")
-        if self.min_steps < 0 or self.max_steps < 0:
-            raise SafeRaceError(
-                f"min_steps and max_steps must not be negative, got {self.min_steps} and "
-                f"{self.max_steps}"
-            )
-        if self.max_steps and self.min_steps > self.max_steps:
-            raise SafeRaceError(f"min_steps {self.min_steps} is above max_steps {self.max_steps}")
-        if not set(self.networks) <= set(NETWORKS) or not self.networks:
-            raise SafeRaceError(f"networks must be some of {NETWORKS}, got {self.networks}")
-        if set(self.networks) != set(NETWORKS) and not self.init:
-            raise SafeRaceError(
-                f"training only {', '.join(self.networks)} takes the other network from "
-                "--init: give one"
-            )
-        if self.init and self.backbone_weights:
-            raise SafeRaceError(
-                "--init and --backbone-weights both set the starting weights: choose one"
-            )
-
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-    def steps_for(self, frames: int) -> int:
-        """Gradient steps over ``frames`` training frames: ``epochs`` of them, or more to
-        reach ``min_steps``, or fewer to stay within ``max_steps``."""
-        batches = math.ceil(frames / self.batch_size)
-        steps = batches * max(self.epochs, math.ceil(self.min_steps / batches))
-        return min(steps, self.max_steps) if self.max_steps else steps
 
 
 @dataclass(frozen=True)

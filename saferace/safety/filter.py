@@ -41,12 +41,11 @@ MAP_DS_M = 0.05
 #: tyres' grip is about 9.8), so braking ends as the car turns in.
 SPEED_LIMIT_DECEL_MPS2 = 2.0
 SPEED_LIMIT_LATERAL_MPS2 = 7.0
-#: Settings of ``SafetyFilter`` by name: the paper's gain; the same with the steering held
-#: within the tyres' grip (``max_lateral_accel_mps2``), the default of the command line and
-#: :class:`~saferace.eval.filters.FilterConfig`, since at racing speed the paper's kinematic
-#: filter asks for corrections the car cannot drive; and the gains measured to leave the
-#: expert most alone while keeping every reckless run of ``saferace safety-table`` on the
-#: built-in tracks inside its lane (the README gives the numbers).
+#: Settings of ``SafetyFilter`` by name (:data:`saferace.names.GAIN_NAMES`): the paper's
+#: gain; the same with the steering held within the tyres' grip (``max_lateral_accel_mps2``,
+#: :data:`saferace.names.DEFAULT_GAINS`), since at racing speed the paper's kinematic filter
+#: asks for corrections the car cannot drive; and the gains measured to leave the expert
+#: most alone while keeping every reckless run of ``saferace safety-table`` inside its lane.
 GAIN_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"lam": 2.5},
     "grip": {
@@ -56,7 +55,6 @@ GAIN_PRESETS: dict[str, dict[str, Any]] = {
     },
     "tuned": {"lam": (20.0, 4.0), "lateral_decel_mps2": 5.0},
 }
-DEFAULT_GAINS = "grip"
 #: Below ``creep_speed_mps`` the filter accelerates at least this much (or as the agent does,
 #: if that is less): at a standstill the steering drops out of the lane barriers (its
 #: effect grows with ``v^2``), so a car stopped heading for an edge cannot be steered away.

@@ -16,7 +16,7 @@ lane exit that the unfused filter did not have).
 It does not help a network that is poor from its first frame: on a random track it never
 saw, started from a heading 0.2 rad off and then trusting its dead reckoning over the
 network's 0.15-0.8 rad heading spread, it let a racing-line policy out of the lane that
-the unfused filter kept inside (see :class:`~saferace.learning.paper_tables.Preset`).
+the unfused filter kept inside (see :class:`~saferace.experiments.paper.Preset`).
 """
 
 from __future__ import annotations

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from saferace.names import VEHICLE_MODELS
 from saferace.safety.models import FrenetModel
 from saferace.safety.vehicle_params import VehicleParams
 from saferace.sysid.evaluate import prediction_errors
@@ -21,7 +22,7 @@ from saferace.sysid.manoeuvres import collect
 LATERAL_MIN_SPEED_MPS = 1.0
 SETTLE_S = 0.3
 EVALUATION_LOGS = {"low speed (1.5 m/s)": "sweep_1.5", "racing speed (4.5 m/s)": "sweep_4.5"}
-MODELS = ("kinematic", "dynamic", "dynamic-paper")
+MODELS = VEHICLE_MODELS
 
 
 @dataclass(frozen=True)

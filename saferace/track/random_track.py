@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
+from saferace.names import RANDOM_TRACK_RADIUS_M
 from saferace.track.track_io import write_track_csv
 
 
@@ -34,3 +36,12 @@ def write_random_track(path: str | Path, seed: int, radius_m: float = 6.0) -> Pa
     path.parent.mkdir(parents=True, exist_ok=True)
     write_track_csv(path, x, y, w_right, w_left)
     return path
+
+
+def write_random_tracks(folder: str | Path, seeds: Iterable[int]) -> list[str]:
+    """A random track per seed in ``folder`` (``random_SEED.csv``, of the experiments' size
+    :data:`~saferace.names.RANDOM_TRACK_RADIUS_M`); their paths."""
+    return [
+        str(write_random_track(Path(folder) / f"random_{seed}.csv", seed, RANDOM_TRACK_RADIUS_M))
+        for seed in seeds
+    ]

@@ -8,10 +8,11 @@ times of both, from the same speed profile).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from saferace.errors import SafeRaceError
 from saferace.track.raceline import RacingLineSettings, ReferenceLine, center_line, racing_line
 from saferace.track.track import Track
 from saferace.track.vehicle_envelope import VehicleEnvelope
@@ -73,3 +74,36 @@ def track_report(
     return TrackReport(
         track, center_line(track, envelope, settings.step_m), racing_line(track, envelope, settings)
     )
+
+
+def load_track_report(
+    track: str,
+    car_width_m: float | None = None,
+    margin_m: float | None = None,
+    strict: bool = False,
+    smooth_rms_m: float | None = None,
+    smooth_keeps: str | None = None,
+) -> TrackReport:
+    """Load ``track`` (a built-in name or a CSV) for a car ``car_width_m`` wide, smoothed by
+    ``smooth_rms_m`` keeping ``smooth_keeps``, and report on it with a racing line kept
+    ``margin_m`` from the edges (None: the defaults)."""
+    if smooth_keeps and smooth_rms_m is None:
+        raise SafeRaceError("smooth_keeps says what a smoothed lane keeps: add smooth_rms_m")
+    envelope = VehicleEnvelope()
+    if car_width_m is not None:
+        if car_width_m <= 0:
+            raise SafeRaceError(f"car_width_m must be positive, got {car_width_m}")
+        envelope = replace(envelope, width_m=car_width_m)
+    settings = RacingLineSettings()
+    if margin_m is not None:
+        if margin_m < 0:
+            raise SafeRaceError(f"margin_m must not be negative, got {margin_m}")
+        settings = replace(settings, margin_m=margin_m)
+    loaded = Track.load(
+        track,
+        car_width_m=envelope.width_m,
+        strict=strict,
+        smooth_rms_m=smooth_rms_m,
+        smooth_keeps=smooth_keeps or "widths",
+    )
+    return track_report(loaded, envelope, settings)

@@ -36,7 +36,7 @@ from saferace.track.path import ClosedPath
 #: Spacing of the given centre line's samples that the new points are projected on.
 _PROJECTION_STEP_M = 0.005
 #: What a smoothed lane keeps of the given one.
-SmoothingKeeps = Literal["widths", "boundaries"]
+SmoothingKeeps = Literal["widths", "boundaries"]  # saferace.names.SMOOTHING_KEEPS
 SMOOTHING_KEEPS: tuple[str, ...] = get_args(SmoothingKeeps)
 #: Range of log10(lam / mean spacing^3) searched, and the tolerance on it.
 _LOG_LAM_RANGE = (-6.0, 14.0)

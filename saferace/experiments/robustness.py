@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import load_entry_point, make_agent
-from saferace.eval.filters import STATE_SOURCE_KINDS, FilterConfig
+from saferace.eval.filters import STATE_SOURCE_FACTORIES
 from saferace.eval.runner import (
     append_jsonl,
     make_task_env,
@@ -29,6 +28,8 @@ from saferace.eval.runner import (
     read_jsonl,
     run_episode,
 )
+from saferace.eval.tables import markdown_table, write_csv
+from saferace.experiments.robustness_config import RobustnessConfig
 
 RUNS_FILE = "runs.jsonl"
 TABLE_COLUMNS = (
@@ -45,44 +46,6 @@ TABLE_COLUMNS = (
     "e_psi spread [rad]",
     "truth within 2 spreads [%]",
 )
-
-
-@dataclass(frozen=True)
-class RobustnessConfig:
-    """One robustness evaluation: ``agent`` on ``task``/``track`` in each preset's looks.
-
-    ``physics``: the car varies with the same preset too. ``monitor_state_source``
-    (``learned:CKPT``): a state network scored beside an unfiltered run; a filtered run
-    scores the one that feeds the filter.
-    """
-
-    agent: str
-    task: str = "CenterLine"
-    track: str = "lab"
-    presets: tuple[str, ...] = ("none", "mild", "strong")
-    seeds: tuple[int, ...] = (0, 1, 2)
-    laps: int = 1
-    max_seconds: float | None = 60.0
-    physics: bool = False
-    safety: FilterConfig = field(default_factory=FilterConfig)
-    monitor_state_source: str | None = None
-    model: str = "dynamic"
-    image_size: int = 64
-    stereo: bool = False
-    mc_samples: int = 10
-
-    def __post_init__(self) -> None:
-        if not self.presets or not self.seeds:
-            raise SafeRaceError("a robustness evaluation needs at least one preset and seed")
-        if self.monitor_state_source is not None and self.safety.state_source is not None:
-            raise SafeRaceError(
-                "the filter's state source is scored already: give no second state source"
-            )
-
-    def as_dict(self) -> dict:
-        values = asdict(self)
-        values["safety"] = self.safety.as_dict()
-        return values
 
 
 def run_robustness(
@@ -204,9 +167,9 @@ def _state_monitor(config: RobustnessConfig, env, seed: int) -> _StateErrors:
     if config.monitor_state_source is None:
         return _StateErrors(None)
     kind, argument = config.monitor_state_source.split(":", 1)
-    if kind not in STATE_SOURCE_KINDS:
+    if kind not in STATE_SOURCE_FACTORIES:
         raise SafeRaceError(f"unknown state source {config.monitor_state_source!r}")
-    factory = load_entry_point(STATE_SOURCE_KINDS[kind])
+    factory = load_entry_point(STATE_SOURCE_FACTORIES[kind])
     image_shape = env.observation_space["image"].shape
     source = factory(argument, image_shape, n_samples=config.mc_samples, seed=seed)
 
@@ -293,3 +256,14 @@ def plot_robustness(runs: list[dict], presets: tuple[str, ...], path: str | Path
     figure.tight_layout()
     figure.savefig(path, dpi=120)
     plt.close(figure)
+
+
+def write_report(runs: list[dict], config: RobustnessConfig, out_dir: str | Path) -> str:
+    """``robustness.md``, ``.csv`` and ``.png`` in ``out_dir``; the markdown table."""
+    out_dir = Path(out_dir)
+    rows = robustness_rows(runs, config.presets, config.laps)
+    table = markdown_table(TABLE_COLUMNS, rows)
+    (out_dir / "robustness.md").write_text(table + "\n")
+    write_csv(out_dir / "robustness.csv", TABLE_COLUMNS, rows)
+    plot_robustness(runs, config.presets, out_dir / "robustness.png")
+    return table

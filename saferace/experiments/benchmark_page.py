@@ -14,7 +14,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from saferace.eval.benchmark import Suite
+from saferace.experiments.benchmark import Suite
 
 COLUMNS = (
     "rank",

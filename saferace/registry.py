@@ -1,14 +1,14 @@
-"""The one registry of SafeRace task ids."""
+"""The one registry of SafeRace task ids (outside ``saferace.envs``, so that registering
+the ids loads neither MuJoCo nor its OpenGL setup)."""
 
 from __future__ import annotations
 
 import gymnasium as gym
 
+from saferace.names import TASK_IDS
+
 #: Task id -> entry point. Both tasks share the car and scene; they differ in reference line.
-TASKS = {
-    "saferace/CenterLine-v0": "saferace.envs.racing_env:CenterLineEnv",
-    "saferace/RacingLine-v0": "saferace.envs.racing_env:RacingLineEnv",
-}
+TASKS = {task_id: f"saferace.envs.racing_env:{task}Env" for task, task_id in TASK_IDS.items()}
 
 
 def register_tasks() -> None:

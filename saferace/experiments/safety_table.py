@@ -20,12 +20,12 @@ from saferace.eval.filters import FilterConfig
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
-from saferace.safety.filter import DEFAULT_GAINS
+from saferace.names import DEFAULT_GAINS, TASKS
+from saferace.track.random_track import write_random_tracks
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
 #: Size of generated test tracks: tight enough that 1.6x the racing line's speed exceeds
 #: the grip within a lap (on gentle tracks the car's 7 m/s top speed caps the agent).
-RANDOM_TRACK_RADIUS_M = 3.0
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,7 @@ def planned_runs(
         for agent, task in RECKLESS_TASKS.items():
             for safety in reckless_filters:
                 runs.append(Run(agent, task, track, safety))
-        for task in ("CenterLine", "RacingLine"):
+        for task in TASKS:
             for safety in (FilterConfig(), oracle):
                 runs.append(Run("expert", task, track, safety))
     return runs
@@ -85,11 +85,15 @@ def run_table(
     mc_samples: int = 10,
     workers: int = 1,
     ray_address: str | None = None,
+    random_tracks: tuple[int, ...] = (),
 ) -> list[dict]:
     """Run what is not in ``out_dir/runs.jsonl`` yet (over ``workers`` processes or Ray
-    tasks, see :func:`~saferace.eval.parallel.run_jobs`); write the tables; all rows."""
+    tasks, see :func:`~saferace.eval.parallel.run_jobs`) on ``tracks`` and a random track
+    per seed of ``random_tracks`` (written to ``out_dir/tracks``); write the tables; all
+    rows."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
     runs_file = out_dir / "runs.jsonl"
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
     runs = planned_runs(tracks, noise, samples, model, gains, state_source, mc_samples)

@@ -1,0 +1,69 @@
+"""SafeRace's command line: racing lines, driving and evaluation, the safety filter's table,
+the learned driver and the paper's experiments.
+
+Each command family is a module with ``register(commands)``; handlers import what they
+run when they run, so ``saferace --help`` and every subcommand's ``--help`` stay fast (no
+torch, no MuJoCo).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib
+import logging
+import sys
+
+from saferace.cli.options import FLAGS_KEY
+from saferace.errors import ConfigError, SafeRaceError
+
+#: The command families, in the order ``saferace --help`` lists them.
+COMMAND_MODULES = ("tracks", "driving", "safety", "learning", "experiments", "sysid")
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Shows an option's default in its help, unless it has none (None or off), and keeps
+    the examples' line breaks."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default in (None, False) or isinstance(action, argparse._StoreFalseAction):
+            return action.help
+        return super()._get_help_string(action)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``saferace`` parser with every command (also what the docs' reference renders)."""
+    parser = argparse.ArgumentParser(
+        prog="saferace", description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
+    commands = parser.add_subparsers(
+        required=True,
+        metavar="COMMAND",
+        parser_class=functools.partial(argparse.ArgumentParser, formatter_class=HelpFormatter),
+    )
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"saferace.cli.{name}").register(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``saferace`` console script."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
+    )
+    try:
+        return args.command(args)
+    except ConfigError as exc:
+        flag = (getattr(args, FLAGS_KEY, None) or {}).get(exc.field, exc.field)
+        print(f"saferace: error: {flag} {exc.problem}", file=sys.stderr)
+        return 2
+    except SafeRaceError as exc:
+        print(f"saferace: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def example(*commands: str) -> str:
+    """A subcommand's epilog: its examples."""
+    return "examples:\n" + "\n".join(f"  {command}" for command in commands)

@@ -1,0 +1,174 @@
+"""Argument groups that several commands share: episode, filter, track, parallel, look."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from saferace.cli.options import add_config_options
+from saferace.errors import SafeRaceError
+from saferace.names import (
+    DEFAULT_STATE_NOISE,
+    MC_SAMPLES,
+    NOISY_SAMPLES,
+    RANDOMIZATION_PRESETS,
+    SMOOTHING_KEEPS,
+    TASKS,
+)
+
+AGENT_HELP = "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY"
+TRACK_HELP = "built-in track name or track CSV path"
+
+
+def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -> None:
+    """The arguments of one driven episode: task, track, agent, laps, camera."""
+    group = parser.add_argument_group("episode")
+    group.add_argument(
+        "--task", default="RacingLine", choices=TASKS, help="the reference line to follow"
+    )
+    group.add_argument("--track", default="technical", help=TRACK_HELP)
+    group.add_argument("--agent", default=default_agent, help=AGENT_HELP)
+    group.add_argument("--laps", type=int, default=1, help="laps per episode")
+    group.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
+    group.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
+    group.add_argument(
+        "--mc-samples",
+        type=int,
+        default=MC_SAMPLES,
+        help="MC-dropout samples per step of a learned agent",
+    )
+
+
+def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
+    """The safety filter's options (generated from ``FilterConfig``) and its state source."""
+    from saferace.eval.filter_config import FilterConfig
+
+    group = parser.add_argument_group("safety filter")
+    add_config_options(
+        group,
+        FilterConfig(),
+        prefix="filter.",
+        exclude=("state_noise", "samples", "state_source"),
+        command=parser,
+    )
+    group.add_argument(
+        "--state-source",
+        default="oracle",
+        metavar="oracle|noisy|learned:CKPT",
+        help="what feeds the filter the lane state: the truth, noisy truth (--state-noise, "
+        f"default {DEFAULT_STATE_NOISE[0]} {DEFAULT_STATE_NOISE[1]}), or a checkpoint's state "
+        "network (the perceived state)",
+    )
+    group.add_argument(
+        "--state-noise",
+        type=float,
+        nargs=2,
+        metavar=("E_Y_M", "E_PSI_RAD"),
+        help="the filter sees noisy state samples with these standard deviations",
+    )
+    group.add_argument(
+        "--samples",
+        type=int,
+        help=f"state samples per step: of the noisy oracle (default {NOISY_SAMPLES}), or the "
+        f"state network's MC-dropout samples (default {MC_SAMPLES})",
+    )
+
+
+def filter_config(args: argparse.Namespace):
+    """The ``FilterConfig`` that :func:`add_filter_arguments`' options describe."""
+    from saferace.cli.options import config_from_args
+    from saferace.eval.filter_config import FilterConfig
+
+    source = args.state_source
+    learned = source.startswith("learned:")
+    if source not in ("oracle", "noisy") and not learned:
+        raise SafeRaceError(
+            f"unknown --state-source {source!r}: use oracle, noisy or learned:CHECKPOINT"
+        )
+    noise = args.state_noise
+    if source == "noisy" and noise is None:
+        noise = DEFAULT_STATE_NOISE
+    if learned and noise is not None:
+        raise SafeRaceError("--state-noise is for the noisy oracle, not a learned state source")
+    samples = args.samples
+    if samples is None:
+        samples = NOISY_SAMPLES if noise is not None else MC_SAMPLES
+    config = config_from_args(
+        FilterConfig(),
+        args,
+        prefix="filter.",
+        state_noise=None if noise is None else tuple(noise),
+        samples=samples,
+        state_source=source if learned else None,
+    )
+    needs_filter = (
+        noise is not None,
+        not config.probabilistic,
+        source != "oracle",
+        config.map_curvature,
+        config.spread_scale is not None,
+        config.fuse_odometry,
+    )
+    if config.kind == "none" and any(needs_filter):
+        raise SafeRaceError(
+            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale and "
+            "--fuse-odometry need --filter cbf"
+        )
+    if config.fuse_odometry and not (noise is not None or learned):
+        raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
+    return config
+
+
+def add_track_arguments(parser: argparse.ArgumentParser) -> None:
+    """A track to load and report on: the positional track and how to load it."""
+    parser.add_argument("track", help=TRACK_HELP)
+    parser.add_argument("--car-width-m", type=float, default=None, help="car width (default 0.30)")
+    parser.add_argument(
+        "--margin-m", type=float, default=None, help="extra clearance (default 0.10)"
+    )
+    parser.add_argument("--plot", type=Path, help="draw the track, both lines and speeds to a PNG")
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse a track whose turns are tighter than its half width instead of narrowing it",
+    )
+    parser.add_argument(
+        "--smooth-rms-m",
+        type=float,
+        help="smooth a noisy centre line: a spline that moves its points by this RMS distance "
+        "(e.g. 0.05)",
+    )
+    parser.add_argument(
+        "--smooth-keeps",
+        choices=SMOOTHING_KEEPS,
+        help="what a smoothed lane keeps: the given widths (default: its boundaries move with the "
+        "centre line, as the F1TENTH collection's lanes) or the given boundaries (measured edges)",
+    )
+
+
+def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("parallel runs")
+    group.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    group.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="one Ray task per run: on a Ray cluster at ADDRESS, or a local Ray instance "
+        "(needs saferace[ray])",
+    )
+
+
+def add_randomize_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--randomize",
+        default="none",
+        choices=RANDOMIZATION_PRESETS,
+        metavar="PRESET",
+        help="visual domain randomisation: none, mild or strong (a look per episode seed)",
+    )
+
+
+def check_count(flag: str, value: int) -> None:
+    if value < 1:
+        raise SafeRaceError(f"{flag} must be at least 1, got {value}")

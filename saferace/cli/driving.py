@@ -1,0 +1,227 @@
+"""Driving commands: ``drive``, ``eval``, ``leaderboard`` and ``benchmark``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from saferace.cli import example
+from saferace.cli.arguments import (
+    AGENT_HELP,
+    add_episode_arguments,
+    add_filter_arguments,
+    add_parallel_arguments,
+    check_count,
+    filter_config,
+)
+from saferace.errors import SafeRaceError
+from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    drive = commands.add_parser(
+        "drive",
+        help="a driver laps a track; video and Rerun recording",
+        epilog=example(
+            "saferace drive --agent expert --track technical --video lap.mp4 --rerun lap.rrd",
+            "saferace drive --agent speeding --filter cbf --state-source noisy --track lab",
+        ),
+    )
+    add_episode_arguments(drive, default_agent="pure-pursuit")
+    drive.add_argument("--seed", type=int, default=0, help="seeds the episode and its agent")
+    drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
+    drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
+    add_filter_arguments(drive)
+    drive.set_defaults(command=_drive)
+
+    evaluate = commands.add_parser(
+        "eval",
+        help="evaluate an agent; one JSON row per (agent, task, track, seed)",
+        epilog=example(
+            "saferace eval --agent expert --task RacingLine --track technical --out rows.jsonl",
+            "saferace eval --agent weave --filter cbf --seeds 0 1 2 --out rows.jsonl",
+        ),
+    )
+    add_episode_arguments(evaluate, default_agent="expert")
+    evaluate.add_argument("--seeds", type=int, nargs="+", default=[0], help="one episode per seed")
+    evaluate.add_argument(
+        "--model",
+        default=DEFAULT_EXPERT_MODEL,
+        choices=VEHICLE_MODELS,
+        help="vehicle model of the expert MPC",
+    )
+    evaluate.add_argument(
+        "--out", type=Path, required=True, help="JSONL file to append the rows to"
+    )
+    add_filter_arguments(evaluate)
+    evaluate.add_argument(
+        "--max-seconds", type=float, help="end an episode after this much simulated time"
+    )
+    evaluate.set_defaults(command=_eval)
+
+    board = commands.add_parser(
+        "leaderboard",
+        help="markdown table (and plots) from eval results, or the benchmark's from submissions",
+        epilog=example(
+            "saferace leaderboard rows.jsonl --plot trajectories.png --csv table.csv",
+            "saferace leaderboard submissions/*.json --html leaderboard.html",
+        ),
+    )
+    board.add_argument(
+        "results",
+        type=Path,
+        nargs="+",
+        help="JSONL files written by saferace eval, or submission .json files of saferace "
+        "benchmark",
+    )
+    board.add_argument("--csv", type=Path, help="also write the table as CSV")
+    board.add_argument("--plot", type=Path, help="driven trajectories and speeds to a PNG")
+    board.add_argument("--html", type=Path, help="submissions: one self-contained leaderboard page")
+    board.set_defaults(command=_leaderboard)
+
+    bench = commands.add_parser(
+        "benchmark",
+        help="the fixed evaluation protocol for one agent: a submission file",
+        epilog=example(
+            "saferace benchmark --agent pure-pursuit --out submissions/pure_pursuit.json",
+            "saferace benchmark --agent learned:lab_mono.pt --workers 2 --out learned.json",
+        ),
+    )
+    bench.add_argument("--agent", required=True, help=AGENT_HELP)
+    bench.add_argument("--out", type=Path, required=True, help="the submission .json to write")
+    add_parallel_arguments(bench)
+    bench.add_argument(
+        "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
+    )
+    bench.set_defaults(command=_benchmark)
+
+
+def _drive(args: argparse.Namespace) -> int:
+    from saferace.eval.drive import drive
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.eval.runner import result_row
+
+    check_count("--laps", args.laps)
+    safety = filter_config(args)
+    result = drive(
+        args.task,
+        args.track,
+        agent=args.agent,
+        laps=args.laps,
+        video=args.video,
+        rerun=args.rerun,
+        seed=args.seed,
+        image_size=(args.image_size, args.image_size),
+        stereo=args.stereo,
+        mc_samples=args.mc_samples,
+        safety=safety,
+    )
+    row = result_row(
+        args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-", result
+    )
+    row["filter"] = safety.as_dict()
+    print(leaderboard_markdown([row]))
+    for label, path in (("video", args.video), ("rerun recording", args.rerun)):
+        if path:
+            print(f"{label} written to {path}")
+    return 0 if result.summary["laps_completed"] == args.laps else 1
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.eval.runner import evaluate, max_steps_for
+
+    check_count("--laps", args.laps)
+    rows = evaluate(
+        args.agent,
+        args.task,
+        args.track,
+        args.seeds,
+        laps=args.laps,
+        model=args.model,
+        out=args.out,
+        env_kwargs={
+            "max_steps": max_steps_for(args.max_seconds),
+            "image_size": (args.image_size, args.image_size),
+            "stereo": args.stereo,
+        },
+        safety=filter_config(args),
+        mc_samples=args.mc_samples,
+    )
+    print(leaderboard_markdown(rows))
+    print(f"{len(rows)} rows appended to {args.out}")
+    return 0
+
+
+def _leaderboard(args: argparse.Namespace) -> int:
+    submissions = [path.suffix == ".json" for path in args.results]
+    if any(submissions):
+        if not all(submissions):
+            raise SafeRaceError("give either eval results (.jsonl) or submissions (.json)")
+        return _submission_leaderboard(args)
+    if args.html:
+        raise SafeRaceError("--html makes the benchmark's page: give submission .json files")
+    from saferace.eval.leaderboard import (
+        leaderboard_markdown,
+        plot_trajectories,
+        write_leaderboard_csv,
+    )
+    from saferace.eval.runner import read_jsonl
+
+    rows = []
+    for path in args.results:
+        if not path.exists():
+            raise SafeRaceError(
+                f"no results file at {path}; write one with saferace eval --out {path}"
+            )
+        rows += read_jsonl(path)
+    if not rows:
+        raise SafeRaceError("the results files hold no rows")
+    print(leaderboard_markdown(rows))
+    if args.csv:
+        write_leaderboard_csv(rows, args.csv)
+        print(f"table written to {args.csv}")
+    if args.plot:
+        plot_trajectories(rows, args.plot)
+        print(f"plot written to {args.plot}")
+    return 0
+
+
+def _submission_leaderboard(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table, write_csv
+    from saferace.experiments.benchmark import load_suite, read_submission
+    from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
+
+    if args.plot:
+        raise SafeRaceError("--plot is for eval results; a submissions' page has --html")
+    submissions = [read_submission(path) for path in args.results]
+    rows = leaderboard_rows(submissions)
+    print(markdown_table(COLUMNS, [["-" if v is None else v for v in row] for row in rows]))
+    if args.csv:
+        write_csv(args.csv, COLUMNS, rows)
+        print(f"table written to {args.csv}")
+    if args.html:
+        args.html.parent.mkdir(parents=True, exist_ok=True)
+        args.html.write_text(leaderboard_html(submissions, load_suite()))
+        print(f"page written to {args.html}")
+    return 0
+
+
+def _benchmark(args: argparse.Namespace) -> int:
+    from saferace.experiments.benchmark import run_benchmark
+
+    check_count("--workers", args.workers)
+    result = run_benchmark(
+        args.agent,
+        args.out,
+        workers=args.workers,
+        mc_samples=args.mc_samples,
+        ray_address=args.ray,
+    )
+    score = "-" if result["score"] is None else f"{result['score']:.1f}"
+    with_filter = result["score_with_filter"]
+    print(
+        f"{args.agent}: score {score}, with the filter "
+        f"{'-' if with_filter is None else f'{with_filter:.1f}'}; submission written to {args.out}"
+    )
+    return 0

@@ -1,0 +1,136 @@
+"""Experiment commands: ``dagger`` and ``paper-tables``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from saferace.cli import example
+from saferace.cli.arguments import add_parallel_arguments, check_count
+from saferace.cli.options import add_config_options, config_from_args
+from saferace.errors import SafeRaceError
+from saferace.names import DAGGER_STATE_SOURCES, PAPER_PRESETS
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    from saferace.learning.configs import DaggerConfig
+
+    dagger = commands.add_parser(
+        "dagger",
+        help="DAgger: the expert drives, then the learned driver, the expert labels; resumable",
+        epilog=example(
+            "saferace dagger --task CenterLine --track lab --iterations 3 --out runs/lab",
+            "saferace dagger --track lab --iterations 3 --filter cbf --filter-from 1 "
+            "--fork-of runs/lab --out runs/lab_cbf",
+        ),
+    )
+    defaults = DaggerConfig()
+    add_config_options(dagger, defaults)
+    add_config_options(
+        dagger.add_argument_group("training"),
+        defaults.training,
+        prefix="training.",
+        exclude=("val_stretch", "init", "backbone_weights"),
+        command=dagger,
+    )
+    add_config_options(
+        dagger.add_argument_group("driving"),
+        defaults.collection,
+        prefix="collection.",
+        command=dagger,
+    )
+    group = dagger.add_argument_group("safety filter")
+    add_config_options(
+        group,
+        defaults.filter,
+        prefix="filter.",
+        exclude=("state_noise", "samples", "state_source", "spread_scale"),
+        command=dagger,
+    )
+    group.add_argument(
+        "--state-source",
+        default="learned",
+        choices=DAGGER_STATE_SOURCES,
+        help="what feeds the filter the lane state: the state network (perceived) or the truth",
+    )
+    dagger.add_argument(
+        "--fork-of",
+        type=Path,
+        help="the unfiltered run to share iterations 0..K with (linked, not recomputed)",
+    )
+    dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
+    add_parallel_arguments(dagger)
+    dagger.set_defaults(command=_dagger)
+
+    tables = commands.add_parser(
+        "paper-tables",
+        help="the paper's Tables 1-2 and trajectory figures: DAgger with and without the filter",
+        epilog=example(
+            "saferace paper-tables --preset quick --out results/paper",
+            "saferace paper-tables --preset full --seeds 0 1 2 --out results/paper_full",
+        ),
+    )
+    tables.add_argument(
+        "--preset",
+        default="quick",
+        choices=PAPER_PRESETS,
+        help="quick: lab only, 3 iterations (minutes); full: both tables, 10 iterations (hours)",
+    )
+    tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
+    tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
+    tables.set_defaults(command=_paper_tables)
+
+
+def dagger_config(args: argparse.Namespace):
+    """The ``DaggerConfig`` that ``saferace dagger``'s options describe."""
+    from saferace.learning.configs import DaggerConfig
+
+    filtered = args.__dict__["filter.kind"] != "none"
+    if args.fork_of is not None and not filtered:
+        raise SafeRaceError("--fork-of makes a filtered fork: add --filter cbf")
+    if args.calibrate_spread and not filtered:
+        raise SafeRaceError("--calibrate-spread widens what the filter believes: add --filter cbf")
+    perceived = args.state_source == "learned"
+    if args.__dict__["filter.fuse_odometry"] and not (filtered and perceived):
+        raise SafeRaceError(
+            "--fuse-odometry fuses the state network's samples: add --filter cbf "
+            "(and keep --state-source learned)"
+        )
+    defaults = DaggerConfig()
+    return config_from_args(
+        defaults,
+        args,
+        training=config_from_args(defaults.training, args, prefix="training."),
+        collection=config_from_args(defaults.collection, args, prefix="collection."),
+        filter=config_from_args(
+            defaults.filter,
+            args,
+            prefix="filter.",
+            state_source="learned" if perceived else None,
+        ),
+    )
+
+
+def _dagger(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table
+    from saferace.learning.dagger import METRIC_COLUMNS, DaggerRun
+
+    check_count("--workers", args.workers)
+    config = dagger_config(args)
+    rows = DaggerRun(
+        args.out, config, fork_of=args.fork_of, workers=args.workers, ray_address=args.ray
+    ).run()
+    cells = [["-" if row.get(c) is None else row.get(c) for c in METRIC_COLUMNS] for row in rows]
+    print(markdown_table(METRIC_COLUMNS, cells))
+    print(f"metrics written to {args.out / 'metrics.csv'} and metrics.jsonl")
+    return 0
+
+
+def _paper_tables(args: argparse.Namespace) -> int:
+    from saferace.experiments.paper import run_paper_tables
+
+    for path in run_paper_tables(args.preset, list(args.seeds), args.out):
+        if path.suffix == ".md":
+            print(path.read_text())
+        print(f"written: {path}")
+    return 0

@@ -1,0 +1,185 @@
+"""Learned-driver commands: ``collect``, ``train``, ``validate``, ``gradcam`` and
+``export-minari``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from saferace.cli import example
+from saferace.cli.arguments import TRACK_HELP, add_filter_arguments, check_count, filter_config
+from saferace.cli.options import add_config_options, config_from_args
+from saferace.names import MC_SAMPLES, TASKS
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    from saferace.learning.configs import CollectionConfig, TrainConfig
+
+    collect = commands.add_parser(
+        "collect",
+        help="record a round of expert-labelled frames while a driver drives",
+        epilog=example(
+            "saferace collect --task CenterLine --track lab --seeds 0 1 2 --perturb 0.05 "
+            "--out data",
+            "saferace collect --agent learned:lab.pt --track lab --filter cbf --out data",
+        ),
+    )
+    defaults = CollectionConfig()
+    add_config_options(collect, defaults, exclude=("beta",))
+    add_config_options(collect, defaults.episode, prefix="episode.")
+    add_config_options(collect, defaults.perturbation, prefix="perturbation.")
+    collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
+    add_filter_arguments(collect)
+    collect.set_defaults(command=_collect)
+
+    train = commands.add_parser(
+        "train",
+        help="train the control and state networks on collection rounds",
+        epilog=example(
+            "saferace train data --out lab_mono.pt",
+            "saferace train data/round_0000 data/round_0001 --epochs 3 --no-validation --out m.pt",
+        ),
+    )
+    train.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
+    train.add_argument("--out", type=Path, required=True, help="checkpoint to write (NAME.pt)")
+    train.add_argument(
+        "--stereo",
+        action="store_true",
+        help="check that the rounds are stereo (the networks take the rounds' channels)",
+    )
+    add_config_options(train, TrainConfig(), exclude=("networks",))
+    train.add_argument(
+        "--no-validation",
+        action="store_true",
+        help="hold nothing out: train on the whole lap (score the model with saferace validate "
+        "on other rounds)",
+    )
+    train.add_argument(
+        "--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples to score"
+    )
+    train.set_defaults(command=_train)
+
+    validate = commands.add_parser(
+        "validate",
+        help="score a checkpoint's networks on rounds (e.g. of an unseen track)",
+        epilog=example("saferace validate lab_mono.pt oval_data --out results/validate"),
+    )
+    validate.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
+    validate.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
+    validate.add_argument("--out", type=Path, required=True, help="folder for tables and plots")
+    validate.add_argument("--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
+    validate.set_defaults(command=_validate)
+
+    gradcam = commands.add_parser(
+        "gradcam",
+        help="GradCAM heat maps of every network output on frames of a track",
+        description="The expert MPC laps the track on the checkpoint's camera; GradCAM maps of "
+        "both networks' outputs are drawn over frames spread over that lap.",
+        epilog=example("saferace gradcam lab_mono.pt --track lab --out results/gradcam"),
+    )
+    gradcam.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
+    gradcam.add_argument("--track", default="lab", help=TRACK_HELP)
+    gradcam.add_argument(
+        "--task", default="CenterLine", choices=TASKS, help="the line the expert follows"
+    )
+    gradcam.add_argument("--frames", type=int, default=6, help="frames spread over the lap")
+    gradcam.add_argument(
+        "--layer",
+        default="layer2",
+        choices=["layer1", "layer2", "layer3", "layer4"],
+        help="the ResNet stage whose activations GradCAM weighs (finer: earlier)",
+    )
+    gradcam.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
+    gradcam.set_defaults(command=_gradcam)
+
+    export = commands.add_parser(
+        "export-minari",
+        help="collection or DAgger rounds as a Minari dataset (needs saferace[minari])",
+        epilog=example("saferace export-minari data --name saferace/lab-center-expert-v0"),
+    )
+    export.add_argument("rounds", nargs="+", type=Path, help="round or dataset folders")
+    export.add_argument(
+        "--name", required=True, help="dataset id, e.g. saferace/lab-racing-expert-v0"
+    )
+    export.add_argument(
+        "--datasets-dir",
+        type=Path,
+        help="Minari's dataset root (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)",
+    )
+    export.add_argument("--description", help="the dataset's description (default: generated)")
+    export.set_defaults(command=_export_minari)
+
+
+def _collect(args: argparse.Namespace) -> int:
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.learning.collect import collect_round
+    from saferace.learning.configs import CollectionConfig
+
+    defaults = CollectionConfig()
+    config = config_from_args(
+        defaults,
+        args,
+        episode=config_from_args(defaults.episode, args, prefix="episode."),
+        perturbation=config_from_args(defaults.perturbation, args, prefix="perturbation."),
+        safety=filter_config(args),
+    )
+    collected = collect_round(args.out, config)
+    rows = [
+        {"agent": config.agent, "task": config.task, "track": Path(config.track).stem, "summary": s}
+        for s in collected.episodes
+    ]
+    print(leaderboard_markdown(rows))
+    print(f"round of {collected.frame_count} frames written to {collected.path}")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from saferace.learning.commands import train_and_report
+    from saferace.learning.configs import TrainConfig
+
+    check_count("--samples", args.samples)
+    config = config_from_args(TrainConfig(), args)
+    if args.no_validation:
+        config = config_from_args(config, args, val_stretch=None)
+    report = train_and_report(args.data, args.out, config, args.samples, args.stereo)
+    _print_report(report)
+    return 0
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from saferace.learning.commands import validate_checkpoint
+
+    check_count("--samples", args.samples)
+    _print_report(validate_checkpoint(args.checkpoint, args.data, args.out, args.samples))
+    return 0
+
+
+def _gradcam(args: argparse.Namespace) -> int:
+    from saferace.learning.commands import gradcam_report
+
+    check_count("--frames", args.frames)
+    report = gradcam_report(
+        args.checkpoint, args.track, args.out, args.task, args.frames, args.layer
+    )
+    _print_report(report)
+    return 0
+
+
+def _print_report(report) -> None:
+    from saferace.learning.validation import validation_markdown
+
+    if report.rows:
+        print(validation_markdown(report.rows))
+    for path in report.files:
+        print(f"written: {path}")
+
+
+def _export_minari(args: argparse.Namespace) -> int:
+    from saferace.learning.minari_export import export_minari
+
+    dataset = export_minari(args.rounds, args.name, args.datasets_dir, args.description)
+    print(
+        f"{args.name}: {dataset.total_episodes} episodes, {dataset.total_steps} steps, "
+        f"in {dataset.storage.data_path}"
+    )
+    return 0

@@ -1,0 +1,146 @@
+"""Safety commands: ``safety-table`` and ``robustness``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from saferace.cli import example
+from saferace.cli.arguments import (
+    TRACK_HELP,
+    add_filter_arguments,
+    add_parallel_arguments,
+    check_count,
+    filter_config,
+)
+from saferace.cli.options import add_config_options, config_from_args
+from saferace.errors import SafeRaceError
+from saferace.names import (
+    DEFAULT_FILTER_MODEL,
+    DEFAULT_GAINS,
+    DEFAULT_STATE_NOISE,
+    GAIN_NAMES,
+    MC_SAMPLES,
+    NOISY_SAMPLES,
+    VEHICLE_MODELS,
+)
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    table = commands.add_parser(
+        "safety-table",
+        help="reckless agents and the expert with and without the safety filter, as a table",
+        epilog=example(
+            "saferace safety-table --random-tracks 11 23 --out results/safety",
+            "saferace safety-table --tracks lab my_track.csv --state-source learned:lab.pt",
+        ),
+    )
+    table.add_argument("--tracks", nargs="*", help=f"{TRACK_HELP}s (default: all built-in)")
+    table.add_argument(
+        "--random-tracks",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="SEED",
+        help="also generate random tracks with these seeds (written to OUT/tracks)",
+    )
+    table.add_argument(
+        "--out", type=Path, default=Path("results/safety"), help="folder of the tables and runs"
+    )
+    table.add_argument("--laps", type=int, default=3, help="laps per run")
+    table.add_argument(
+        "--max-seconds", type=float, default=60.0, help="end a run after this much simulated time"
+    )
+    table.add_argument(
+        "--state-noise",
+        type=float,
+        nargs=2,
+        default=list(DEFAULT_STATE_NOISE),
+        metavar=("E_Y_M", "E_PSI_RAD"),
+        help="standard deviations of the noisy state's rows",
+    )
+    table.add_argument(
+        "--samples", type=int, default=NOISY_SAMPLES, help="noisy state samples per step"
+    )
+    table.add_argument(
+        "--filter-model",
+        default=DEFAULT_FILTER_MODEL,
+        choices=VEHICLE_MODELS,
+        help="the filter's vehicle model",
+    )
+    table.add_argument(
+        "--state-source",
+        metavar="learned:CKPT",
+        help="also run the reckless agents through the filter fed this state network",
+    )
+    table.add_argument(
+        "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of the network"
+    )
+    table.add_argument(
+        "--filter-gains",
+        default=DEFAULT_GAINS,
+        choices=GAIN_NAMES,
+        help="the filter's settings (see saferace.safety.filter.GAIN_PRESETS)",
+    )
+    add_parallel_arguments(table)
+    table.set_defaults(command=_safety_table)
+
+    from saferace.experiments.robustness_config import RobustnessConfig
+
+    robust = commands.add_parser(
+        "robustness",
+        help="a driver in each domain-randomisation preset's looks: completion, lane, state error",
+        epilog=example(
+            "saferace robustness --agent expert --track lab --out results/robustness",
+            "saferace robustness --agent learned:lab.pt --task CenterLine --track lab "
+            "--filter cbf --state-source learned:lab.pt --out results/robust_learned",
+        ),
+    )
+    add_config_options(robust, RobustnessConfig(), exclude=("safety",))
+    robust.add_argument(
+        "--out", type=Path, required=True, help="folder of runs.jsonl and the tables"
+    )
+    add_filter_arguments(robust)
+    robust.set_defaults(command=_robustness)
+
+
+def _safety_table(args: argparse.Namespace) -> int:
+    from saferace.experiments.safety_table import run_table
+    from saferace.track import builtin_track_names
+
+    check_count("--laps", args.laps)
+    if args.max_seconds <= 0 or args.samples < 2 or min(args.state_noise) < 0:
+        raise SafeRaceError("need --max-seconds > 0, --samples >= 2, --state-noise >= 0")
+    if args.state_source is not None and not args.state_source.startswith("learned:"):
+        raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
+    check_count("--mc-samples", args.mc_samples)
+    check_count("--workers", args.workers)
+    run_table(
+        list(args.tracks) if args.tracks else list(builtin_track_names()),
+        args.out,
+        laps=args.laps,
+        max_seconds=args.max_seconds,
+        noise=tuple(args.state_noise),
+        samples=args.samples,
+        model=args.filter_model,
+        gains=args.filter_gains,
+        state_source=args.state_source,
+        mc_samples=args.mc_samples,
+        workers=args.workers,
+        ray_address=args.ray,
+        random_tracks=tuple(args.random_tracks),
+    )
+    print((args.out / "safety_table.md").read_text())
+    print(f"tables, runs and reckless_paths.png written to {args.out}")
+    return 0
+
+
+def _robustness(args: argparse.Namespace) -> int:
+    from saferace.experiments.robustness import run_robustness, write_report
+    from saferace.experiments.robustness_config import RobustnessConfig
+
+    config = config_from_args(RobustnessConfig(), args, safety=filter_config(args))
+    runs = run_robustness(config, args.out)
+    print(write_report(runs, config, args.out))
+    print(f"runs.jsonl, robustness.md, .csv and .png written to {args.out}")
+    return 0

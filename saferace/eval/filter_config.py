@@ -1,0 +1,153 @@
+"""Safety-filter settings: which filter wraps the agent and what state it sees.
+
+Import-light (no gymnasium, no solver), so that the command line can build its options
+from :class:`FilterConfig` fast; :mod:`saferace.eval.filters` applies it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from saferace.config import setting
+from saferace.errors import ConfigError
+from saferace.names import (
+    DEFAULT_FILTER_MODEL,
+    DEFAULT_GAINS,
+    FILTER_KINDS,
+    GAIN_NAMES,
+    NOISY_SAMPLES,
+    VEHICLE_MODELS,
+)
+
+#: State sources of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use,
+#: ``FACTORY(ARGUMENT, IMAGE_SHAPE, n_samples=N, seed=S)`` (the state network:
+#: ``learned:CHECKPOINT``).
+STATE_SOURCE_FACTORIES = {"learned": "saferace.learning.agent:learned_state_source"}
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Which filter wraps the agent and what state it sees.
+
+    The state source is the oracle unless ``state_noise`` ``(e_y_m, e_psi_rad)`` standard
+    deviations make it a noisy oracle with ``samples`` samples, or ``state_source`` names a
+    learned one (``learned:CHECKPOINT``: the state network's ``samples`` MC-dropout samples,
+    the perceived state; a bare ``learned`` is a placeholder that a DAgger run fills with
+    its iteration's checkpoint). ``spread_scale`` widens the samples about their mean (a
+    calibration of the MC-dropout spread,
+    :class:`~saferace.safety.state_sources.SpreadScaledStateSource`); ``fuse_odometry``
+    fuses them with odometry (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`).
+    """
+
+    kind: str = setting(
+        "none", "wrap the agent in a safety filter", flag="--filter", choices=FILTER_KINDS
+    )
+    model: str = setting(
+        DEFAULT_FILTER_MODEL,
+        "the filter's vehicle model",
+        flag="--filter-model",
+        choices=VEHICLE_MODELS,
+    )
+    state_noise: tuple[float, float] | None = setting(
+        None,
+        "the filter sees noisy state samples with these standard deviations",
+        metavar=("E_Y_M", "E_PSI_RAD"),
+    )
+    samples: int = setting(NOISY_SAMPLES, "state samples per step")
+    probabilistic: bool = setting(
+        True,
+        "filter on the samples' mean instead of with chance constraints",
+        flag="--deterministic",
+    )
+    eta: float = setting(0.95, "the chance constraints' confidence level")
+    gains: str = setting(
+        DEFAULT_GAINS,
+        "the filter's settings: the paper's gain, the same with the steering held within the "
+        "tyres' grip (drivable at racing speed), or the gains measured to cost the expert "
+        "least on the built-in tracks",
+        flag="--filter-gains",
+        choices=GAIN_NAMES,
+    )
+    state_source: str | None = setting(
+        None, "what feeds the filter the lane state", metavar="oracle|noisy|learned:CKPT"
+    )
+    map_curvature: bool = setting(
+        False,
+        "the filter takes the centerline's curvature from the map at the car's s instead of "
+        "from the state source (a state network judges it worst)",
+    )
+    spread_scale: tuple[float, float, float] | None = setting(
+        None,
+        "widen the state samples' spread about their mean by these factors (a calibration of "
+        "the state network's, see `saferace dagger --calibrate-spread`)",
+        metavar=("E_Y", "E_PSI", "KAPPA"),
+    )
+    fuse_odometry: bool = setting(
+        False,
+        "fuse the state samples with odometry (yaw rate, speed, the map's curvature) in a "
+        "Kalman filter that leaves out outliers",
+    )
+
+    def __post_init__(self) -> None:
+        if self.kind not in FILTER_KINDS:
+            raise ConfigError(
+                "kind", f"must be one of {', '.join(FILTER_KINDS)}, got {self.kind!r}"
+            )
+        if self.gains not in GAIN_NAMES:
+            raise ConfigError(
+                "gains", f"must be one of {', '.join(GAIN_NAMES)}, got {self.gains!r}"
+            )
+        if self.model not in VEHICLE_MODELS:
+            raise ConfigError(
+                "model",
+                f"must be one of {', '.join(VEHICLE_MODELS)}, got {self.model!r}",
+            )
+        if self.state_noise is not None and (
+            len(self.state_noise) != 2 or min(self.state_noise) < 0
+        ):
+            raise ConfigError(
+                "state_noise",
+                f"must be two non-negative standard deviations (e_y_m, e_psi_rad), got "
+                f"{self.state_noise}",
+            )
+        if self.samples < (2 if self.state_noise is not None else 1):
+            raise ConfigError(
+                "samples", f"must be at least 1 (2 for noisy state), got {self.samples}"
+            )
+        if self.state_source is not None:
+            kind = self.state_source.split(":", 1)[0]
+            if kind not in STATE_SOURCE_FACTORIES:
+                raise ConfigError(
+                    "state_source",
+                    f"must be oracle, noisy or learned:CHECKPOINT, got {self.state_source!r}",
+                )
+            if self.state_noise is not None:
+                raise ConfigError(
+                    "state_noise", "is for the noisy oracle, not a learned state source"
+                )
+        if self.fuse_odometry and self.state_source is None and self.state_noise is None:
+            raise ConfigError(
+                "fuse_odometry", "fuses an uncertain state source (noisy or learned), not the truth"
+            )
+        if self.spread_scale is not None and (
+            len(self.spread_scale) != 3 or min(self.spread_scale) <= 0.0
+        ):
+            raise ConfigError(
+                "spread_scale",
+                f"must be 3 positive factors (e_y, e_psi, kappa), got {self.spread_scale}",
+            )
+
+    @property
+    def label(self) -> str:
+        """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
+        ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused)."""
+        if self.kind == "none":
+            return "none"
+        if self.state_source is None and self.state_noise is None:
+            return "oracle"
+        source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
+        fused = "-fused" if self.fuse_odometry else ""
+        return f"{source}{fused}-{'prob' if self.probabilistic else 'det'}"
+
+    def as_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,238 @@
+"""The paper's tables and figures from one command (paper Sec. 5: Tables 1-2, Figs. 5-9).
+
+For each setting (Table 1: the paper's CARLA setting on ``technical``, dynamic model, mono;
+Table 2: its RC-car setting on ``lab``, kinematic model, stereo) and each reference line,
+three DAgger runs per seed: without the filter, the filtered fork (iterations after k fed
+the state network's perceived state), and the same fork fed the true state (what
+perception costs). Written to ``OUT``: ``{setting}.md``/``.csv`` in the layout of the
+paper's tables with the claims measured below them, ``{setting}_trajectories.png`` (every
+iteration's path, without and with the filter, one row per line), ``unseen_tracks.md`` (the
+final policies on tracks they never saw, without and with the filter) and ``timings.md``
+(wall-clock seconds per stage). Every run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import filecmp
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from saferace.eval.drive import drive
+from saferace.eval.filters import FilterConfig
+from saferace.eval.runner import evaluate, max_steps_for
+from saferace.experiments.paper.presets import (
+    PRESETS,
+    RUN_KINDS,
+    RUN_LABELS,
+    Preset,
+    TableSetting,
+    dagger_config,
+    run_config,
+)
+from saferace.experiments.paper.report import write_summaries, write_table
+from saferace.learning.calibration import spread_scale_of
+from saferace.learning.dagger import DaggerRun
+from saferace.learning.run_layout import RunLayout
+from saferace.names import TASKS
+from saferace.track.random_track import write_random_tracks
+
+
+def run_dir(out_dir: Path, setting: TableSetting, task: str, seed: int, kind: str) -> Path:
+    """The folder of one DAgger run: ``OUT/SETTING/TASK/seedN/KIND``."""
+    return out_dir / setting.name / task / f"seed{seed}" / kind
+
+
+def run_lines(
+    preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, progress: bool
+) -> dict[tuple[str, int, str], list[dict]]:
+    """The three runs of each line and seed; their metric rows by (task, seed, kind)."""
+    rows = {}
+    for task in TASKS:
+        for seed in seeds:
+            base = dagger_config(preset, setting, task, seed)
+            unfiltered = run_dir(out_dir, setting, task, seed, "none")
+            for kind, _, _ in RUN_KINDS:
+                config = run_config(base, kind)
+                label = f"{setting.name} {task} seed {seed} {kind}"
+                fork_of = None if kind == "none" else unfiltered
+                run = DaggerRun(
+                    run_dir(out_dir, setting, task, seed, kind), config, fork_of, progress, label
+                )
+                rows[(task, seed, kind)] = run.run()
+    return rows
+
+
+#: The folder of the one-iteration fork filtered from iteration 1 (see :func:`filtered_from_1`).
+FROM_1 = "cbf_from_1"
+
+
+def filtered_from_1(
+    preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, progress: bool
+) -> dict[tuple[str, int], dict]:
+    """Iteration 1 of each line driven behind the perceived-state filter (a fork with
+    ``k = 0``, one iteration long): the paper's headline asks whether the filter lets the
+    learned driver lap earlier, and the forks of the table start after ``k``. Its networks
+    are the unfiltered run's of iteration 1, so this drive is exactly the first of a fork
+    filtered from the start. Its metric row by (task, seed), for lines with ``k >= 1``."""
+    rows = {}
+    for task in TASKS:
+        if setting.filter_from[task] < 1:
+            continue
+        for seed in seeds:
+            config = replace(
+                run_config(dagger_config(preset, setting, task, seed), "cbf"),
+                filter_from=0,
+                iterations=1,
+            )
+            run = DaggerRun(
+                run_dir(out_dir, setting, task, seed, FROM_1),
+                config,
+                run_dir(out_dir, setting, task, seed, "none"),
+                progress,
+                f"{setting.name} {task} seed {seed} filtered from 1",
+            )
+            rows[(task, seed)] = run.run()[1]
+    return rows
+
+
+def final_policy(
+    preset: Preset, setting: TableSetting, run: Path, seed: int
+) -> tuple[str, FilterConfig]:
+    """The agent spec of a run's final networks, and the setting's filter fed their
+    perceived state (with the spread calibrated as in the run's filtered iterations)."""
+    layout = RunLayout(run)
+    checkpoint = layout.final_checkpoint()
+    spec = f"learned:{checkpoint}"
+    iteration = int(checkpoint.stem.removeprefix("iteration_"))
+    scale = (
+        spread_scale_of(layout, iteration, preset.mc_samples, seed)
+        if preset.calibrate_spread
+        else None
+    )
+    safety = FilterConfig(
+        kind="cbf",
+        model=setting.filter_model,
+        gains=preset.filter_gains,
+        state_source=spec,
+        samples=preset.mc_samples,
+        map_curvature=preset.map_curvature,
+        spread_scale=scale,
+        fuse_odometry=preset.fuse_odometry,
+    )
+    return spec, safety
+
+
+def env_settings(preset: Preset, setting: TableSetting) -> dict:
+    """The task's keyword arguments for driving a policy of this preset and setting."""
+    return {
+        "max_steps": max_steps_for(preset.max_seconds),
+        "stereo": setting.stereo,
+        "image_size": (preset.image_size, preset.image_size),
+    }
+
+
+def unseen_track_rows(
+    preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, tracks: list[str]
+) -> list[list]:
+    """The final policies of the unfiltered run and of the perceived-state fork on tracks
+    they never saw, one lap, without and with the filter fed their own state network. A
+    fork whose final networks are the unfiltered run's (it trained nothing of its own) is
+    not scored twice."""
+    lines = []
+    for task in TASKS:
+        for seed in seeds:
+            unfiltered = RunLayout(run_dir(out_dir, setting, task, seed, "none")).final_checkpoint()
+            for kind in ("none", "cbf"):
+                run = run_dir(out_dir, setting, task, seed, kind)
+                if kind != "none" and filecmp.cmp(
+                    RunLayout(run).final_checkpoint(), unfiltered, False
+                ):
+                    continue
+                spec, perceived = final_policy(preset, setting, run, seed)
+                for track in tracks:
+                    for safety in (FilterConfig(), perceived):
+                        (row,) = evaluate(
+                            spec,
+                            task,
+                            track,
+                            [seed],
+                            progress=False,
+                            env_kwargs=env_settings(preset, setting),
+                            safety=safety,
+                            mc_samples=preset.mc_samples,
+                        )
+                        summary = row["summary"]
+                        lines.append(
+                            [
+                                setting.name,
+                                task,
+                                seed,
+                                f"final of {RUN_LABELS[kind]} run",
+                                Path(track).stem,
+                                "none" if safety.kind == "none" else "perceived state",
+                                summary["laps_completed"],
+                                summary["mean_lap_time_s"] or "-",
+                                summary["time_outside_lane_s"],
+                            ]
+                        )
+    return lines
+
+
+def record_final_filtered_lap(
+    preset: Preset, setting: TableSetting, seed: int, out_dir: Path
+) -> Path:
+    """A Rerun recording of the final perceived-state racing-line policy's lap: what the
+    filter believed against the truth, its corrections and its barriers."""
+    task = "RacingLine"
+    run = run_dir(out_dir, setting, task, seed, "cbf")
+    spec, perceived = final_policy(preset, setting, run, seed)
+    path = out_dir / f"{setting.name}_final_filtered_racingline.rrd"
+    drive(
+        task,
+        setting.track,
+        agent=spec,
+        rerun=path,
+        seed=seed,
+        mc_samples=preset.mc_samples,
+        safety=perceived,
+        progress=False,
+        **env_settings(preset, setting),
+    )
+    return path
+
+
+def run_paper_tables(
+    preset: str | Preset, seeds: list[int], out_dir: str | Path, progress: bool = True
+) -> list[Path]:
+    """Run (or resume) everything the preset (a name of :data:`PRESETS` or one's own) asks
+    for and write the tables and figures; the paths written. ``unseen_tracks.md`` and
+    ``timings.md`` are rewritten after each setting, so a long run shows what it has."""
+    if isinstance(preset, str):
+        preset = PRESETS[preset]
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    timings = dict.fromkeys(("collection", "training", "unseen tracks", "recording"), 0.0)
+    tracks = [*preset.unseen_tracks, *write_random_tracks(out_dir / "tracks", preset.random_tracks)]
+    unseen = []
+    for setting in preset.settings:
+        rows = run_lines(preset, setting, seeds, out_dir, progress)
+        from_1 = filtered_from_1(preset, setting, seeds, out_dir, progress)
+        timings["collection"] += sum(row["collect_seconds"] or 0.0 for row in from_1.values())
+        for (task, _, kind), runs in rows.items():
+            shared = -1 if kind == "none" else setting.filter_from[task]
+            for row in runs:
+                if row["iteration"] <= shared:
+                    continue  # a fork's shared rows are the unfiltered run's
+                timings["collection"] += row["collect_seconds"] or 0.0
+                timings["training"] += row["train_seconds"] or 0.0
+        written += write_table(preset, setting, rows, from_1, seeds, out_dir)
+        started = time.perf_counter()
+        unseen += unseen_track_rows(preset, setting, seeds, out_dir, tracks)
+        timings["unseen tracks"] += time.perf_counter() - started
+        started = time.perf_counter()
+        written.append(record_final_filtered_lap(preset, setting, seeds[0], out_dir))
+        timings["recording"] += time.perf_counter() - started
+        summaries = write_summaries(preset, unseen, timings, out_dir)
+    return [*written, *summaries]

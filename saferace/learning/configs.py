@@ -1,0 +1,344 @@
+"""The learned driver's configs: training, collection and DAgger runs.
+
+Import-light (no torch, no MuJoCo), so that the command line builds its options from them
+fast; the modules that run them import them from here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+from saferace.config import setting
+from saferace.errors import ConfigError
+from saferace.eval.filter_config import FilterConfig
+from saferace.names import (
+    DEFAULT_EXPERT_MODEL,
+    MC_SAMPLES,
+    RANDOMIZATION_PRESETS,
+    TASKS,
+    VEHICLE_MODELS,
+)
+
+#: The networks a training run makes, in the order they are trained.
+NETWORKS = ("control", "state")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation, hold-out and initialisation of one training run.
+
+    ``min_steps``: at least this many gradient steps, by adding epochs when the data are few
+    (a DAgger run's first iterations train on a lap or two of frames: three epochs of them
+    are a dozen steps, and the networks learn next to nothing). ``max_steps`` (0: none): at
+    most this many, the last epoch cut short, so that a warm-started DAgger iteration costs
+    the same however large the aggregate has grown. ``networks``: the networks trained; any
+    other is taken unchanged from ``init``.
+    """
+
+    epochs: int = setting(10, "passes over the training frames per network")
+    min_steps: int = setting(
+        0,
+        "at least N gradient steps per training, adding epochs while the frames are few",
+        flag="--min-train-steps",
+        metavar="N",
+    )
+    max_steps: int = setting(
+        0,
+        "at most N gradient steps per training (0: no bound), so that a warm-started "
+        "iteration costs the same however large the aggregate",
+        flag="--max-train-steps",
+        metavar="N",
+    )
+    batch_size: int = setting(32, "frames per Adam step")
+    learning_rate: float = setting(1e-3, "Adam's learning rate", flag="--lr")
+    seed: int = setting(0, "seeds the weights, the shuffling and the dropout")
+    val_stretch: tuple[float, float] | None = setting(
+        (0.55, 0.7),
+        "the stretch of the lap held out for validation, as fractions of the lap",
+        metavar=("START", "END"),
+    )
+    dropout: float = setting(0.2, "dropout of the heads")
+    init: str | None = setting(None, "warm-start from this checkpoint")
+    backbone_weights: str | None = setting(
+        None, "a torchvision ResNet-18 state dict (e.g. ImageNet) to start both backbones from"
+    )
+    networks: tuple[str, ...] = NETWORKS
+
+    def __post_init__(self) -> None:
+        start, end = self.val_stretch or (0.0, 1.0)
+        if not 0.0 <= start < end <= 1.0:
+            raise ConfigError(
+                "val_stretch",
+                f"must be fractions of the lap 0 <= start < end <= 1, got {self.val_stretch}",
+            )
+        for name in ("epochs", "batch_size", "learning_rate"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(name, f"must be positive, got {getattr(self, name)}")
+        for name in ("min_steps", "max_steps"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"must not be negative, got {getattr(self, name)}")
+        if self.max_steps and self.min_steps > self.max_steps:
+            raise ConfigError("min_steps", f"{self.min_steps} is above max_steps {self.max_steps}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ConfigError("dropout", f"must be in [0, 1), got {self.dropout}")
+        if not set(self.networks) <= set(NETWORKS) or not self.networks:
+            raise ConfigError("networks", f"must be some of {NETWORKS}, got {self.networks}")
+        if set(self.networks) != set(NETWORKS) and not self.init:
+            raise ConfigError(
+                "init",
+                f"is needed: training only {', '.join(self.networks)} takes the other network "
+                "from it",
+            )
+        if self.init and self.backbone_weights:
+            raise ConfigError(
+                "backbone_weights", "and init both set the starting weights: choose one"
+            )
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def steps_for(self, frames: int) -> int:
+        """Gradient steps over ``frames`` training frames: ``epochs`` of them, or more to
+        reach ``min_steps``, or fewer to stay within ``max_steps``."""
+        batches = math.ceil(frames / self.batch_size)
+        steps = batches * max(self.epochs, math.ceil(self.min_steps / batches))
+        return min(steps, self.max_steps) if self.max_steps else steps
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """Steering noise added to the driver's action: an Ornstein-Uhlenbeck process.
+
+    ``steer_std_rad`` is its stationary standard deviation, ``correlation_time_s`` how long
+    a push lasts: correlated noise moves the car off its line far enough to need a
+    recovery, where white noise at the control rate would average out.
+    """
+
+    steer_std_rad: float = setting(
+        0.0,
+        "DART-style steering noise on the driver, its standard deviation (rad); the label "
+        "stays the expert's",
+        flag="--perturb",
+        metavar="STEER_STD_RAD",
+    )
+    correlation_time_s: float = setting(
+        0.5,
+        "how long a push of the steering noise lasts (its correlation time)",
+        flag="--perturb-correlation-s",
+    )
+
+    def __post_init__(self) -> None:
+        if self.steer_std_rad < 0.0:
+            raise ConfigError(
+                "steer_std_rad",
+                f"needs a non-negative steering std (rad), got {self.steer_std_rad}",
+            )
+        if self.correlation_time_s <= 0.0:
+            raise ConfigError(
+                "correlation_time_s", f"must be positive, got {self.correlation_time_s}"
+            )
+
+
+@dataclass(frozen=True)
+class EpisodeSettings:
+    """How every episode of a collection is driven and recorded: laps, time, camera, the
+    labelling expert, the look, and the part of the lap kept for training."""
+
+    laps: int = setting(3, "laps per episode")
+    max_seconds: float | None = setting(None, "end an episode after this much simulated time")
+    image_size: int = setting(64, "onboard image height and width (pixels)")
+    stereo: bool = setting(False, "stereo camera pair (6 channels)")
+    expert_model: str = setting(
+        DEFAULT_EXPERT_MODEL,
+        "vehicle model of the labelling expert MPC (and of an expert driver)",
+        flag="--model",
+        choices=VEHICLE_MODELS,
+    )
+    mc_samples: int = setting(MC_SAMPLES, "MC-dropout samples per step of a learned driver")
+    train_fraction: float = setting(
+        1.0, "keep frames on this first part of the lap; the rest is held out, never trained on"
+    )
+    randomize: str = setting(
+        "none",
+        "visual domain randomisation: a look per episode seed",
+        choices=RANDOMIZATION_PRESETS,
+        metavar="PRESET",
+    )
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.train_fraction <= 1.0:
+            raise ConfigError("train_fraction", f"must be in (0, 1], got {self.train_fraction}")
+        for name in ("laps", "image_size", "mc_samples"):
+            if getattr(self, name) < 1:
+                raise ConfigError(name, f"must be at least 1, got {getattr(self, name)}")
+        if self.max_seconds is not None and self.max_seconds <= 0:
+            raise ConfigError("max_seconds", f"must be positive, got {self.max_seconds}")
+
+
+@dataclass(frozen=True)
+class CollectionConfig:
+    """What one round records: driver, task, track, an episode per seed, how each is
+    driven (``episode``), the steering noise, the filter and the expert's share."""
+
+    agent: str = setting(
+        "expert",
+        "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY",
+    )
+    task: str = setting("RacingLine", "the reference line to follow", choices=TASKS)
+    track: str = setting("technical", "built-in track name or track CSV path")
+    seeds: tuple[int, ...] = setting((0,), "one episode per seed")
+    episode: EpisodeSettings = field(default_factory=EpisodeSettings)
+    perturbation: Perturbation = field(default_factory=Perturbation)
+    safety: FilterConfig = field(default_factory=FilterConfig)
+    beta: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.beta <= 1.0:
+            raise ConfigError("beta", f"must be in [0, 1], got {self.beta}")
+        if not self.seeds:
+            raise ConfigError("seeds", "must name at least one episode")
+
+    def as_dict(self) -> dict:
+        """Flat, as a round's manifest keeps it (the episode settings beside the rest)."""
+        values = asdict(self)
+        values.update(values.pop("episode"))
+        values["image_size"] = [self.settings.image_size] * 2
+        values["safety"] = self.safety.as_dict()
+        return values
+
+
+
+
+def _dagger_training() -> TrainConfig:
+    return TrainConfig(epochs=9, val_stretch=None)
+
+
+def _dagger_collection() -> EpisodeSettings:
+    return EpisodeSettings(laps=1, max_seconds=60.0, train_fraction=0.7)
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """One DAgger run: what the iterations share, with three nested configs.
+
+    ``training`` trains each iteration (its ``seed`` seeds the run: training, dropout masks
+    and looks; the run sets ``init`` and ``networks``); ``collection`` drives each iteration
+    (``laps`` per drive, the first counts for the tables; ``train_fraction`` of the lap kept
+    for training); ``filter`` is the filter of the iterations after ``filter_from`` (the
+    paper's k): its ``state_source`` is ``learned`` (the run fills in each iteration's
+    checkpoint and ``collection.mc_samples``) or None (the truth).
+    """
+
+    task: str = setting("CenterLine", "the reference line", choices=TASKS)
+    track: str = setting("lab", "built-in track name or track CSV path")
+    iterations: int = setting(10, "iterations after the expert's")
+    filter_from: int = setting(
+        2, "the iterations after K drive through the filter (the paper's k)", metavar="K"
+    )
+    warm_start: bool = setting(
+        True,
+        "retrain each iteration from random weights instead of fine-tuning the last ones",
+        flag="--from-scratch",
+    )
+    expert_perturb: float = setting(
+        0.0,
+        "steering noise on the expert's iteration 0 (the paper's expert drove clean)",
+        metavar="STEER_STD_RAD",
+    )
+    beta_rampdown: int = setting(
+        0,
+        "the expert acts on a share 1 - i/R of iteration i's steps (0: never, as the paper)",
+        metavar="R",
+    )
+    calibrate_spread: bool = setting(
+        False,
+        "widen the state network's MC-dropout spread by the factor that matches it to its "
+        "error on the previous round, which it never saw",
+    )
+    episodes: int = setting(1, "drives per iteration (the first is reported)")
+    training: TrainConfig = field(default_factory=_dagger_training)
+    collection: EpisodeSettings = field(default_factory=_dagger_collection)
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source="learned"))
+
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ConfigError("task", f"must be one of {', '.join(TASKS)}, got {self.task!r}")
+        if self.episodes < 1:
+            raise ConfigError("episodes", f"must be at least 1, got {self.episodes}")
+        for name in ("iterations", "filter_from", "beta_rampdown"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"must not be negative, got {getattr(self, name)}")
+        if self.expert_perturb < 0:
+            raise ConfigError("expert_perturb", f"must not be negative, got {self.expert_perturb}")
+        if self.training.val_stretch is not None:
+            raise ConfigError(
+                "val_stretch",
+                "must be None: a DAgger run scores the held-out part of the lap by driving it: set "
+                "train_fraction instead",
+            )
+        if self.training.init is not None or self.training.networks != NETWORKS:
+            raise ConfigError(
+                "init", "must be None: a DAgger run warm-starts each iteration itself"
+            )
+        if self.filter.state_source not in (None, "learned"):
+            raise ConfigError(
+                "state_source",
+                f"must be learned (the run's own networks) or None (the truth), "
+                f"got {self.filter.state_source!r}",
+            )
+        if self.calibrates_spread and self.collection.train_fraction >= 1.0:
+            raise ConfigError(
+                "calibrate_spread",
+                "fits on the part of the lap no network trained on: it needs train_fraction < 1",
+            )
+
+    @property
+    def seed(self) -> int:
+        return self.training.seed
+
+    @property
+    def filters(self) -> bool:
+        return self.filter.kind != "none"
+
+    @property
+    def perceived(self) -> bool:
+        """Whether the filtered drives see the state network's samples (not the truth)."""
+        return self.filters and self.filter.state_source is not None
+
+    @property
+    def calibrates_spread(self) -> bool:
+        """Whether the filtered drives widen the state network's spread."""
+        return self.calibrate_spread and self.perceived
+
+    @property
+    def trained_networks(self) -> tuple[str, ...]:
+        """The networks each warm-started iteration trains: the true-state fork drives and
+        filters without its state network, so it keeps the one it forked with."""
+        if self.filters and not self.perceived and self.warm_start:
+            return ("control",)
+        return NETWORKS
+
+    @property
+    def fingerprint(self) -> dict:
+        """What makes two runs the same run: the iterations may be extended, and an
+        unfiltered run is the same whatever filter its forks will use."""
+        values = asdict(self)
+        del values["iterations"]
+        values["trained_networks"] = list(self.trained_networks)
+        if not self.filters:
+            for name in ("filter", "filter_from", "calibrate_spread"):
+                del values[name]
+        return values
+
+    def filtered(self, iteration: int) -> bool:
+        return self.filters and iteration > self.filter_from
+
+    def beta(self, iteration: int) -> float:
+        """Share of steps the expert drives in ``iteration``: 1 at iteration 0, then the
+        linear ramp ``1 - i / beta_rampdown`` (none without a ramp, as in the paper)."""
+        if iteration == 0:
+            return 1.0
+        if not self.beta_rampdown:
+            return 0.0
+        return max(0.0, 1.0 - iteration / self.beta_rampdown)

@@ -1,0 +1,47 @@
+"""The one home of SafeRace's names and shared defaults.
+
+Import-free on purpose: the command line, the configs and the heavy modules (the filter,
+the networks, the experiments) all read their choices and defaults here, so that a name
+or a default cannot drift between two copies.
+"""
+
+from __future__ import annotations
+
+#: The tasks by short name, and their gymnasium ids.
+TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
+TASKS: tuple[str, ...] = tuple(TASK_IDS)
+
+#: Vehicle models of the expert MPC and the safety filter (``saferace.safety.models``).
+VEHICLE_MODELS = ("kinematic", "dynamic", "dynamic-paper")
+DEFAULT_EXPERT_MODEL = "dynamic"
+DEFAULT_FILTER_MODEL = "kinematic"
+
+#: Safety-filter families a run can be wrapped in.
+FILTER_KINDS = ("none", "cbf")
+#: Named gain settings of the filter (the keys of ``saferace.safety.filter.GAIN_PRESETS``).
+GAIN_NAMES = ("paper", "grip", "tuned")
+DEFAULT_GAINS = "grip"
+
+#: What feeds the filter the lane state: the truth, the truth with noise, a state network.
+STATE_SOURCE_KINDS = ("oracle", "noisy", "learned")
+#: The lane state a DAgger run's filtered drives see: the state network's or the truth.
+DAGGER_STATE_SOURCES = ("learned", "oracle")
+#: The noisy oracle's default standard deviations ``(e_y_m, e_psi_rad)`` and samples.
+DEFAULT_STATE_NOISE = (0.05, 0.05)
+NOISY_SAMPLES = 20
+#: MC-dropout samples of a learned agent or state source per step.
+MC_SAMPLES = 10
+
+#: Visual and physical domain-randomisation presets (``saferace.envs.randomization``).
+RANDOMIZATION_PRESETS = ("none", "mild", "strong")
+#: What a smoothed lane keeps (``saferace.track.smoothing``).
+SMOOTHING_KEEPS = ("widths", "boundaries")
+
+#: Presets of the paper's tables (``saferace.experiments.paper``).
+PAPER_PRESETS = ("quick", "full")
+
+#: Radius (m) of the random tracks the experiments generate by seed.
+RANDOM_TRACK_RADIUS_M = 3.0
+
+#: The file that marks a finished collection round.
+MANIFEST_FILE = "manifest.json"
