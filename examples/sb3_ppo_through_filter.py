@@ -12,16 +12,23 @@ laptop CPU trains nothing that laps; the example shows how the pieces plug toget
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import gymnasium as gym
 from gymnasium.wrappers import RescaleAction
-from stable_baselines3 import PPO
-from stable_baselines3.common.callbacks import BaseCallback
 
 import saferace  # noqa: F401  - registers the tasks
+from saferace.errors import SafeRaceError
+from saferace.extras import require
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
+
+try:  # Stable-Baselines3 is an extra: pip install 'saferace[sb3]'
+    PPO = require("stable_baselines3", "sb3", "this example").PPO
+    BaseCallback = require("stable_baselines3.common.callbacks", "sb3", "this example").BaseCallback
+except SafeRaceError as error:
+    sys.exit(f"error: {error}")
 
 
 class FilterLog(BaseCallback):

@@ -5,7 +5,7 @@ Importing ``saferace`` registers the gymnasium tasks ``saferace/CenterLine-v0`` 
 imports it for you.
 """
 
-__version__ = "0.1.0"
+from saferace.version import __version__ as __version__
 
 
 def register_envs() -> None:

@@ -28,9 +28,9 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
     ``tiny_checkpoint(stereo)`` gives ``(checkpoint path, data folder)``; nothing in it
     drives well, but every part of the learned driver runs on it.
     """
-    from saferace.learning.collect import CollectionConfig, collect_round
+    from saferace.learning.collect import collect_round
     from saferace.learning.commands import train_and_report
-    from saferace.learning.training import TrainConfig
+    from saferace.learning.configs import CollectionConfig, EpisodeSettings, TrainConfig
 
     made: dict[bool, tuple[Path, Path]] = {}
 
@@ -38,7 +38,9 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
         if stereo not in made:
             folder = tmp_path_factory.mktemp("stereo" if stereo else "mono")
             config = CollectionConfig(
-                task="CenterLine", track="lab", laps=1, max_seconds=3.0, stereo=stereo
+                task="CenterLine",
+                track="lab",
+                episode=EpisodeSettings(laps=1, max_seconds=3.0, stereo=stereo),
             )
             collect_round(folder / "data", config, progress=False)
             checkpoint = folder / "tiny.pt"

@@ -11,18 +11,15 @@ from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
-from saferace.learning.collect import (
-    CollectionConfig,
-    Perturbation,
-    SteeringNoise,
-    collect_round,
-)
+from saferace.learning.collect import SteeringNoise, collect_round
+from saferace.learning.configs import CollectionConfig, EpisodeSettings, Perturbation
 from saferace.learning.rounds import load_rounds
 
 
 def collect(tmp_path: Path, **settings) -> tuple:
     settings.setdefault("task", "CenterLine")
-    config = CollectionConfig(track="lab", laps=1, max_seconds=3.0, **settings)
+    episode = EpisodeSettings(laps=1, max_seconds=3.0)
+    config = CollectionConfig(track="lab", episode=episode, **settings)
     collected = collect_round(tmp_path / "data", config, progress=False)
     return collected, load_rounds([collected.path])
 
@@ -98,7 +95,10 @@ def test_collect_command_adds_rounds(tmp_path: Path):
 
 def test_a_round_over_two_workers_is_the_serial_round(tmp_path: Path):
     config = CollectionConfig(
-        task="CenterLine", track="lab", laps=1, max_seconds=1.5, seeds=(3, 4), randomize="mild"
+        task="CenterLine",
+        track="lab",
+        seeds=(3, 4),
+        episode=EpisodeSettings(laps=1, max_seconds=1.5, randomize="mild"),
     )
     serial = collect_round(tmp_path / "serial", config, progress=False)
     parallel = collect_round(tmp_path / "parallel", config, progress=False, workers=2)

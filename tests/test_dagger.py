@@ -18,14 +18,10 @@ import torch
 from saferace.errors import SafeRaceError
 from saferace.learning.calibration import inside_lane, spread_scale
 from saferace.learning.checkpoint import load_checkpoint
-from saferace.learning.dagger import (
-    DaggerConfig,
-    DaggerRun,
-    episode_seed,
-    episode_seeds,
-    spread_scale_path,
-)
+from saferace.learning.configs import DaggerConfig, EpisodeSettings, TrainConfig
+from saferace.learning.dagger import DaggerRun, episode_seed, episode_seeds
 from saferace.learning.rounds import FrameSet, load_rounds
+from saferace.learning.run_layout import RunLayout
 from saferace.track import Track
 
 #: Two iterations of 3 s drives on small images: every stage runs in seconds.
@@ -34,13 +30,21 @@ TINY = DaggerConfig(
     track="lab",
     iterations=2,
     filter_from=1,
-    epochs=2,
-    image_size=32,
-    train_fraction=0.3,
-    max_seconds=3.0,
-    mc_samples=3,
-    expert_model="kinematic",
+    training=TrainConfig(epochs=2, val_stretch=None),
+    collection=EpisodeSettings(
+        laps=1,
+        max_seconds=3.0,
+        image_size=32,
+        expert_model="kinematic",
+        mc_samples=3,
+        train_fraction=0.3,
+    ),
 )
+
+
+def with_filter(config: DaggerConfig, **settings) -> DaggerConfig:
+    """``config`` with these settings of its filter changed."""
+    return replace(config, filter=replace(config.filter, **settings))
 
 
 @pytest.fixture(scope="module")
@@ -74,49 +78,53 @@ def test_iterations_rounds_and_metrics(unfiltered: DaggerRun):
     assert rows[0]["train_seconds"] is None and rows[1]["train_seconds"] > 0
     assert rows[0]["held_out_mean_abs_deviation_m"] is not None  # the drive passed 0.3 L
     for iteration in (1, 2):
-        checkpoint = load_checkpoint(unfiltered.checkpoint_path(iteration))
+        checkpoint = load_checkpoint(unfiltered.layout.checkpoint(iteration))
         assert checkpoint.metadata["frames"]["train"] == sum(r["frames"] for r in rows[:iteration])
     csv_lines = (unfiltered.out_dir / "metrics.csv").read_text().splitlines()
     assert len(csv_lines) == 4 and csv_lines[0].startswith("iteration,driver,filtered")
 
 
 def test_the_train_split_keeps_no_frame_past_it(unfiltered: DaggerRun):
-    frames = load_rounds([unfiltered.data_dir])
-    assert frames.lap_fraction.max() < TINY.train_fraction
-    expert_round = load_rounds([unfiltered.round_path(0)])
+    frames = load_rounds([unfiltered.layout.data_dir])
+    assert frames.lap_fraction.max() < TINY.collection.train_fraction
+    expert_round = load_rounds([unfiltered.layout.round(0)])
     drive_steps = unfiltered.metrics()[0]["trajectory"]["s_m"]
-    assert max(drive_steps) > TINY.train_fraction * 24.13  # it drove past, but kept none of it
+    assert (
+        max(drive_steps) > TINY.collection.train_fraction * 24.13
+    )  # it drove past, but kept none of it
     assert len(expert_round) < 60
 
 
 def test_fork_shares_iterations_up_to_k_bit_for_bit(unfiltered: DaggerRun, tmp_path: Path):
-    filtered = replace(TINY, filter="cbf")
+    filtered = with_filter(TINY, kind="cbf")
     forked = DaggerRun(tmp_path / "fork", filtered, fork_of=unfiltered.out_dir, progress=False)
     recomputed = DaggerRun(tmp_path / "alone", filtered, progress=False)
     forked_rows, alone_rows = forked.run(), recomputed.run()
     for iteration in range(TINY.filter_from + 1):
         for run in (forked, recomputed):
-            assert rounds_equal(unfiltered.round_path(iteration), run.round_path(iteration))
+            assert rounds_equal(unfiltered.layout.round(iteration), run.layout.round(iteration))
     for iteration in (1, 2):  # iteration K+1's networks are trained on 0..K too
         assert weights_equal(
-            unfiltered.checkpoint_path(iteration), forked.checkpoint_path(iteration)
+            unfiltered.layout.checkpoint(iteration), forked.layout.checkpoint(iteration)
         )
         assert weights_equal(
-            unfiltered.checkpoint_path(iteration), recomputed.checkpoint_path(iteration)
+            unfiltered.layout.checkpoint(iteration), recomputed.layout.checkpoint(iteration)
         )
     assert [row["filtered"] for row in forked_rows] == [False, False, True]
     assert forked_rows[2]["intervention_rate"] is not None
-    assert not rounds_equal(unfiltered.round_path(2), forked.round_path(2))  # filtered now
-    assert rounds_equal(forked.round_path(2), recomputed.round_path(2))
+    assert not rounds_equal(unfiltered.layout.round(2), forked.layout.round(2))  # filtered now
+    assert rounds_equal(forked.layout.round(2), recomputed.layout.round(2))
     assert forked_rows[2]["lap_time_s"] == alone_rows[2]["lap_time_s"]
 
 
 def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
     with pytest.raises(SafeRaceError, match="differing: epochs"):
-        DaggerRun(unfiltered.out_dir, replace(TINY, epochs=3), progress=False)
+        DaggerRun(
+            unfiltered.out_dir, replace(TINY, training=replace(TINY.training, epochs=3)), False
+        )
     more = DaggerRun(unfiltered.out_dir, replace(TINY, iterations=2), progress=False)
     assert len(more.run()) == 3  # the same run: nothing is redone
-    other_forks = replace(TINY, filter_from=2, state_source="oracle", filter_gains="tuned")
+    other_forks = replace(with_filter(TINY, state_source=None, gains="tuned"), filter_from=2)
     same = DaggerRun(unfiltered.out_dir, other_forks, progress=False)  # no filter settings
     assert same.run() == unfiltered.metrics()  # nothing driven or trained again
 
@@ -124,63 +132,64 @@ def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
 def test_the_true_state_fork_keeps_the_state_network_it_forked_with(
     unfiltered: DaggerRun, tmp_path: Path
 ):
-    oracle = replace(TINY, filter="cbf", filter_from=0, state_source="oracle")
+    oracle = replace(with_filter(TINY, kind="cbf", state_source=None), filter_from=0)
     forked = DaggerRun(tmp_path / "oracle", oracle, fork_of=unfiltered.out_dir, progress=False)
     forked.run()
-    shared, trained = (load_checkpoint(forked.checkpoint_path(i)) for i in (1, 2))
+    shared, trained = (load_checkpoint(forked.layout.checkpoint(i)) for i in (1, 2))
     for name, weights in shared.state.state_dict().items():
         assert torch.equal(weights, trained.state.state_dict()[name]), name
     assert not torch.equal(shared.control.output_layer.weight, trained.control.output_layer.weight)
     assert oracle.fingerprint["trained_networks"] == ["control"]
-    both = (TINY, replace(oracle, state_source="learned"), replace(oracle, warm_start=False))
+    both = (TINY, with_filter(oracle, state_source="learned"), replace(oracle, warm_start=False))
     for config in both:
         assert "trained_networks" not in config.fingerprint  # both, as before the option
-    with pytest.raises(SafeRaceError, match="above max_train_steps"):
-        replace(TINY, min_train_steps=8, max_train_steps=4)
+    with pytest.raises(SafeRaceError, match="above max_steps"):
+        replace(TINY, training=replace(TINY.training, min_steps=8, max_steps=4))
 
 
 def test_odometry_fusion_belongs_to_the_perceived_state_forks_only():
     """Runs made before the option existed, and the forks it does nothing to, keep their
     fingerprint; a perceived-state fork that fuses is another run."""
-    fused = replace(TINY, fuse_odometry=True)
-    for config in (TINY, fused, replace(fused, filter="cbf", state_source="oracle")):
+    fused = with_filter(TINY, fuse_odometry=True)
+    oracle = with_filter(TINY, kind="cbf", state_source=None)  # the truth cannot be fused
+    for config in (TINY, fused, oracle):
         assert "fuse_odometry" not in config.fingerprint
-    learned = replace(fused, filter="cbf", state_source="learned")
+    learned = with_filter(fused, kind="cbf", state_source="learned")
     assert learned.fingerprint["fuse_odometry"] is True
-    assert "fuse_odometry" not in replace(learned, fuse_odometry=False).fingerprint
+    assert "fuse_odometry" not in with_filter(learned, fuse_odometry=False).fingerprint
 
 
 def test_a_calibrated_fork_widens_the_spread_fitted_on_the_held_out_part_of_the_lap(
     unfiltered: DaggerRun, tmp_path: Path
 ):
-    calibrated = replace(TINY, filter="cbf", calibrate_spread=True)
+    calibrated = replace(with_filter(TINY, kind="cbf"), calibrate_spread=True)
     run = DaggerRun(tmp_path / "cbf", calibrated, fork_of=unfiltered.out_dir, progress=False)
     rows = run.run()
-    record = json.loads(spread_scale_path(run.out_dir, 2).read_text())
+    record = json.loads(RunLayout(run.out_dir).spread_scale(2).read_text())
     fitted_on = next(i for i in (1, 0) if len(held_out_inside(unfiltered, i)) >= 20)
     assert record["fitted_on"] == f"round_{fitted_on:04d} (held_out.npz)"
     frames = held_out_inside(unfiltered, fitted_on)
-    assert frames.lap_fraction.min() >= TINY.train_fraction  # never trained on
-    network = load_checkpoint(run.checkpoint_path(2)).state  # the network about to drive
-    expected = spread_scale(network, frames, TINY.mc_samples, seed=TINY.seed)
+    assert frames.lap_fraction.min() >= TINY.collection.train_fraction  # never trained on
+    network = load_checkpoint(run.layout.checkpoint(2)).state  # the network about to drive
+    expected = spread_scale(network, frames, TINY.collection.mc_samples, seed=TINY.seed)
     assert record["spread_scale"] == pytest.approx(expected.tolist())
     assert rows[2]["spread_scale_e_y"] == record["spread_scale"][0] >= 1.0
     assert rows[1]["spread_scale_e_y"] is None  # unfiltered: nothing to calibrate
-    manifest = json.loads((run.round_path(2) / "manifest.json").read_text())
+    manifest = json.loads(run.layout.manifest(2).read_text())
     assert manifest["config"]["safety"]["spread_scale"] == record["spread_scale"]
-    oracle = replace(calibrated, state_source="oracle")
+    oracle = with_filter(calibrated, state_source=None)
     DaggerRun(tmp_path / "oracle", oracle, fork_of=unfiltered.out_dir, progress=False).run()
-    assert not spread_scale_path(tmp_path / "oracle", 2).exists()  # the truth has no spread
+    assert not RunLayout(tmp_path / "oracle").spread_scale(2).exists()  # the truth has no spread
     with pytest.raises(SafeRaceError, match="train_fraction < 1"):
-        replace(calibrated, train_fraction=1.0)
+        replace(calibrated, collection=replace(calibrated.collection, train_fraction=1.0))
 
 
 def held_out_inside(run: DaggerRun, iteration: int) -> FrameSet | list:
     """The held-out frames of a round with the car inside the lane (none: an empty list)."""
-    manifest = json.loads((run.round_path(iteration) / "manifest.json").read_text())
+    manifest = json.loads(run.layout.manifest(iteration).read_text())
     if not manifest["held_out_frame_count"]:
         return []
-    frames = load_rounds([run.round_path(iteration)], held_out=True)
+    frames = load_rounds([run.layout.round(iteration)], held_out=True)
     return frames.subset(inside_lane(frames, Track.load(TINY.track)))
 
 
@@ -215,21 +224,21 @@ def test_killed_while_driving_and_while_training_it_ends_with_the_same_rounds(
     run = DaggerRun(out, TINY, progress=False)
 
     def driving_iteration_1() -> bool:
-        return run.checkpoint_path(1).exists()
+        return run.layout.checkpoint(1).exists()
 
     def training_iteration_2() -> bool:  # an epoch done, the networks not yet saved
-        return run.checkpoint_path(2).with_suffix(".resume.pt").exists()
+        return run.layout.resume(2).exists()
 
     kill_when(start_run(out), driving_iteration_1)
-    assert not run.round_path(1).exists()
+    assert not run.layout.round(1).exists()
     kill_when(start_run(out), training_iteration_2)
-    assert not run.checkpoint_path(2).exists()
+    assert not run.layout.checkpoint(2).exists()
     rows = run.run()
     assert [row["iteration"] for row in rows] == [0, 1, 2]
     for iteration in range(3):
-        assert rounds_equal(unfiltered.round_path(iteration), run.round_path(iteration))
-    assert weights_equal(unfiltered.checkpoint_path(2), run.checkpoint_path(2))
-    assert sorted(p.name for p in run.data_dir.iterdir()) == [
+        assert rounds_equal(unfiltered.layout.round(iteration), run.layout.round(iteration))
+    assert weights_equal(unfiltered.layout.checkpoint(2), run.layout.checkpoint(2))
+    assert sorted(p.name for p in run.layout.data_dir.iterdir()) == [
         "round_0000",
         "round_0001",
         "round_0002",
@@ -242,8 +251,8 @@ def test_an_iterations_episodes_on_two_workers_add_frames_and_keep_the_first(
     wider = replace(TINY, iterations=0, episodes=2)
     run = DaggerRun(tmp_path / "two", wider, progress=False, workers=2)
     run.run()
-    both = load_rounds([run.round_path(0)])
-    first = load_rounds([unfiltered.round_path(0)])
+    both = load_rounds([run.layout.round(0)])
+    first = load_rounds([unfiltered.layout.round(0)])
     assert set(both["episode"]) == {0, 1}
     shared = both["episode"] == 0
     np.testing.assert_array_equal(both["image"][shared], first["image"])  # episode 0 as before

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from saferace.errors import SafeRaceError
-from saferace.learning.collect import CollectionConfig, collect_round
+from saferace.learning.collect import collect_round
+from saferace.learning.configs import CollectionConfig, EpisodeSettings
 from saferace.learning.minari_export import export_minari
 from saferace.learning.rounds import round_dirs, round_episodes
 
@@ -21,7 +22,10 @@ def rounds(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("rounds") / "data"
     for seeds in ((0, 1), (2,)):
         config = CollectionConfig(
-            task="RacingLine", track="lab", laps=1, max_seconds=2.0, seeds=seeds
+            task="RacingLine",
+            track="lab",
+            seeds=seeds,
+            episode=EpisodeSettings(laps=1, max_seconds=2.0),
         )
         collect_round(folder, config, progress=False)
     return folder
@@ -53,9 +57,8 @@ def test_an_existing_name_and_mixed_rounds_are_refused(rounds: Path, tmp_path: P
     with pytest.raises(SafeRaceError, match="exists already"):
         export_minari([rounds], "saferace/lab-twice-v0", datasets_dir=tmp_path)
     other = tmp_path / "oval"
-    collect_round(
-        other, CollectionConfig(task="RacingLine", track="oval", laps=1, max_seconds=1.0), False
-    )
+    episode = EpisodeSettings(laps=1, max_seconds=1.0)
+    collect_round(other, CollectionConfig(task="RacingLine", track="oval", episode=episode), False)
     with pytest.raises(SafeRaceError, match="mix"):
         export_minari([rounds, other], "saferace/mixed-v0", datasets_dir=tmp_path)
     with pytest.raises(SafeRaceError, match="no complete collection round"):

@@ -14,11 +14,11 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from saferace.envs.car_io import CarIO
 from saferace.envs.car_variation import CarVariation
 from saferace.envs.drivetrain import (
     DrivetrainParams,
     ackermann_angles,
-    bicycle_angle,
     rate_limited,
     wheel_torques,
 )
@@ -29,19 +29,18 @@ from saferace.envs.randomization import (
     physics_randomization,
     visual_randomization,
 )
+from saferace.envs.reference_lines import reference_line
 from saferace.envs.scene import SceneOptions, build_model
 from saferace.envs.scene_look import SceneLook
 from saferace.errors import SafeRaceError
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.frenet import wrap_arc
-from saferace.track.raceline import ReferenceLine, center_line, racing_line
 
 #: Bounds of ``[v_x, v_y, r]`` (m/s, m/s, rad/s): far beyond the car's 7 m/s, but finite.
 VELOCITY_BOUND = np.array([30.0, 30.0, 100.0], np.float32)
 DEFAULT_CONTROL_HZ = 20.0
 CAR_GEOM_GROUP = 2  # the car's own visual geoms: hidden from the onboard cameras
 _STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
-_SENSORS_OFF = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
 
 #: Envs whose renderers must be closed at exit if their owner never called close().
 _LIVE_ENVS: weakref.WeakSet[RacingEnv] = weakref.WeakSet()
@@ -209,7 +208,7 @@ class RacingEnv(gym.Env):
             if self.physics_randomize.is_identity
             else CarVariation(self.model, self.params, self.physics_randomize)
         )
-        self._ids = _ModelIds(self.model)
+        self._car_io = CarIO(self.model, self.data)
         self._projector = self.track.projector()
         self._cameras = ("stereo_left", "stereo_right") if stereo else ("front_camera",)
         self._onboard_option = mujoco.MjvOption()
@@ -245,9 +244,12 @@ class RacingEnv(gym.Env):
         if start_speed is not None and not 0.0 <= float(start_speed) <= 20.0:
             raise SafeRaceError(f"start_speed_mps must be between 0 and 20 m/s, got {start_speed}")
         variations = self._vary()
-        self._place_car(start_s % self.track.length_m, start_speed)
+        start = start_s % self.track.length_m
+        speed = self.reference.speed_at(start) if start_speed is None else start_speed
+        self._car_io.place(self.reference.pose_at(start), float(speed), self.params.wheel_radius_m)
+        self._projector.reset(start)
         self._steer_target = 0.0
-        pose = self._pose()
+        pose = self._car_io.pose()
         frenet = self._projector.to_frenet(*pose)
         self._episode = dict(
             steps=0,
@@ -258,18 +260,25 @@ class RacingEnv(gym.Env):
             lap_times_s=[],
             accel_mps2=0.0,
         )
-        velocity = self._velocity()
+        velocity = self._car_io.velocity()
         info = self._info(pose, frenet, velocity, progress_m=0.0, lap_completed=False)
         return self._observation(velocity), {**info, **variations}
 
     def step(self, action):
         steer_cmd, accel_cmd = self._clipped(action)
-        self._apply_controls(steer_cmd, accel_cmd)
+        params = self._drivetrain
+        self._steer_target = rate_limited(
+            steer_cmd, self._steer_target, params.max_steer_rate_radps, self.control_dt_s
+        )
+        torques = wheel_torques(accel_cmd, *self._car_io.speeds(), params)
+        self._car_io.set_controls(
+            ackermann_angles(self._steer_target, params), torques.rear_nm, torques.front_nm
+        )
         time_before = self.data.time
-        self._step_physics()
+        self._car_io.step(self.substeps)
 
         episode = self._episode
-        pose = self._pose()
+        pose = self._car_io.pose()
         frenet = self._projector.to_frenet(*pose)
         progress = wrap_arc(frenet[0] - episode["last_s"], self.track.length_m)
         episode["last_s"] = frenet[0]
@@ -279,10 +288,10 @@ class RacingEnv(gym.Env):
         episode["progress_m"] = before + progress
         lap_completed = self._count_lap(before, episode["progress_m"], time_before)
 
-        velocity = self._velocity()
+        velocity = self._car_io.velocity()
         info = self._info(pose, frenet, velocity, progress_m=progress, lap_completed=lap_completed)
         reward = info["reward_progress"] + info["reward_deviation"]
-        terminated = bool(info["fully_outside_lane"] or self._flipped())
+        terminated = bool(info["fully_outside_lane"] or self._car_io.flipped())
         truncated = bool(episode["lap"] >= self.max_laps or episode["steps"] >= self.max_steps)
         return self._observation(velocity), reward, terminated, truncated, info
 
@@ -352,78 +361,6 @@ class RacingEnv(gym.Env):
             mujoco.mj_setConst(self.model, self.data)  # what MuJoCo derives from the masses
         return variations
 
-    def _place_car(self, s_m: float, speed_mps: float | None = None) -> None:
-        model, data = self.model, self.data
-        mujoco.mj_resetData(model, data)
-        x, y, yaw = self.reference.pose_at(s_m)
-        speed = float(self.reference.speed_at(s_m) if speed_mps is None else speed_mps)
-        ids = self._ids
-        data.qpos[ids.root_qpos : ids.root_qpos + 7] = [
-            x,
-            y,
-            self.params.wheel_radius_m,
-            math.cos(yaw / 2),
-            0.0,
-            0.0,
-            math.sin(yaw / 2),
-        ]
-        data.qvel[ids.root_qvel : ids.root_qvel + 3] = [
-            speed * math.cos(yaw),
-            speed * math.sin(yaw),
-            0.0,
-        ]
-        for address in ids.wheel_qvel:
-            data.qvel[address] = speed / self.params.wheel_radius_m
-        mujoco.mj_forward(model, data)
-        self._projector.reset(s_m)
-
-    def _apply_controls(self, steer_cmd: float, accel_cmd: float) -> None:
-        params, data, ids = self._drivetrain, self.data, self._ids
-        self._steer_target = rate_limited(
-            steer_cmd, self._steer_target, params.max_steer_rate_radps, self.control_dt_s
-        )
-        left, right = ackermann_angles(self._steer_target, params)
-        data.ctrl[ids.steer_left] = left
-        data.ctrl[ids.steer_right] = right
-        v_x = float(data.sensordata[ids.velocimeter])
-        rear_speed = 0.5 * sum(float(data.sensordata[a]) for a in ids.rear_wheel_speed)
-        torques = wheel_torques(accel_cmd, v_x, rear_speed, params)
-        for actuator in ids.motors:
-            data.ctrl[actuator] = torques.rear_nm
-        for actuator in ids.brakes:
-            data.ctrl[actuator] = torques.front_nm
-
-    def _step_physics(self) -> None:
-        """One control step of physics, leaving positions, velocities and sensors current.
-
-        ``mj_step`` computes positions and sensors *before* it integrates, so after it they
-        lag the state by a substep. As dm_control does, each control step finishes the
-        pending step (``mj_step2``, which applies the new controls), runs the other
-        substeps, and ends with ``mj_step1`` for the new state. Sensors are only read
-        then, so they are computed only then.
-        """
-        model, data, opt = self.model, self.data, self.model.opt
-        opt.disableflags |= _SENSORS_OFF
-        mujoco.mj_step2(model, data)
-        if self.substeps > 1:
-            mujoco.mj_step(model, data, nstep=self.substeps - 1)
-        opt.disableflags &= ~_SENSORS_OFF
-        mujoco.mj_step1(model, data)
-
-    def _pose(self) -> tuple[float, float, float]:
-        data, ids = self.data, self._ids
-        x, y = data.xpos[ids.chassis, :2]
-        rot = data.xmat[ids.chassis]
-        return float(x), float(y), math.atan2(rot[3], rot[0])
-
-    def _steer_angle(self) -> float:
-        """The front wheels' bicycle angle now: the steering target after the servos' lag."""
-        left, right = (float(self.data.qpos[a]) for a in self._ids.steer_joints_qpos)
-        return bicycle_angle(left, right)
-
-    def _flipped(self) -> bool:
-        return bool(self.data.xmat[self._ids.chassis, 8] < 0.3)
-
     def _count_lap(self, progress_before: float, progress_after: float, time_before: float) -> bool:
         episode = self._episode
         goal = (episode["lap"] + 1) * self.track.length_m
@@ -435,11 +372,6 @@ class RacingEnv(gym.Env):
         episode["lap_start_s"] = crossing_time
         episode["lap"] += 1
         return True
-
-    def _velocity(self) -> np.ndarray:
-        data, ids = self.data, self._ids
-        v = data.sensordata[ids.velocimeter : ids.velocimeter + 2]
-        return np.array([v[0], v[1], data.sensordata[ids.gyro + 2]], dtype=np.float32)
 
     def _clipped(self, action) -> tuple[float, float]:
         """``(steer_rad, accel_mps2)`` within the action space; malformed actions raise."""
@@ -517,7 +449,7 @@ class RacingEnv(gym.Env):
             "v_y_mps": v_y,
             "yaw_rate_radps": r,
             "steer_rad": self._steer_target,
-            "steer_angle_rad": self._steer_angle(),
+            "steer_angle_rad": self._car_io.steer_angle(),
             "accel_mps2": episode["accel_mps2"],
             "time_s": float(self.data.time),
             "progress_m": episode["progress_m"],
@@ -543,56 +475,6 @@ class RacingLineEnv(RacingEnv):
     """``saferace/RacingLine-v0``: follow the minimum-curvature racing line (:class:`RacingEnv`)."""
 
     reference_kind = "racing"
-
-
-def reference_line(track: Track, kind: str) -> ReferenceLine:
-    """The task's reference line: ``"center"`` or ``"racing"``.
-
-    Computed once per track geometry and process (a racing line of a 450 m circuit takes
-    a minute or two, and evaluations make one env per run); lines are never modified.
-    """
-    if kind not in _REFERENCE_LINES:
-        raise SafeRaceError(f"unknown reference line {kind!r}: use 'center' or 'racing'")
-    key = (track.fingerprint, kind)
-    if key not in _COMPUTED_LINES:
-        if len(_COMPUTED_LINES) >= _MAX_COMPUTED_LINES:
-            _COMPUTED_LINES.pop(next(iter(_COMPUTED_LINES)))
-        _COMPUTED_LINES[key] = _REFERENCE_LINES[kind](track)
-    return _COMPUTED_LINES[key]
-
-
-_REFERENCE_LINES = {"center": center_line, "racing": racing_line}
-_MAX_COMPUTED_LINES = 16
-_COMPUTED_LINES: dict[tuple[str, str], ReferenceLine] = {}  # oldest first
-
-
-class _ModelIds:
-    """Addresses of the named model elements the env reads and writes every step."""
-
-    def __init__(self, model: mujoco.MjModel) -> None:
-        self.chassis = model.body("chassis").id
-        root = model.joint("root")
-        self.root_qpos, self.root_qvel = int(root.qposadr[0]), int(root.dofadr[0])
-        self.wheel_qvel = [
-            int(model.joint(f"{wheel}_spin").dofadr[0])
-            for wheel in ("front_left", "front_right", "rear_left", "rear_right")
-        ]
-        self.steer_joints_qpos = [
-            int(model.joint(f"front_{side}_steer").qposadr[0]) for side in ("left", "right")
-        ]
-        self.steer_left = model.actuator("front_left_steering_servo").id
-        self.steer_right = model.actuator("front_right_steering_servo").id
-        self.motors = [model.actuator("rear_left_motor").id, model.actuator("rear_right_motor").id]
-        self.brakes = [
-            model.actuator("front_left_brake").id,
-            model.actuator("front_right_brake").id,
-        ]
-        self.velocimeter = int(model.sensor("imu_velocimeter").adr[0])
-        self.gyro = int(model.sensor("imu_gyro").adr[0])
-        self.rear_wheel_speed = [
-            int(model.sensor("rear_left_wheel_speed").adr[0]),
-            int(model.sensor("rear_right_wheel_speed").adr[0]),
-        ]
 
 
 def _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode, metadata) -> None:

@@ -18,6 +18,7 @@ from multiprocessing import get_context
 from typing import Any
 
 from saferace.errors import SafeRaceError
+from saferace.extras import require
 
 RAY_RETRIES = 2
 
@@ -63,8 +64,7 @@ def _run_on_ray(
     advance: Callable[[], object],
     describe: Callable[[Job], str],
 ) -> None:
-    import ray
-
+    ray = require("ray", "ray", "running jobs as Ray tasks (--ray)")
     if not ray.is_initialized():
         ray.init(
             address=None if address == "local" else address,

@@ -15,7 +15,6 @@ import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
-import saferace
 from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import act, make_agent
@@ -30,6 +29,7 @@ from saferace.eval.metrics import (
     thinned_trajectory,
 )
 from saferace.safety.filter import SafetyFilter, nominal_parts
+from saferace.version import __version__
 
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
 RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch", "torchvision")
@@ -198,7 +198,7 @@ def result_row(
         "terminated": result.terminated,
         "trajectory": thinned_trajectory(result.steps, ("x_m", "y_m", "s_m", "v_x_mps")),
         "config": {"track": str(track_arg), "laps": laps, "model": model},
-        "saferace_version": saferace.__version__,
+        "saferace_version": __version__,
         "git_revision": git_revision(),
         "packages": package_versions(),
         "python": platform.python_version(),

@@ -37,7 +37,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
@@ -53,6 +52,7 @@ from saferace.eval.runner import (
     run_episode,
 )
 from saferace.track import Track
+from saferace.version import __version__
 
 SUITE_VERSION = 1
 OUTSIDE_SCALE_S = 1.0  # the score falls by 1/e per second outside the lane
@@ -275,7 +275,7 @@ def submission(agent: str, rows: list[dict], suite: Suite) -> dict:
         "completion": float(np.mean([row["completion"] for row in plain])) if plain else None,
         "time_outside_lane_s": float(sum(row["time_outside_lane_s"] for row in plain)),
         "rows": rows,
-        "versions": {"saferace": saferace.__version__, **package_versions()},
+        "versions": {"saferace": __version__, **package_versions()},
         "git_revision": git_revision(),
         "machine": {
             "platform": platform.platform(),

@@ -23,7 +23,6 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import saferace
 from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.metrics import span_metrics, thinned_trajectory
@@ -40,6 +39,7 @@ from saferace.learning.configs import CollectionConfig, Perturbation
 from saferace.learning.rounds import FRAME_FIELDS, write_round
 from saferace.safety.filter import NominalAction, nominal_parts
 from saferace.safety.state_sources import true_lane_state
+from saferace.version import __version__
 
 
 class SteeringNoise:
@@ -196,7 +196,7 @@ def collect_round(
         "control_hz": episodes[0].control_hz,
         "label_lookahead_s": TARGET_SPEED_LOOKAHEAD_S,
         "episodes": summaries,
-        "saferace_version": saferace.__version__,
+        "saferace_version": __version__,
         "git_revision": git_revision(),
         "packages": package_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

@@ -30,7 +30,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
 from saferace.learning.calibration import spread_scale_of
@@ -45,6 +44,7 @@ from saferace.learning.configs import (
 from saferace.learning.rounds import load_rounds
 from saferace.learning.run_layout import RunLayout
 from saferace.learning.training import train_networks
+from saferace.version import __version__
 
 #: Columns of ``metrics.csv`` (the held-out part's are prefixed ``held_out_``).
 METRIC_COLUMNS = (
@@ -277,7 +277,7 @@ class DaggerRun:
                 )
             return
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        record = {"fingerprint": wanted, "saferace_version": saferace.__version__}
+        record = {"fingerprint": wanted, "saferace_version": __version__}
         path.write_text(json.dumps(record, indent=2) + "\n")
 
     def _link_shared_iterations(self) -> None:

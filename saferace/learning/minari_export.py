@@ -27,6 +27,7 @@ import gymnasium as gym
 import numpy as np
 
 from saferace.errors import SafeRaceError
+from saferace.extras import require
 from saferace.learning.rounds import FRAME_FIELDS, round_dirs, round_episodes
 
 INFO_FIELDS = tuple(name for name in FRAME_FIELDS if name not in ("image", "velocity", "episode"))
@@ -40,8 +41,8 @@ def export_minari(
 ):
     """Write the episodes of ``rounds`` (round or dataset folders) as the Minari dataset
     ``dataset_id`` (under ``datasets_dir``, else Minari's own root); the ``MinariDataset``."""
-    import minari
-    from minari.data_collector import EpisodeBuffer
+    minari = require("minari", "minari", "exporting rounds as a Minari dataset")
+    EpisodeBuffer = require("minari.data_collector", "minari", "the Minari export").EpisodeBuffer
 
     folders = [folder for path in rounds for folder in round_dirs(path)]
     if not folders:
@@ -117,7 +118,7 @@ def _episode_buffer(buffer_type, frames: dict, seeds: list[int], rewards):
 
 def _rewards(config: dict):
     """The task's reward of each step of a round's episode, from its recorded states."""
-    from saferace.envs.racing_env import reference_line
+    from saferace.envs.reference_lines import reference_line
     from saferace.track import Track
     from saferace.track.frenet import wrap_arc
 

@@ -30,7 +30,6 @@ import torch
 from torch.nn import functional
 from tqdm import tqdm
 
-import saferace
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
 from saferace.learning.checkpoint import load_checkpoint, save_atomically
@@ -42,6 +41,7 @@ from saferace.learning.networks import (
     state_config,
 )
 from saferace.learning.rounds import FrameSet
+from saferace.version import __version__
 
 LOG = logging.getLogger(__name__)
 #: Frames sampled to estimate the images' per-channel mean and spread.
@@ -272,7 +272,7 @@ def train_networks(
         "history": history,
         "kept": {name: config.init for name in NETWORKS if name not in config.networks},
         "train_seconds": time.perf_counter() - started,
-        "saferace_version": saferace.__version__,
+        "saferace_version": __version__,
         "git_revision": git_revision(),
         "packages": package_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

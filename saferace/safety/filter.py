@@ -123,94 +123,46 @@ class SafetyFilter(gym.Wrapper):
 
     Each step the filter takes the agent's action ``u_ref`` (and its spread, see
     :class:`NominalAction`), samples the lane state from ``state_source``, builds the lane
-    and heading HOCBF constraints of ``model`` for every sample (linearised in the
-    steering around ``u_ref``, see :mod:`saferace.safety.barriers`, then again around the
-    solution, ``linearisation_passes`` in all), turns them into chance
-    constraints ``Pr(psi_m >= -eps) >= eta`` and applies the solution of
+    and heading HOCBF constraints of ``model`` for every sample (linearised in the steering
+    around ``u_ref``, then around the solution, ``linearisation_passes`` in all: ``tan``
+    linearised at a hard-steering agent's action over-promises turn), turns them into
+    chance constraints ``Pr(psi_m >= -eps) >= eta`` and applies the solution of
 
         min (u - u_ref)^T diag(u_std^2)^-1 (u - u_ref) + k_err * sum(eps^2)
 
-    within the actuator limits (:mod:`saferace.safety.qp`), less any braking that would stop
-    the car within the control step: the filter never drives the car backwards. Below
-    ``creep_speed_mps`` it accelerates at least ``CREEP_ACCEL_MPS2``, or as the agent does if
-    that is less, so it brakes no harder than the agent there (0 turns the rule off; a failed
-    solve still brakes): at a standstill the steering drops out of the lane
-    barriers, so a car stopped heading for an edge may not accelerate and cannot be steered
-    away, and the filter held it there for good (measured: a racing-line policy on lab
-    behind the perceived state stood 53 s of its 60 at one spot; creeping off on full lock
-    it lapped in 10.2 s, inside the lane). With one state sample, or
-    ``probabilistic=False``, it is the deterministic HOCBF filter (on the samples' mean).
+    within the actuator limits (:mod:`saferace.safety.qp`), never braking the car backwards.
+    With one sample, or ``probabilistic=False``, it is the deterministic HOCBF filter on the
+    samples' mean. ``info["safety"]`` holds a :class:`SafetyDecision` every step; a failed
+    solve brakes at ``FALLBACK_BRAKE_MPS2`` while steering toward the centre line, and is
+    counted in ``failures``.
 
-    One departure from the paper's chance constraints: their spread is taken at the agent's
-    acceleration, not at the filtered one (:func:`~saferace.safety.chance.spread_at_accel`).
-    In the lane barriers the acceleration's coefficient, ``-/+ sin(e_psi + beta)``, varies
-    with the sampled heading in step with the heading's own term, ``k v sin(e_psi)`` (``k``
-    the barrier's gain on ``dh/dt``, about 8 1/s at lab's centre with the tuned gains), so
-    braking by ``da`` shrinks the spread by about ``da / (k v)`` of itself: a quarter when
-    an agent's +2 m/s^2 becomes -4 at 3 m/s. The effect is real (braking slows the lateral
-    drift whichever way the car heads) but lasts one step, and where a wide heading spread
-    at speed leaves neither lane side feasible, the slack weight made it worth braking at
-    full force, step after step; from a standstill, where accelerating widens the spread, it
-    held the car still. Measured on lab's racing line behind a calibrated state network: the
-    final policy of ``paper-tables``' Table 2 braked at -4 m/s^2 in 44 of its 158 steps and
-    lapped in 7.85 s (7.06 s unfiltered); the policy of an earlier iteration stood still for
-    16 s of a 28.3 s lap. With the spread at the agent's acceleration: 7.40 and 9.12 s, both
-    inside the lane. The acceleration still acts through the constraints' mean.
+    Departures from the paper, each because the paper's form failed a measured case (the
+    docs' safety-filter page gives the measurements):
 
-    ``info["safety"]`` holds a :class:`SafetyDecision` as a dict every step. A failed solve
-    falls back to braking at ``FALLBACK_BRAKE_MPS2`` while steering toward the centerline
-    (``-FALLBACK_STEER_PER_M * e_y - FALLBACK_STEER_PER_RAD * e_psi`` of the estimate); it
-    is counted in ``failures`` and flagged in ``info``.
+    - the chance constraints' spread is taken at the agent's acceleration
+      (:func:`~saferace.safety.chance.spread_at_accel`), so the filter does not brake at
+      full force to narrow its own heading spread;
+    - below ``creep_speed_mps`` it accelerates at least ``CREEP_ACCEL_MPS2`` (or as the
+      agent does, if less): at a standstill the steering drops out of the lane barriers,
+      and a stopped car heading for an edge could otherwise be held there for good;
+    - ``speed_limit_factor`` adds the barrier ``h_speed = v_limit(s) - v_x`` on the task's
+      speed profile (:mod:`saferace.safety.speed_limit`): the lane barriers cannot make the
+      car brake, so a car too fast for the tyres' grip would slide out whatever it steers;
+    - ``width_preview_s`` takes the narrowest half width reached within that time, since a
+      second-order barrier cannot see a narrowing coming; ``map_curvature`` takes the
+      curvature from the map (a state network judges it worst, and a wrong curvature turns
+      the barriers' steering the wrong way).
 
     Arguments: ``state_source`` (default: the oracle); ``model``: ``"kinematic"``,
     ``"dynamic"`` or ``"dynamic-paper"``; ``lam``: the class-K gain (1/s) of every HOCBF
-    order, or a tuple of one per order (see :mod:`saferace.safety.barriers`);
-    ``theta_max`` (rad) and ``eta`` as in the paper; ``k_err`` the slack weight;
-    ``action_std``: the spread assumed when the agent gives none; ``min_action_std``: its
-    floor, so that a confident agent does not make the QP ill-conditioned;
-    ``lane_margin_m``: added to the car's half width in the lane barriers, so that the edge
-    the filter holds the car to lies this far inside the lane (the models are not exact;
-    riding ``h = 0`` would graze the line); ``linearisation_passes``: how often the QP is
-    solved with the constraints linearised at the last answer (the first pass at ``u_ref``):
-    against an agent steering hard one way, ``tan`` linearised at its steering promised
-    0.2 rad more turn than the car got and let it out of the lane for seconds; a second pass
-    linearises at the first answer, close to the one applied (passes stop early once the
-    steering moves less than ``RELINEARISE_TOL``). ``params``: vehicle parameters
-    (default: identified ones).
-
-    Options beyond the paper, off by default (measured with ``saferace safety-table``'s
-    runs): ``lateral_decel_mps2`` makes the lane barriers' first class-K function saturate
-    at the stopping condition ``dh/dt >= -sqrt(2 a h)``, so that a large first gain does not
-    let the car head for a distant edge faster than it can turn away;
-    ``max_lateral_accel_mps2`` bounds the steering so that the kinematic lateral
-    acceleration ``v_x^2 tan(delta) / L`` stays inside the tyres' grip (the kinematic model
-    assumes the tyres do not slide). ``GAIN_PRESETS`` names the paper's gain and the
-    measured ``"tuned"`` gains. On ``saferace safety-table``'s 6 tracks the tuned gains cost
-    the expert 0.0-1.1% of its lap time and correct it in 0-29% of its steps; the paper's
-    cost it 0.6-3.4% and correct 24-93%. With both, every oracle and noisy-state
-    probabilistic reckless run stays inside its lane.
-
-    Beyond the paper and on by default: the lane and heading barriers cannot make the car
-    brake (the acceleration barely enters them), so an agent that enters a corner too fast
-    for the tyres' grip slides out whatever the filter steers. ``speed_limit_factor`` adds
-    the barrier ``h_speed = v_limit(s) - v_x``: the task's reference speed profile (planned
-    for 5 m/s^2 of lateral acceleration; 1.1x the speed is 6 m/s^2, well inside the tyres'
-    grip of about 9.8), braked for within the friction ellipse ``SPEED_LIMIT_DECEL_MPS2``
-    by ``SPEED_LIMIT_LATERAL_MPS2`` before corners; a car far from the reference line is
-    held to the same lateral acceleration along the centre line's parallel through its
-    offset, since a racing line's profile holds on the line only
-    (:mod:`saferace.safety.speed_limit`), with the CBF condition ``dh/dt + lam_1 h >= 0``,
-    i.e. ``accel <= lam_1 h + dv_limit/ds * v_x``. It needs the car's arc length on the
-    track map (localisation, ``info["s_m"]``) and takes the lowest limit over the state
-    samples' offsets; ``None`` turns it off. The lane barriers take the half widths' slopes
-    along the track from the map at the same ``s`` (see :mod:`saferace.safety.barriers`);
-    with ``width_preview_s`` they take the narrowest width the car reaches within that time
-    (and its slope) instead, since a second-order barrier cannot see a narrowing coming: a
-    lane narrowed at a real circuit's kink widens and narrows again within metres.
-    ``map_curvature=True`` takes the centerline's curvature from the map at ``s`` too,
-    instead of the state source's: a learned state network judges the curvature under the
-    car worst (off by 0.1-0.4 1/m on lab, against 0.02-0.03 m for ``e_y``), and a wrong
-    curvature turns the lane barriers' steering the wrong way.
+    order, or one per order; ``lateral_decel_mps2``: saturate the first class-K function at
+    the stopping condition ``dh/dt >= -sqrt(2 a h)``; ``max_lateral_accel_mps2``: keep
+    ``v_x^2 tan(delta) / L`` inside the tyres' grip (the kinematic model assumes no
+    sliding); ``theta_max`` (rad) and ``eta`` as in the paper; ``k_err`` the slack weight;
+    ``action_std``: the spread assumed when the agent gives none, ``min_action_std`` its
+    floor; ``lane_margin_m``: added to the car's half width in the lane barriers (the
+    models are not exact); ``params``: vehicle parameters (default: identified ones).
+    ``GAIN_PRESETS`` names the settings the command line offers.
     """
 
     def __init__(

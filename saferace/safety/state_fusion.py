@@ -1,22 +1,15 @@
 """A state source that fuses a perceived lane state with odometry in a Kalman filter.
 
-A state network can be wrong and sure of it: on ``lab``, a network that had never seen the
-car off the centre on a stretch put it at +0.05 m while it drifted from -0.1 to -0.5 m,
-its heading 0.3 rad off for 0.6 s, with an MC-dropout spread of 2-9 cm. The car's own
-sensors know better how its heading changes: the yaw rate (IMU) less the map's curvature
-at the localised ``s`` times the speed along the track. :class:`OdometryFusedStateSource`
-predicts ``[e_y, e_psi]`` with that Frenet kinematics, takes the network's samples as a
-measurement with their covariance, and leaves out a measurement whose Mahalanobis distance
-from the prediction is beyond a chi-square gate. The filter gets the source's samples moved
-to the fused mean, so the chance constraints keep the network's (calibrated) spread: a
-Kalman filter that takes a network's errors for independent ones would shrink it to a
-fraction of the real error (seen on ``lab``: 1.5 cm against errors of up to 9 cm, and a
-lane exit that the unfused filter did not have).
-
-It does not help a network that is poor from its first frame: on a random track it never
-saw, started from a heading 0.2 rad off and then trusting its dead reckoning over the
-network's 0.15-0.8 rad heading spread, it let a racing-line policy out of the lane that
-the unfused filter kept inside (see :class:`~saferace.experiments.paper.Preset`).
+A state network can be wrong and sure of it; the car's own sensors know better how its
+heading changes: the yaw rate (IMU) less the map's curvature at the localised ``s`` times
+the speed along the track. :class:`OdometryFusedStateSource` predicts ``[e_y, e_psi]`` with
+that Frenet kinematics, takes the network's samples as a measurement with their covariance,
+and leaves out a measurement whose Mahalanobis distance from the prediction is beyond a
+chi-square gate. The filter gets the source's samples moved to the fused mean, so the chance
+constraints keep the network's (calibrated) spread: a Kalman filter that took a network's
+errors for independent ones would shrink it to a fraction of the real error. It cannot help
+a network that is poor from its first frame (it then trusts its own dead reckoning); the
+docs' learned-driver page gives the measurements.
 """
 
 from __future__ import annotations
