@@ -92,7 +92,7 @@ def filter_config(args: argparse.Namespace):
         raise SafeRaceError("--state-noise is for the noisy oracle, not a learned state source")
     samples = args.samples
     if samples is None:
-        samples = NOISY_SAMPLES if noise is not None else MC_SAMPLES
+        samples = MC_SAMPLES if learned else NOISY_SAMPLES
     config = config_from_args(
         FilterConfig(),
         args,

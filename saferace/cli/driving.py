@@ -117,9 +117,9 @@ def _drive(args: argparse.Namespace) -> int:
         safety=safety,
     )
     row = result_row(
-        args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-", result
-    )
-    row["filter"] = safety.as_dict()
+        args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-",
+        result, safety=safety,
+    )  # fmt: skip
     print(leaderboard_markdown([row]))
     for label, path in (("video", args.video), ("rerun recording", args.rerun)):
         if path:

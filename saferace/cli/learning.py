@@ -110,19 +110,33 @@ def register(commands: argparse._SubParsersAction) -> None:
     export.set_defaults(command=_export_minari)
 
 
-def _collect(args: argparse.Namespace) -> int:
-    from saferace.eval.leaderboard import leaderboard_markdown
-    from saferace.learning.collect import collect_round
+def collection_config(args: argparse.Namespace):
+    """The ``CollectionConfig`` that ``saferace collect``'s options describe."""
     from saferace.learning.configs import CollectionConfig
 
     defaults = CollectionConfig()
-    config = config_from_args(
+    return config_from_args(
         defaults,
         args,
         episode=config_from_args(defaults.episode, args, prefix="episode."),
         perturbation=config_from_args(defaults.perturbation, args, prefix="perturbation."),
         safety=filter_config(args),
     )
+
+
+def train_config(args: argparse.Namespace):
+    """The ``TrainConfig`` that ``saferace train``'s options describe."""
+    from saferace.learning.configs import TrainConfig
+
+    config = config_from_args(TrainConfig(), args)
+    return config_from_args(config, args, val_stretch=None) if args.no_validation else config
+
+
+def _collect(args: argparse.Namespace) -> int:
+    from saferace.eval.leaderboard import leaderboard_markdown
+    from saferace.learning.collect import collect_round
+
+    config = collection_config(args)
     collected = collect_round(args.out, config)
     rows = [
         {"agent": config.agent, "task": config.task, "track": Path(config.track).stem, "summary": s}
@@ -135,13 +149,9 @@ def _collect(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace) -> int:
     from saferace.learning.commands import train_and_report
-    from saferace.learning.configs import TrainConfig
 
     check_count("--samples", args.samples)
-    config = config_from_args(TrainConfig(), args)
-    if args.no_validation:
-        config = config_from_args(config, args, val_stretch=None)
-    report = train_and_report(args.data, args.out, config, args.samples, args.stereo)
+    report = train_and_report(args.data, args.out, train_config(args), args.samples, args.stereo)
     _print_report(report)
     return 0
 

@@ -135,11 +135,17 @@ def _safety_table(args: argparse.Namespace) -> int:
     return 0
 
 
-def _robustness(args: argparse.Namespace) -> int:
-    from saferace.experiments.robustness import run_robustness, write_report
+def robustness_config(args: argparse.Namespace):
+    """The ``RobustnessConfig`` that ``saferace robustness``'s options describe."""
     from saferace.experiments.robustness_config import RobustnessConfig
 
-    config = config_from_args(RobustnessConfig(), args, safety=filter_config(args))
+    return config_from_args(RobustnessConfig(), args, safety=filter_config(args))
+
+
+def _robustness(args: argparse.Namespace) -> int:
+    from saferace.experiments.robustness import run_robustness, write_report
+
+    config = robustness_config(args)
     runs = run_robustness(config, args.out)
     print(write_report(runs, config, args.out))
     print(f"runs.jsonl, robustness.md, .csv and .png written to {args.out}")

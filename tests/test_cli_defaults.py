@@ -1,0 +1,87 @@
+"""The command line and the library agree on every default: a config built from a command
+with no options is the config's own default, and every generated option's default is its
+field's (a drift once made ``saferace dagger`` and ``DaggerRun(DaggerConfig())`` run
+different filters)."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from saferace.cli import build_parser
+from saferace.cli.arguments import filter_config
+from saferace.cli.experiments import dagger_config
+from saferace.cli.learning import collection_config, train_config
+from saferace.cli.options import FLAGS_KEY
+from saferace.cli.safety import robustness_config
+from saferace.eval.filter_config import FilterConfig
+from saferace.experiments.robustness_config import RobustnessConfig
+from saferace.learning.configs import CollectionConfig, DaggerConfig, TrainConfig
+from saferace.names import DEFAULT_GAINS, GAIN_NAMES
+
+PARSER = build_parser()
+#: Each command built from a config: its shortest command line, its builder, the default.
+BUILT = {
+    "dagger": (["--out", "run"], dagger_config, DaggerConfig()),
+    "collect": (["--out", "data"], collection_config, CollectionConfig()),
+    "train": (["data", "--out", "m.pt"], train_config, TrainConfig()),
+    "robustness": (["--out", "robust"], robustness_config, RobustnessConfig()),
+    "eval": (["--out", "rows.jsonl"], filter_config, FilterConfig()),
+    "drive": ([], filter_config, FilterConfig()),
+}
+
+
+def subparsers() -> dict[str, argparse.ArgumentParser]:
+    (action,) = (a for a in PARSER._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+@pytest.mark.parametrize("command", sorted(BUILT))
+def test_a_command_without_options_builds_the_default_config(command: str):
+    argv, build, default = BUILT[command]
+    assert build(PARSER.parse_args([command, *argv])) == default
+
+
+def library_default(config, dest: str):
+    """The default of the field an option's ``dest`` names (``training.epochs``: the
+    config's training's epochs; ``filter.*`` is the filter config wherever it nests)."""
+    *path, name = dest.split(".")
+    for part in path:
+        config = getattr(config, part, None) or getattr(config, "safety", FilterConfig())
+    value = getattr(config, name)
+    return list(value) if isinstance(value, tuple) else value
+
+
+@pytest.mark.parametrize("command", sorted(BUILT))
+def test_every_generated_option_defaults_to_its_field(command: str):
+    parser = subparsers()[command]
+    _, _, default = BUILT[command]
+    flags = parser.get_default(FLAGS_KEY)
+    generated = [
+        a for a in parser._actions if a.option_strings and a.option_strings[0] in flags.values()
+    ]
+    assert len(generated) == len(set(flags.values())) > 5
+    for action in generated:
+        assert action.default == library_default(default, action.dest), action.dest
+
+
+def test_one_default_gain_setting_everywhere():
+    from saferace.safety.filter import GAIN_PRESETS
+
+    assert tuple(GAIN_PRESETS) == GAIN_NAMES
+    assert DaggerConfig().filter.gains == FilterConfig().gains == DEFAULT_GAINS
+    for command in ("eval", "dagger", "collect", "robustness"):
+        args = PARSER.parse_args([command, "--out", "x"])
+        assert args.__dict__["filter.gains"] == DEFAULT_GAINS, command
+    table = PARSER.parse_args(["safety-table"])
+    assert table.filter_gains == DEFAULT_GAINS
+
+
+def test_a_config_error_names_the_option(capsys: pytest.CaptureFixture):
+    from saferace.cli import main
+
+    assert main(["collect", "--perturb", "-0.1", "--out", "x"]) == 2
+    assert "--perturb needs a non-negative" in capsys.readouterr().err
+    assert main(["dagger", "--lr", "0", "--out", "x"]) == 2
+    assert "--lr must be positive" in capsys.readouterr().err
