@@ -203,7 +203,7 @@ class CollectionConfig:
         """Flat, as a round's manifest keeps it (the episode settings beside the rest)."""
         values = asdict(self)
         values.update(values.pop("episode"))
-        values["image_size"] = [self.settings.image_size] * 2
+        values["image_size"] = [self.episode.image_size] * 2
         values["safety"] = self.safety.as_dict()
         return values
 
