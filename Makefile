@@ -4,9 +4,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 TORCH_VERSION := 2.14.1
 TORCHVISION_VERSION := 0.29.1
+EXTRAS := dev,ray,minari,sb3,docs
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-slow lint bench clean
+.PHONY: setup demo demo-summary test test-slow lint docs bench clean
 
 setup: .sysdeps-stamp $(VENV)/.setup-stamp
 
@@ -18,41 +19,67 @@ $(VENV)/.setup-stamp: pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==$(TORCH_VERSION) torchvision==$(TORCHVISION_VERSION)
-	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	$(BIN)/python -m pip install --quiet -e ".[$(EXTRAS)]"
 	touch $@
 
+# Each demo stage runs through $(call stage,NAME,COMMAND), which appends "NAME SECONDS" to
+# $(TIMINGS); the demo ends with what it wrote under results/ and the time per stage.
+RESULTS := results
+TIMINGS := $(RESULTS)/demo_timings.txt
+stage = @echo "== $(1): $(strip $(2))" && start=$$(date +%s) && $(2) && \
+	echo "$(1) $$(( $$(date +%s) - start ))" >> $(TIMINGS)
+
 demo: setup
-	mkdir -p results
-	$(BIN)/saferace raceline technical --out results/technical_raceline.csv --plot results/technical_raceline.png
-	rm -f results/results.jsonl
-	$(BIN)/saferace eval --agent expert --task CenterLine --track technical --out results/results.jsonl
-	$(BIN)/saferace eval --agent expert --task RacingLine --track technical --out results/results.jsonl
-	$(BIN)/saferace leaderboard results/results.jsonl --plot results/trajectories.png
-	$(BIN)/saferace drive --agent expert --task RacingLine --track technical \
-		--video results/technical_racingline.mp4 --rerun results/technical_racingline.rrd
-	$(BIN)/saferace snapshots --out results/snapshots
-	$(BIN)/saferace safety-table --random-tracks 11 23 --out results/safety
+	mkdir -p $(RESULTS)
+	rm -f $(RESULTS)/results.jsonl && echo "started $$(date +%s)" > $(TIMINGS)
+	$(call stage,raceline,$(BIN)/saferace raceline technical \
+		--out results/technical_raceline.csv --plot results/technical_raceline.png)
+	$(call stage,eval-expert,$(BIN)/saferace eval --agent expert --task CenterLine --track technical \
+		--out results/results.jsonl && $(BIN)/saferace eval --agent expert --task RacingLine \
+		--track technical --out results/results.jsonl)
+	$(call stage,leaderboard,$(BIN)/saferace leaderboard results/results.jsonl \
+		--plot results/trajectories.png)
+	$(call stage,drive-video,$(BIN)/saferace drive --agent expert --task RacingLine --track technical \
+		--video results/technical_racingline.mp4 --rerun results/technical_racingline.rrd)
+	$(call stage,snapshots,$(BIN)/saferace snapshots --out results/snapshots)
+	$(call stage,safety-table,$(BIN)/saferace safety-table --random-tracks 11 23 --out results/safety)
 	rm -rf results/learned
-	$(BIN)/saferace collect --agent expert --task CenterLine --track lab --laps 3 \
-		--seeds 0 1 2 3 4 5 --perturb 0.05 --out results/learned/data
-	$(BIN)/saferace collect --agent expert --task CenterLine --track lab --laps 3 \
-		--seeds 100 --out results/learned/data
-	$(BIN)/saferace train results/learned/data --out results/learned/lab_mono.pt
-	$(BIN)/saferace eval --agent learned:results/learned/lab_mono.pt --task CenterLine \
-		--track lab --laps 3 --out results/learned/eval.jsonl
-	$(BIN)/saferace gradcam results/learned/lab_mono.pt --track lab --out results/learned/gradcam
-	$(BIN)/saferace paper-tables --preset quick --out results/paper
+	$(call stage,collect,$(BIN)/saferace collect --agent expert --task CenterLine --track lab --laps 3 \
+		--seeds 0 1 2 3 4 5 --perturb 0.05 --out results/learned/data && \
+		$(BIN)/saferace collect --agent expert --task CenterLine --track lab --laps 3 \
+		--seeds 100 --out results/learned/data)
+	$(call stage,train,$(BIN)/saferace train results/learned/data --out results/learned/lab_mono.pt)
+	$(call stage,eval-learned,$(BIN)/saferace eval --agent learned:results/learned/lab_mono.pt \
+		--task CenterLine --track lab --laps 3 --out results/learned/eval.jsonl)
+	$(call stage,gradcam,$(BIN)/saferace gradcam results/learned/lab_mono.pt --track lab \
+		--out results/learned/gradcam)
+	$(call stage,paper-tables,$(BIN)/saferace paper-tables --preset quick --out results/paper)
+	@$(MAKE) --no-print-directory demo-summary
+
+# What the last demo wrote under $(RESULTS) (files no older than the start in $(TIMINGS); a
+# dataset's round folders, or a folder of more than 8 files, as one line with their count and
+# size) and the seconds per stage. Runs alone too: make demo-summary [RESULTS=folder]
+
+demo-summary:
+	@$(BIN)/python scripts/demo_summary.py $(RESULTS)
 
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q
+	$(BIN)/ruff format --check .
+	if [ -f mkdocs.yml ]; then $(BIN)/mkdocs build --strict; fi
+	$(BIN)/python -m pytest -q --durations=15
 
 test-slow: setup
 	bash scripts/install_chromium.sh
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow --durations=15
 
 lint: setup
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy saferace
+
+docs: setup
+	$(BIN)/mkdocs build --strict
 
 bench: setup
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
@@ -64,4 +91,4 @@ bench: setup
 	$(BIN)/python benchmarks/benchmark_scaling.py
 
 clean:
-	rm -rf $(VENV) .sysdeps-stamp results
+	rm -rf $(VENV) .sysdeps-stamp results site

@@ -16,8 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from saferace.experiments.benchmark import load_suite, run_benchmark
 from saferace.eval.tables import markdown_table
+from saferace.experiments.benchmark import load_suite, run_benchmark
 
 
 def main() -> None:

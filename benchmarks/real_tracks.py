@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from saferace.experiments.safety_table import filter_label, run_table
 from saferace.eval.tables import markdown_table
+from saferace.experiments.safety_table import filter_label, run_table
 from saferace.names import DEFAULT_GAINS
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import RacingLineSettings, racing_line

@@ -12,9 +12,9 @@ from __future__ import annotations
 import json
 
 from saferace.eval.agents import make_agent
-from saferace.experiments.benchmark import SUITE_VERSION, suite_folder
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import make_task_env, max_steps_for, run_episode
+from saferace.experiments.benchmark import SUITE_VERSION, suite_folder
 from saferace.track import Track, builtin_track_names
 from saferace.track.random_track import write_random_track
 

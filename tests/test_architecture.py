@@ -84,7 +84,7 @@ def test_no_import_cycles():
         state[module] = 1
         for child in graph.get(module, ()):
             # a package's __init__ importing its own submodules is not a cycle of two modules
-            if child == module or module.startswith(child + ".") and child != "saferace":
+            if child == module or (module.startswith(child + ".") and child != "saferace"):
                 continue
             if state.get(child) == 1:
                 raise AssertionError(" -> ".join([*trail, module, child]))

@@ -10,8 +10,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import saferace  # noqa: F401  - registers the tasks
-from saferace.registry import TASKS
 from saferace.errors import SafeRaceError
+from saferace.registry import TASKS
 from saferace.track import Track, builtin_track_names
 
 TASK_IDS = sorted(TASKS)

@@ -1,4 +1,5 @@
-"""The examples run as a user would run them (slow: they train)."""
+"""The examples run as a user would run them (slow: they train), and say which extra they
+need when it is missing."""
 
 from __future__ import annotations
 
@@ -12,8 +13,24 @@ import pytest
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
+def test_sb3_example_without_sb3_names_the_extra(tmp_path: Path):
+    blocked = (
+        "import runpy, sys\n"
+        "sys.modules['stable_baselines3'] = None\n"
+        f"sys.argv = ['sb3_ppo_through_filter.py', '--out', {str(tmp_path)!r}]\n"
+        f"runpy.run_path({str(EXAMPLES / 'sb3_ppo_through_filter.py')!r}, run_name='__main__')"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", blocked], capture_output=True, text=True, timeout=300, check=False
+    )
+    assert result.returncode == 1
+    assert "pip install 'saferace[sb3]'" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
 @pytest.mark.slow
 def test_sb3_ppo_trains_through_the_filter_and_drives(tmp_path: Path):
+    pytest.importorskip("stable_baselines3", reason="needs saferace[sb3]")
     result = subprocess.run(
         [sys.executable, str(EXAMPLES / "sb3_ppo_through_filter.py"), "--timesteps", "512",
          "--out", str(tmp_path)],

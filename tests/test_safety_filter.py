@@ -9,9 +9,9 @@ import sympy as sp
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.agents.reckless import DriftAgent, WeaveAgent
-from saferace.names import GAIN_NAMES as FILTER_GAINS
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.eval.runner import run_episode
+from saferace.names import GAIN_NAMES as FILTER_GAINS
 from saferace.safety import filter as filter_module
 from saferace.safety.barriers import (
     BARRIER_NAMES,

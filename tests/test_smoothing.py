@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from cli_helpers import run_cli
 
-from saferace.names import SMOOTHING_KEEPS
 from saferace.errors import TrackError
+from saferace.names import SMOOTHING_KEEPS
 from saferace.track import Track, smoothing
 from saferace.track.track_io import write_track_csv
 

@@ -208,8 +208,6 @@ class CollectionConfig:
         return values
 
 
-
-
 def _dagger_training() -> TrainConfig:
     return TrainConfig(epochs=9, val_stretch=None)
 
