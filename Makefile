@@ -66,7 +66,7 @@ demo-summary:
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	if [ -f mkdocs.yml ]; then $(BIN)/mkdocs build --strict; fi
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 	$(BIN)/python -m pytest -q --durations=15
 
 test-slow: setup
@@ -79,7 +79,7 @@ lint: setup
 	$(BIN)/mypy saferace
 
 docs: setup
-	$(BIN)/mkdocs build --strict
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
 
 bench: setup
 	$(BIN)/python -m pip install --quiet -e ".[dev,bench]"
