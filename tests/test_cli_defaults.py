@@ -6,6 +6,7 @@ different filters)."""
 from __future__ import annotations
 
 import argparse
+import shlex
 
 import pytest
 
@@ -85,3 +86,19 @@ def test_a_config_error_names_the_option(capsys: pytest.CaptureFixture):
     assert "--perturb needs a non-negative" in capsys.readouterr().err
     assert main(["dagger", "--lr", "0", "--out", "x"]) == 2
     assert "--lr must be positive" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", sorted(subparsers()))
+def test_every_option_has_help_and_every_command_an_example(command: str):
+    parser = subparsers()[command]
+    undocumented = [
+        action.dest
+        for action in parser._actions
+        if not isinstance(action, argparse._HelpAction) and not action.help
+    ]
+    assert not undocumented
+    assert parser.epilog and parser.epilog.startswith("examples:")
+    for line in parser.epilog.splitlines()[1:]:
+        program, *argv = shlex.split(line)
+        assert program == "saferace" and argv[0] == command
+        PARSER.parse_args(argv)  # the example is a valid command line
