@@ -267,10 +267,10 @@ class DaggerRun:
         wanted = self.config.fingerprint
         if path.exists():
             stored = json.loads(path.read_text())["fingerprint"]
+            # as read back from JSON: tuples are lists
+            wanted = json.loads(json.dumps(wanted))
             if stored != wanted:
-                differing = sorted(
-                    key for key in {*wanted, *stored} if stored.get(key) != wanted.get(key)
-                )
+                differing = _differing(stored, wanted)
                 raise SafeRaceError(
                     f"{self.out_dir} holds a DAgger run with other settings (differing: "
                     f"{', '.join(differing)}): start it again with those, or use another --out"
@@ -283,9 +283,12 @@ class DaggerRun:
     def _link_shared_iterations(self) -> None:
         """Share iterations ``0..filter_from`` (rounds, and the checkpoints trained on them)
         with the unfiltered run this one forks from: hard links where the file system
-        allows them (no second copy on disk), copies elsewhere."""
+        allows them (no second copy on disk), copies elsewhere. A source run made with
+        other settings is refused."""
         source = self.fork_of
         assert source is not None
+        unfiltered = replace(self.config, filter=replace(self.config.filter, kind="none"))
+        DaggerRun(source.root, unfiltered, progress=False)  # checks the source's settings
         shared = self.config.filter_from
         for iteration in range(shared + 1):
             if not source.manifest(iteration).exists():
@@ -314,6 +317,18 @@ class DaggerRun:
             if row["iteration"] <= shared and row["iteration"] not in done:
                 with open(self.layout.metrics_jsonl, "a") as handle:
                     handle.write(json.dumps(row) + "\n")
+
+
+def _differing(stored: dict, wanted: dict, prefix: str = "") -> list[str]:
+    """The dotted names of the settings that differ between two fingerprints."""
+    names = []
+    for key in sorted({*stored, *wanted}):
+        old, new = stored.get(key), wanted.get(key)
+        if isinstance(old, dict) and isinstance(new, dict):
+            names += _differing(old, new, f"{prefix}{key}.")
+        elif old != new:
+            names.append(prefix + key)
+    return names
 
 
 def _link(source: str | Path, destination: str | Path) -> None:
