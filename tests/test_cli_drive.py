@@ -9,6 +9,9 @@ import numpy as np
 from cli_helpers import run_cli
 from rerun.chunk import RrdReader
 
+from saferace.eval.drive import CAPTION_HEIGHT_PX
+from saferace.eval.leaderboard import COLUMNS
+
 
 def test_drive_writes_video_and_rerun_recording(tmp_path: Path):
     video, recording = tmp_path / "lap.mp4", tmp_path / "lap.rrd"
@@ -26,14 +29,16 @@ def test_drive_writes_video_and_rerun_recording(tmp_path: Path):
     assert result.returncode == 0, result.stderr
     row = next(line for line in result.stdout.splitlines() if "CenterLine" in line)
     cells = [cell.strip() for cell in row.strip("|").split("|")]
-    assert cells[:5] == [
+    assert cells[:7] == [
         "pure-pursuit",
         "CenterLine",
         "lab",
+        "none",
+        "none",
         "1",
         "1",
-    ]  # agent, task, track, seeds, laps
-    assert float(cells[9]) == 0.0  # no time outside the lane
+    ]  # agent, task, track, filter, state source, seeds, laps
+    assert float(cells[COLUMNS.index("outside lane [s]")]) == 0.0  # never outside the lane
     capture = cv2.VideoCapture(str(video))
     frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     ok, frame = capture.read()
@@ -65,7 +70,11 @@ def test_snapshots_of_every_track(tmp_path: Path):
         f"{t}_{k}.png" for t in ("lab", "oval", "technical", "varying") for k in ("mono", "stereo")
     ]
     image = cv2.imread(str(tmp_path / "lab_stereo.png"))
-    top, bottom = image[:120, :120], image[120:, :120]
+    assert image.shape == (CAPTION_HEIGHT_PX + 240, 120 + 320, 3)  # captions, then the views
+    band, views = image[:CAPTION_HEIGHT_PX], image[CAPTION_HEIGHT_PX:]
+    assert (band[:, :120].max(axis=2) < 128).sum() > 20  # "onboard" written over the pair
+    assert (band[:, 120:].max(axis=2) < 128).sum() > 20  # "chase" over the chase view
+    top, bottom = views[:120, :120], views[120:, :120]
     assert np.abs(top.astype(int) - bottom.astype(int)).mean() > 1.0  # two different cameras
 
 
@@ -76,8 +85,11 @@ def test_snapshots_of_a_randomisation_preset_make_a_contact_sheet(tmp_path: Path
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     sheet = cv2.imread(str(tmp_path / "lab_strong_looks.png"))
-    assert sheet.shape[0] == 2 * 240  # a row per seed, chase view 240 high
-    first, second = sheet[:240].astype(int), sheet[240:].astype(int)
+    assert sheet.shape[0] == CAPTION_HEIGHT_PX + 2 * 240  # captions, a row per seed
+    band = sheet[:CAPTION_HEIGHT_PX]
+    assert (band.max(axis=2) < 128).sum() > 40  # the views' names on a white band
+    rows = sheet[CAPTION_HEIGHT_PX:]
+    first, second = rows[:240].astype(int), rows[240:].astype(int)
     assert np.abs(first - second).mean() > 5.0  # two different looks
     refused = run_cli("snapshots", "--randomize", "wild", "--out", str(tmp_path))
     assert refused.returncode != 0 and "unknown VisualRandomization preset 'wild'" in refused.stderr

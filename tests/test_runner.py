@@ -114,6 +114,8 @@ def test_eval_rows_and_leaderboard(tmp_path: Path):
             "trajectory",
         } <= row.keys()
         assert row["packages"]["mujoco"] == "3.17.0"
+        assert row["filter"]["kind"] == "none"  # every row names its filter
+        assert row["config"]["track"] == "lab" and row["config"]["track_sha256"] is None
     assert rows[2]["solver"]["solve_median_ms"] > 0.0
     plot, table = tmp_path / "board.png", tmp_path / "board.csv"
     board = run_cli("leaderboard", str(results), "--plot", str(plot), "--csv", str(table))

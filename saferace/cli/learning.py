@@ -139,8 +139,14 @@ def _collect(args: argparse.Namespace) -> int:
     config = collection_config(args)
     collected = collect_round(args.out, config)
     rows = [
-        {"agent": config.agent, "task": config.task, "track": Path(config.track).stem, "summary": s}
-        for s in collected.episodes
+        {
+            "agent": config.agent,
+            "task": config.task,
+            "track": Path(config.track).stem,
+            "filter": config.safety.as_dict(),
+            "summary": summary,
+        }
+        for summary in collected.episodes
     ]
     print(leaderboard_markdown(rows))
     print(f"round of {collected.frame_count} frames written to {collected.path}")

@@ -12,7 +12,7 @@ from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.recording import EpisodeRecording
 from saferace.eval.runner import EpisodeResult, make_task_env, run_episode, task_id
-from saferace.eval.video import VideoWriter, side_by_side
+from saferace.eval.video import VideoWriter, onboard_panel, side_by_side
 from saferace.track.raceline import center_line, racing_line
 
 
@@ -71,8 +71,56 @@ def drive(
         env.close()
 
 
+#: Height of the white band above a snapshot that names its views, in pixels.
+CAPTION_HEIGHT_PX = 26
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def captioned_views(onboard: np.ndarray, chase: np.ndarray) -> np.ndarray:
+    """The onboard image (scaled up; a stereo pair stacked, each view labelled ``left`` or
+    ``right``) beside the chase view, under a band that names them: ``onboard`` and
+    ``chase``."""
+    panel = onboard_panel(onboard, chase.shape[0]).copy()
+    views = onboard.shape[-1] // 3
+    if views == 2:
+        for number, name in enumerate(("left", "right")):
+            _boxed_text(panel, name, (4, number * panel.shape[0] // 2 + 4))
+    frame = np.concatenate([panel, chase], axis=1)
+    band = np.full((CAPTION_HEIGHT_PX, frame.shape[1], 3), 255, np.uint8)
+    size = onboard.shape[0]
+    onboard_name = f"onboard {size}x{size}" + (", stereo" if views == 2 else "")
+    _centred_text(band, onboard_name, 0, panel.shape[1])
+    _centred_text(band, "chase", panel.shape[1], frame.shape[1])
+    return np.concatenate([band, frame], axis=0)
+
+
+def _centred_text(band: np.ndarray, text: str, left: int, right: int) -> None:
+    """``text`` in black, centred between columns ``left`` and ``right`` of ``band`` (smaller
+    if it would not fit)."""
+    scale = 0.55
+    (width, _), _ = cv2.getTextSize(text, _FONT, scale, 1)
+    scale = min(scale, scale * (right - left - 6) / width)  # shrunk to fit its column
+    (width, height), _ = cv2.getTextSize(text, _FONT, scale, 1)
+    origin = (left + max((right - left - width) // 2, 2), (band.shape[0] + height) // 2)
+    cv2.putText(band, text, origin, _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _boxed_text(image: np.ndarray, text: str, corner: tuple[int, int]) -> None:
+    """White ``text`` on a black box whose top left is ``corner``: readable on any image."""
+    (width, height), baseline = cv2.getTextSize(text, _FONT, 0.45, 1)
+    x, y = corner
+    cv2.rectangle(image, (x, y), (x + width + 4, y + height + baseline + 2), (0, 0, 0), -1)
+    cv2.putText(image, text, (x + 2, y + height + 1), _FONT, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def write_rgb(path: Path, image: np.ndarray) -> Path:
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    return path
+
+
 def snapshots(out_dir: str | Path, tracks: list[str], image_size: int = 64) -> list[Path]:
-    """Onboard (mono and stereo) and chase-view PNGs at the start of each track."""
+    """Onboard (mono and stereo) and chase-view PNGs at the start of each track, under a
+    caption band that names the views (:func:`captioned_views`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -86,10 +134,9 @@ def snapshots(out_dir: str | Path, tracks: list[str], image_size: int = 64) -> l
                 render_mode="rgb_array",
             )
             observation, _ = env.reset(seed=0)
-            frame = side_by_side(observation["image"], env.render())
+            frame = captioned_views(observation["image"], env.render())
             path = out_dir / f"{Path(name).stem}_{'stereo' if stereo else 'mono'}.png"
-            cv2.imwrite(str(path), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-            written.append(path)
+            written.append(write_rgb(path, frame))
             env.close()
     return written
 
@@ -102,7 +149,8 @@ def contact_sheets(
     image_size: int = 64,
 ) -> list[Path]:
     """One PNG per track of the looks that ``randomize`` draws for ``seeds``: a row per seed,
-    the onboard view (scaled up) beside the chase view, the seed written on each row."""
+    the onboard view (scaled up) beside the chase view, the seed written on each row, under
+    a caption band that names the views."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -117,11 +165,12 @@ def contact_sheets(
         rows = []
         for seed in seeds:
             observation, _ = env.reset(seed=seed)
-            row = side_by_side(observation["image"], env.render())
-            cv2.putText(row, f"seed {seed}", (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 0))
+            row = captioned_views(observation["image"], env.render())
+            if rows:  # one caption band, above the first row
+                row = row[CAPTION_HEIGHT_PX:]
+            _boxed_text(row, f"seed {seed}", (4, row.shape[0] - 24))
             rows.append(row)
         env.close()
         path = out_dir / f"{Path(name).stem}_{randomize}_looks.png"
-        cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(rows, axis=0), cv2.COLOR_RGB2BGR))
-        written.append(path)
+        written.append(write_rgb(path, np.concatenate(rows, axis=0)))
     return written

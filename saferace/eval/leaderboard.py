@@ -1,18 +1,29 @@
-"""Leaderboard tables (markdown, CSV) and trajectory plots from evaluation rows."""
+"""Leaderboard tables (markdown, CSV) and trajectory plots from evaluation rows.
+
+Every table line and plot label names the safety filter and the state source it was fed,
+in words (:func:`filter_words`, :func:`state_source_words`): a filtered and an unfiltered
+run of the same agent are two lines, never one.
+"""
 
 from __future__ import annotations
 
+import json
 from collections import defaultdict
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 
+from saferace.eval.filter_config import FilterConfig
 from saferace.eval.tables import markdown_table, write_csv
+from saferace.names import DEFAULT_FILTER_MODEL, DEFAULT_GAINS, NOISY_SAMPLES
 
 COLUMNS = (
     "agent",
     "task",
     "track",
+    "filter",
+    "state source",
     "seeds",
     "laps completed",
     "best lap [s]",
@@ -20,26 +31,113 @@ COLUMNS = (
     "mean abs dev [m]",
     "max abs dev [m]",
     "outside lane [s]",
+    "interventions [%]",
     "steer rate RMS [rad/s]",
 )
+_MEAN_LAP = COLUMNS.index("mean lap [s]")
+_FILTER_FIELDS = {field.name for field in fields(FilterConfig)}
+_DEFAULT_FILTER = FilterConfig()
+
+
+def row_filter(row: dict) -> FilterConfig:
+    """The :class:`FilterConfig` a result row ran behind; a row without one (written before
+    rows recorded it, or by ``saferace collect``) ran without a filter."""
+    config = {k: v for k, v in (row.get("filter") or {}).items() if k in _FILTER_FIELDS}
+    for name in ("state_noise", "spread_scale"):
+        if config.get(name) is not None:
+            config[name] = tuple(config[name])
+    return FilterConfig(**config)
+
+
+def _uncertain(config: FilterConfig) -> bool:
+    return config.state_source is not None or config.state_noise is not None
+
+
+def filter_words(config: FilterConfig) -> str:
+    """The filter in words: ``none``; ``cbf`` on the true state; ``cbf, probabilistic`` or
+    ``cbf, on the mean`` on uncertain state samples; then any setting off its default."""
+    if config.kind == "none":
+        return "none"
+    parts = [config.kind]
+    if _uncertain(config):
+        parts.append("probabilistic" if config.probabilistic else "on the mean")
+        if config.probabilistic and config.eta != _DEFAULT_FILTER.eta:
+            parts.append(f"eta {config.eta:g}")
+    if config.gains != DEFAULT_GAINS:
+        parts.append(f"{config.gains} gains")
+    if config.model != DEFAULT_FILTER_MODEL:
+        parts.append(f"{config.model} model")
+    if config.map_curvature:
+        parts.append("map curvature")
+    if config.spread_scale is not None:
+        parts.append("spread x" + "/".join(f"{factor:g}" for factor in config.spread_scale))
+    return ", ".join(parts)
+
+
+def state_source_words(config: FilterConfig) -> str:
+    """What fed the filter the lane state, in words: ``none`` (no filter), ``true state``
+    (the oracle), ``noisy`` (the oracle plus noise) or ``perceived`` (a state network, its
+    checkpoint in brackets); ``+ odometry`` when fused, and the samples when not the
+    default."""
+    if config.kind == "none":
+        return "none"
+    if not _uncertain(config):
+        return "true state"
+    details = []
+    if config.state_source is None:
+        words = "noisy"
+        e_y, e_psi = config.state_noise
+        details.append(f"sd {e_y:g} m, {e_psi:g} rad")
+    else:
+        words = "perceived"
+        checkpoint = config.state_source.partition(":")[2]
+        if checkpoint:
+            details.append(Path(checkpoint).name)
+    if config.samples != NOISY_SAMPLES:
+        details.append(f"{config.samples} samples")
+    if config.fuse_odometry:
+        words += " + odometry"
+    return f"{words} ({', '.join(details)})" if details else words
+
+
+def filter_phrase(config: FilterConfig) -> str:
+    """A legend's words for a filter setting: ``no filter``, or the filter and its state
+    source (``filter: cbf, on the mean; state source: noisy (...)``)."""
+    if config.kind == "none":
+        return "no filter"
+    return f"filter: {filter_words(config)}; state source: {state_source_words(config)}"
+
+
+def row_label(row: dict) -> str:
+    """A plot label that tells rows apart: agent, task, seed, filter and state source."""
+    head = f"{row['agent']} / {row['task']} / seed {row.get('seed', '-')}"
+    return f"{head} / {filter_phrase(row_filter(row))}"
 
 
 def leaderboard_rows(rows: list[dict]) -> list[list]:
-    """One line per (agent, task, track), averaged over seeds, sorted by mean lap time."""
+    """One line per (agent, task, track, filter, state source), averaged over seeds, sorted
+    by mean lap time. The whole filter configuration keys a group: runs behind different
+    filters are never merged."""
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for row in rows:
-        groups[(row["agent"], row["task"], row["track"])].append(row["summary"])
+        config = row_filter(row)
+        key = (row["agent"], row["task"], row["track"], json.dumps(config.as_dict()))
+        groups[key].append(row["summary"])
     table = []
-    for (agent, task, track), summaries in groups.items():
+    for (agent, task, track, config_json), summaries in groups.items():
+        config = FilterConfig(**_tuples(json.loads(config_json)))
         best = [s["best_lap_time_s"] for s in summaries if s["best_lap_time_s"] is not None]
         worst = [
             s["max_abs_deviation_m"] for s in summaries if s["max_abs_deviation_m"] is not None
         ]
+        rate = _mean(summaries, "intervention_rate")
         table.append(
             [
                 agent,
                 task,
                 track,
+                filter_words(config),
+                state_source_words(config),
                 len(summaries),
                 sum(s["laps_completed"] for s in summaries),
                 min(best) if best else None,
@@ -47,14 +145,22 @@ def leaderboard_rows(rows: list[dict]) -> list[list]:
                 _mean(summaries, "mean_abs_deviation_m"),
                 max(worst) if worst else None,
                 sum(s["time_outside_lane_s"] for s in summaries),
+                None if rate is None else 100.0 * rate,
                 _mean(summaries, "steering_rate_rms_radps"),
             ]
         )
-    return sorted(table, key=lambda r: (r[2], r[1], r[6] if r[6] is not None else np.inf))
+    return sorted(
+        table,
+        key=lambda r: (r[2], r[1], r[_MEAN_LAP] if r[_MEAN_LAP] is not None else np.inf),
+    )
+
+
+def _tuples(config: dict) -> dict:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
 
 
 def _mean(summaries: list[dict], key: str) -> float | None:
-    values = [s[key] for s in summaries if s[key] is not None]
+    values = [s[key] for s in summaries if s.get(key) is not None]
     return float(np.mean(values)) if values else None
 
 
@@ -69,28 +175,35 @@ def write_leaderboard_csv(rows: list[dict], path: str | Path) -> None:
 
 
 def plot_trajectories(rows: list[dict], path: str | Path) -> None:
-    """Per track: driven paths over the track (paper Fig. 4), and speed against ``s``."""
-    from saferace.eval.track_plots import plot_path, plot_track, plt
-    from saferace.track import Track
+    """Per track: driven paths over the track (paper Fig. 4), and speed against ``s``; the
+    legend (agent, task, seed, filter, state source) below the plots, off the track.
 
-    by_track: dict[str, list[dict]] = defaultdict(list)
-    for row in rows:
-        by_track[row["config"]["track"]].append(row)
-    fig, axes = plt.subplots(len(by_track), 2, figsize=(13, 5 * len(by_track)), squeeze=False)
-    for (track_arg, track_rows), (ax_map, ax_speed) in zip(by_track.items(), axes, strict=True):
-        track = Track.load(track_arg)
+    A row finds its track wherever the plot is made (:func:`~saferace.eval.runner.row_track`).
+    """
+    from saferace.eval.runner import row_track, track_key
+    from saferace.eval.track_plots import legend_outside, plot_path, plot_track, plt
+
+    by_track: dict[tuple, list[tuple[int, dict]]] = defaultdict(list)
+    for index, row in enumerate(rows):
+        by_track[track_key(row)].append((index, row))
+    height = [5.5 + 0.2 * (len(track_rows) + 1) / 2 for track_rows in by_track.values()]
+    fig = plt.figure(figsize=(13, sum(height)), layout="constrained")
+    panels = fig.subfigures(len(by_track), 1, height_ratios=height, squeeze=False)[:, 0]
+    for track_rows, panel in zip(by_track.values(), panels, strict=True):
+        ax_map, ax_speed = panel.subplots(1, 2)
+        index, first = track_rows[0]
+        track = row_track(first, f"row {index + 1} ({row_label(first)})")
         plot_track(ax_map, track)
-        for row in track_rows:
-            label = f"{row['agent']} / {row['task']} / seed {row['seed']}"
+        for number, (_, row) in enumerate(track_rows):
+            label, colour = row_label(row), f"C{number % 10}"
             trajectory = row["trajectory"]
-            plot_path(ax_map, trajectory, lw=1.2, label=label)
-            ax_speed.plot(trajectory["s_m"], trajectory["v_x_mps"], ".", ms=2, label=label)
+            plot_path(ax_map, trajectory, lw=1.2, color=colour, label=label)
+            ax_speed.plot(trajectory["s_m"], trajectory["v_x_mps"], ".", ms=2, color=colour)
         ax_map.set_title(f"{track.name}: driven trajectories (x: outside the lane)")
-        ax_map.legend(fontsize=7, loc="upper right")
         ax_speed.set_xlabel("centerline arc length s [m]")
         ax_speed.set_ylabel("speed [m/s]")
-        ax_speed.set_title(f"{track.name}: speed along the track")
+        ax_speed.set_title(f"{track.name}: speed along the track (colours as on the left)")
         ax_speed.grid(alpha=0.3)
-    fig.tight_layout()
+        legend_outside(panel, [ax_map])
     fig.savefig(path, dpi=110)
     plt.close(fig)

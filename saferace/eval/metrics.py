@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -161,7 +162,7 @@ def safety_step_record(safety: dict) -> dict:
 def summarize(laps: list[LapMetrics]) -> dict:
     """Episode summary over its laps: completed laps, best and mean lap time, worst deviations."""
     completed = [lap for lap in laps if lap.completed]
-    times = [lap.lap_time_s for lap in completed]
+    times = [lap.lap_time_s for lap in completed if lap.lap_time_s is not None]  # all of them
     return {
         "laps_completed": len(completed),
         "best_lap_time_s": min(times) if times else None,
@@ -196,10 +197,19 @@ def _summarize_safety(laps: list[LapMetrics]) -> dict:
         return float(np.dot(steps, [getattr(lap, name) for lap in filtered]) / total)
 
     return {
-        "interventions": sum(lap.interventions for lap in filtered),
-        "intervention_rate": sum(lap.interventions for lap in filtered) / total,
+        "interventions": sum(_filter_metric(lap.interventions) for lap in filtered),
+        "intervention_rate": sum(_filter_metric(lap.interventions) for lap in filtered) / total,
         "mean_steer_correction_rad": weighted("mean_steer_correction_rad"),
         "mean_accel_correction_mps2": weighted("mean_accel_correction_mps2"),
-        "max_slack": max(lap.max_slack for lap in filtered),
-        "failed_solves": sum(lap.failed_solves for lap in filtered),
+        "max_slack": max(_filter_metric(lap.max_slack) for lap in filtered),
+        "failed_solves": sum(_filter_metric(lap.failed_solves) for lap in filtered),
     }
+
+
+_T = TypeVar("_T")
+
+
+def _filter_metric(value: _T | None) -> _T:
+    """A filter metric of a lap driven with the filter: :func:`span_metrics` sets them all."""
+    assert value is not None, "a lap driven with the filter has every filter metric"
+    return value

@@ -23,7 +23,7 @@ from saferace.track.raceline import ReferenceLine
 _MAP_FLIP = np.array([1.0, -1.0])  # Rerun's 2D views have y down; maps read better with y up
 
 
-def _map_points(xy: np.ndarray) -> np.ndarray:
+def _map_points(xy: np.ndarray | tuple[float, float]) -> np.ndarray:
     return np.asarray(xy) * _MAP_FLIP
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import platform
 import subprocess
@@ -29,6 +30,7 @@ from saferace.eval.metrics import (
     thinned_trajectory,
 )
 from saferace.safety.filter import SafetyFilter, nominal_parts
+from saferace.track import Track, builtin_track_names
 from saferace.version import __version__
 
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
@@ -155,9 +157,9 @@ def evaluate(
             agent = make_agent(agent_spec, env, model=model, mc_samples=mc_samples, seed=seed)
             result = run_episode(env, agent, seed=seed, progress=progress)
             row = result_row(
-                agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result
-            )
-            row["filter"] = safety.as_dict()
+                agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result,
+                safety=safety,
+            )  # fmt: skip
             row["config"]["env"] = env_kwargs or {}
             if hasattr(agent, "describe"):
                 row["agent_checkpoint"] = agent.describe()
@@ -185,24 +187,100 @@ def make_task_env(
 
 
 def result_row(
-    agent, task, track_name, track_arg, seed, laps, model, result: EpisodeResult
+    agent,
+    task,
+    track_name,
+    track_arg,
+    seed,
+    laps,
+    model,
+    result: EpisodeResult,
+    safety: FilterConfig | None = None,
 ) -> dict:
-    """The JSON row of one evaluated episode."""
+    """The JSON row of one evaluated episode behind the filter ``safety`` (None: none).
+
+    The row names its track so that it is found from any folder (:func:`track_reference`):
+    ``config["track"]`` is a built-in track's name or a track file's absolute path, with
+    ``config["track_sha256"]`` the file's content hash; ``config["track_given"]`` is the
+    argument as given.
+    """
     return {
         "agent": agent,
         "task": task,
         "track": track_name,
         "seed": seed,
+        "filter": (safety or FilterConfig()).as_dict(),
         "summary": result.summary,
         "laps": [lap.as_dict() for lap in result.laps],
         "terminated": result.terminated,
         "trajectory": thinned_trajectory(result.steps, ("x_m", "y_m", "s_m", "v_x_mps")),
-        "config": {"track": str(track_arg), "laps": laps, "model": model},
+        "config": {**track_reference(track_arg), "laps": laps, "model": model},
         "saferace_version": __version__,
         "git_revision": git_revision(),
         "packages": package_versions(),
         "python": platform.python_version(),
     }
+
+
+def track_reference(track_arg: str | Path) -> dict:
+    """How a row names its track: a built-in track by name; a track file by its absolute
+    path and the sha256 of its content, so that the row finds it from any folder and a
+    changed file is told apart (:func:`row_track`).
+
+    Only the reference is kept, not the centre line's points: a row stays small (the safety
+    table writes sixteen per track, and a real circuit has thousands of points), and the
+    hash refuses a file that was edited after the run instead of drawing the run on a
+    different track.
+    """
+    given = str(track_arg)
+    if given in builtin_track_names():
+        return {"track": given, "track_sha256": None, "track_given": given}
+    path = Path(given).expanduser().resolve()
+    digest = file_sha256(path) if path.is_file() else None
+    return {"track": str(path), "track_sha256": digest, "track_given": given}
+
+
+def file_sha256(path: str | Path) -> str:
+    """The sha256 of a file's bytes, in hex."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def track_key(row: dict) -> tuple[str, str | None]:
+    """What tells a row's track apart: its name or absolute path, and its content hash."""
+    config = row.get("config", {})
+    return str(config.get("track", row.get("track"))), config.get("track_sha256")
+
+
+def row_track(row: dict, where: str = "a result row") -> Track:
+    """The track a result row was driven on, from any working folder.
+
+    A built-in name loads that track; a file is taken at the row's absolute path (or, for a
+    row written before rows recorded one, its path as given, relative to the working
+    folder) when its sha256 is the row's. Anything else is a :class:`SafeRaceError` naming
+    ``where`` (the row), the path and the hash.
+    """
+    name, digest = track_key(row)
+    if name in builtin_track_names():
+        return Track.load(name)
+    path = Path(name)
+    if not path.is_file():
+        if digest is None:
+            raise SafeRaceError(
+                f"{where}: its track file {name} is not found from {Path.cwd()}; the row was "
+                "written before rows recorded absolute paths, so run this from the folder "
+                "where it was evaluated, or evaluate again"
+            )
+        raise SafeRaceError(
+            f"{where}: its track file {name} (sha256 {digest}) is gone; put that file back "
+            "at that path, or evaluate again"
+        )
+    if digest is not None and (found := file_sha256(path)) != digest:
+        raise SafeRaceError(
+            f"{where}: the track file {name} has changed since the row was written: its "
+            f"sha256 is {found}, the row's {digest}; restore the file the row was driven on, "
+            "or evaluate again"
+        )
+    return Track.load(path)
 
 
 def solver_summary(stats) -> dict:

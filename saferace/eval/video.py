@@ -45,7 +45,7 @@ class VideoWriter:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             height, width = frame_rgb.shape[:2]
             self._writer = cv2.VideoWriter(
-                str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (width, height)
+                str(self.path), cv2.VideoWriter.fourcc(*"mp4v"), self.fps, (width, height)
             )
             if not self._writer.isOpened():
                 raise OSError(f"OpenCV cannot write an MP4 video to {self.path}")

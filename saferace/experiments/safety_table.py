@@ -17,15 +17,20 @@ from pathlib import Path
 from tqdm import tqdm
 
 from saferace.eval.filters import FilterConfig
+from saferace.eval.leaderboard import (
+    filter_phrase,
+    filter_words,
+    row_filter,
+    state_source_words,
+)
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.names import DEFAULT_GAINS, TASKS
+from saferace.names import RANDOM_TRACK_RADIUS_M as RANDOM_TRACK_RADIUS_M  # size of test tracks
 from saferace.track.random_track import write_random_tracks
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
-#: Size of generated test tracks: tight enough that 1.6x the racing line's speed exceeds
-#: the grip within a lap (on gentle tracks the car's 7 m/s top speed caps the agent).
 
 
 @dataclass(frozen=True)
@@ -147,14 +152,6 @@ def _row_key(row: dict) -> tuple:
     return run_key(row["agent"], row["task"], row["track_arg"], row_filter(row))
 
 
-def row_filter(row: dict) -> FilterConfig:
-    """The :class:`FilterConfig` of a result row."""
-    config = dict(row["filter"])
-    if config.get("state_noise") is not None:
-        config["state_noise"] = tuple(config["state_noise"])
-    return FilterConfig(**config)
-
-
 def filter_label(row: dict) -> str:
     """The :attr:`FilterConfig.label` of a result row."""
     return row_filter(row).label
@@ -165,6 +162,7 @@ TABLE_COLUMNS = [
     "agent",
     "task",
     "filter",
+    "state source",
     "laps",
     "outside lane [s]",
     "min barrier [m]",
@@ -183,12 +181,14 @@ def table_rows(rows: list[dict]) -> list[list]:
         summary = row["summary"]
         rate = summary.get("intervention_rate")
         solver = row.get("filter_solver")
+        config = row_filter(row)
         lines.append(
             [
                 row["track"],
                 row["agent"],
                 row["task"],
-                filter_label(row),
+                filter_words(config),
+                state_source_words(config),
                 summary["laps_completed"],
                 summary["time_outside_lane_s"],
                 summary["min_lane_barrier_m"],
@@ -255,51 +255,93 @@ def write_tables(rows: list[dict], out_dir: Path, gains: str) -> None:
         write_csv(out_dir / name, columns, lines)
 
 
-FILTER_STYLES = {
-    "none": ("black", "no filter"),
-    "oracle": ("tab:green", "filter, true state"),
-    "noisy-prob": ("tab:blue", "probabilistic filter, noisy state"),
-    "noisy-det": ("tab:orange", "deterministic filter, noisy mean"),
-    "learned-prob": ("tab:purple", "probabilistic filter, perceived state"),
-    "learned-det": ("tab:brown", "deterministic filter, perceived mean"),
+#: A colour per :attr:`FilterConfig.label`; other settings take the colour cycle's next.
+FILTER_COLOURS = {
+    "none": "black",
+    "oracle": "tab:green",
+    "noisy-prob": "tab:blue",
+    "noisy-det": "tab:orange",
+    "learned-prob": "tab:purple",
+    "learned-det": "tab:brown",
 }
+#: Inches per metre of a circuit on ``reckless_paths.png``, and the size of a panel's
+#: longer side (inches) that a small track is drawn at and a long circuit is capped at.
+INCHES_PER_M, PANEL_MIN_IN, PANEL_MAX_IN = 1 / 15, 3.6, 9.0
+#: The picture's largest side in pixels: a big grid of long circuits gets a lower dpi.
+MAX_PIXELS, MAX_DPI = 4800, 150
+
+
+def panel_inches(track) -> tuple[float, float]:
+    """A track's panel size (width, height) in inches: its bounding box's aspect, the
+    longer side growing with the circuit from :data:`PANEL_MIN_IN` to :data:`PANEL_MAX_IN`,
+    so that the lane of a 400 m circuit stays visible."""
+    import numpy as np
+
+    left, right = track.boundaries()
+    points = np.vstack([left, right])
+    width_m, height_m = points.max(axis=0) - points.min(axis=0)
+    longer = float(np.clip(max(width_m, height_m) * INCHES_PER_M, PANEL_MIN_IN, PANEL_MAX_IN))
+    scale = longer / max(width_m, height_m)
+    # very thin tracks still get room for the title
+    return max(width_m * scale, 0.4 * longer), max(height_m * scale, 0.4 * longer)
 
 
 def plot_reckless_paths(rows: list[dict], path: Path) -> None:
-    """The reckless agents' paths on each track, one colour per filter setting."""
+    """The reckless agents' paths on each track, one colour per filter setting, the
+    legend above the panels; a panel is as large as its circuit needs (:func:`panel_inches`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from saferace.eval.runner import row_track, track_key
     from saferace.eval.track_plots import plot_path, plot_track
-    from saferace.track import Track
 
     reckless = [row for row in rows if row["agent"] in RECKLESS_TASKS]
-    tracks = list(dict.fromkeys(row["track_arg"] for row in reckless))
+    keys = list(dict.fromkeys(track_key(row) for row in reckless))
     agents = list(RECKLESS_TASKS)
-    if not tracks:
+    if not keys:
         return
+    tracks = {}
+    for key in keys:
+        index, first = next((i, r) for i, r in enumerate(reckless) if track_key(r) == key)
+        where = f"reckless row {index + 1} ({first['agent']} on {first['track']})"
+        tracks[key] = row_track(first, where)
+    sizes = [panel_inches(track) for track in tracks.values()]
+    width = max(w for w, _ in sizes) * len(agents)
+    heights = [h + 0.5 for _, h in sizes]  # each panel's title
+    legend_in = 0.3 * (1 + len({filter_label(row) for row in reckless}))
     figure, axes = plt.subplots(
-        len(tracks), len(agents), figsize=(4 * len(agents), 3.6 * len(tracks)), squeeze=False
-    )
-    for i, track_arg in enumerate(tracks):
-        track = Track.load(track_arg)
+        len(keys), len(agents), figsize=(width, sum(heights) + legend_in), squeeze=False,
+        gridspec_kw={"height_ratios": heights}, layout="constrained",
+    )  # fmt: skip
+    colours: dict[str, str] = {}
+    for i, (key, track) in enumerate(tracks.items()):
         for j, agent in enumerate(agents):
             ax = axes[i, j]
             plot_track(ax, track)
             for row in reckless:
-                if row["track_arg"] != track_arg or row["agent"] != agent:
+                if track_key(row) != key or row["agent"] != agent:
                     continue
-                colour, label = FILTER_STYLES[filter_label(row)]
+                config = row_filter(row)
+                colour = FILTER_COLOURS.get(config.label) or colours.setdefault(
+                    config.label, f"C{len(colours) + 5}"
+                )
+                label = filter_phrase(config)
                 plot_path(ax, row["trajectory"], color=colour, lw=1.0, label=label)
             ax.set_title(f"{agent} on {track.name} (x: outside the lane)")
             ax.set_aspect("equal")
             ax.set_axis_off()
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    columns = min(len(labels), 3)
-    figure.legend(handles, labels, loc="upper center", ncol=columns)
-    legend_rows = -(-len(labels) // columns)
-    figure.tight_layout(rect=(0, 0, 1, 1.0 - 0.04 * legend_rows / len(tracks)))
-    figure.savefig(path, dpi=90)
+    handles, labels = {}, []
+    for ax in axes.flat:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            if label not in handles and label != "start/finish":
+                handles[label] = handle
+                labels.append(label)
+    figure.legend(
+        [handles[label] for label in labels], labels, loc="outside upper center",
+        ncol=min(len(labels), 2), frameon=False,
+    )  # fmt: skip
+    dpi = min(MAX_DPI, MAX_PIXELS / max(figure.get_size_inches()))
+    figure.savefig(path, dpi=dpi)
     plt.close(figure)

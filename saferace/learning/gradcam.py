@@ -23,6 +23,16 @@ from saferace.learning.networks import DrivingNetwork
 #: ResNet stages GradCAM can look at; at 64x64 they give maps of 16, 8, 4 and 2 cells.
 LAYERS = ("layer1", "layer2", "layer3", "layer4")
 HEAT_ALPHA = 0.5
+#: A sheet's column titles: each output's name and unit as the paper writes them.
+OUTPUT_TITLES = {
+    "e_y_m": "e_y [m]",
+    "e_psi_rad": "e_psi [rad]",
+    "kappa_radpm": "kappa [1/m]",
+    "steer_rad": "steer [rad]",
+    "target_speed_mps": "target speed [m/s]",
+}
+TITLE_HEIGHT_PX, COLOUR_BAR_WIDTH_PX = 18, 84
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
 def gradcam_maps(
@@ -69,22 +79,32 @@ def gradcam_sheet(
     scale: int = 3,
 ) -> np.ndarray:
     """One frame's sheet: a row per camera image (left and right for stereo), the image
-    and then one overlay per output of every network, each ``scale`` times enlarged."""
+    and then one overlay per output of every network, each ``scale`` times enlarged; a
+    title above each column (the network, the output's name and unit) and the colour bar
+    of the heat at the right."""
     cameras = [image[..., i : i + 3] for i in range(0, image.shape[-1], 3)]
     columns: list[list[np.ndarray]] = [cameras]
-    titles = ["camera"]
-    for name, network in networks.items():
+    for network in networks.values():
         uses_velocity = network.config.uses_velocity
         maps = gradcam_maps(network, image, velocity if uses_velocity else None, layer)
-        for output, heat in zip(network.config.outputs, maps, strict=True):
-            columns.append([overlay(camera, heat) for camera in cameras])
-            titles.append(f"{name}: {output}")
+        columns += [[overlay(camera, heat) for camera in cameras] for heat in maps]
     rows = []
     for row in range(len(cameras)):
         tiles = [_enlarge(column[row], scale) for column in columns]
         rows.append(np.concatenate(tiles, axis=1))
     sheet = np.concatenate(rows, axis=0)
+    sheet = np.concatenate([sheet, colour_bar(sheet.shape[0])], axis=1)
+    titles = column_titles(networks, stereo=len(cameras) == 2)
     return _with_titles(sheet, titles, tiles[0].shape[1])
+
+
+def column_titles(networks: dict[str, DrivingNetwork], stereo: bool = False) -> list[str]:
+    """A sheet's titles, left to right: the camera, ``NETWORK: OUTPUT [UNIT]`` per output
+    (:data:`OUTPUT_TITLES`), and the colour bar's."""
+    titles = ["camera (rows: left, right)" if stereo else "camera"]
+    for name, network in networks.items():
+        titles += [f"{name}: {OUTPUT_TITLES.get(o, o)}" for o in network.config.outputs]
+    return [*titles, "GradCAM heat"]
 
 
 def write_sheet(path: str | Path, sheet: np.ndarray) -> Path:
@@ -98,17 +118,34 @@ def _enlarge(image: np.ndarray, scale: int) -> np.ndarray:
     return cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
 
 
+def colour_bar(height: int) -> np.ndarray:
+    """A white column with the overlays' colour scale (blended half and half over the
+    image in a sheet), top (1: where the output's evidence peaks in that frame) to bottom
+    (0: none)."""
+    column = np.full((height, COLOUR_BAR_WIDTH_PX, 3), 255, np.uint8)
+    top, bottom, left, right = 8, height - 8, 8, 24
+    heat = np.linspace(1.0, 0.0, bottom - top)[:, None].repeat(right - left, axis=1)
+    coloured = cv2.applyColorMap(np.uint8(255 * heat), cv2.COLORMAP_JET)
+    column[top:bottom, left:right] = cv2.cvtColor(coloured, cv2.COLOR_BGR2RGB)
+    cv2.rectangle(column, (left, top), (right - 1, bottom - 1), (0, 0, 0), 1)
+    for value, text in ((1.0, "1 peak"), (0.5, "0.5"), (0.0, "0 none")):
+        y = round(bottom - 1 - value * (bottom - top - 1))
+        cv2.line(column, (right, y), (right + 3, y), (0, 0, 0), 1)
+        baseline_y = min(max(y + 4, top + 8), bottom)
+        cv2.putText(column, text, (right + 6, baseline_y), _FONT, 0.36, (0, 0, 0), 1, cv2.LINE_AA)
+    return column
+
+
 def _with_titles(sheet: np.ndarray, titles: list[str], tile_width: int) -> np.ndarray:
-    band = np.full((18, sheet.shape[1], 3), 255, np.uint8)
+    """A white band of ``TITLE_HEIGHT_PX`` above ``sheet``: a title per ``tile_width``
+    column (the last over the colour bar), as written (units and underscores kept),
+    shrunk to fit its column."""
+    band = np.full((TITLE_HEIGHT_PX, sheet.shape[1], 3), 255, np.uint8)
     for index, title in enumerate(titles):
-        cv2.putText(
-            band,
-            title.replace("_", " "),
-            (index * tile_width + 3, 13),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.33,
-            (0, 0, 0),
-            1,
-            cv2.LINE_AA,
-        )
+        left = index * tile_width
+        width = min(tile_width, sheet.shape[1] - left)
+        scale = 0.42
+        text_width = cv2.getTextSize(title, _FONT, scale, 1)[0][0]
+        scale = min(scale, scale * (width - 6) / text_width)
+        cv2.putText(band, title, (left + 3, 13), _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
     return np.concatenate([band, sheet], axis=0)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from saferace.eval.track_plots import plt
+from saferace.eval.track_plots import legend_outside, plt
 from saferace.learning.networks import STATE_OUTPUTS, Prediction
 from saferace.learning.rounds import FrameSet
 
@@ -19,8 +19,10 @@ STATE_LABELS = {
 
 def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) -> None:
     """Per network: the loss of every batch, and each epoch's training and validation loss
-    at the step it ended."""
-    fig, axes = plt.subplots(1, len(history), figsize=(6 * len(history), 4), squeeze=False)
+    at the step it ended; one legend below the plots."""
+    fig, axes = plt.subplots(
+        1, len(history), figsize=(6 * len(history), 4.4), squeeze=False, layout="constrained"
+    )
     for ax, (name, losses) in zip(axes[0], history.items(), strict=True):
         batches = np.asarray(losses["batch_loss"])
         ax.plot(np.arange(1, len(batches) + 1), batches, color="0.75", lw=0.6, label="batch")
@@ -33,8 +35,7 @@ def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) ->
         ax.set_ylabel("MSE of normalised targets")
         ax.set_title(f"{name} network")
         ax.grid(alpha=0.3, which="both")
-        ax.legend()
-    fig.tight_layout()
+    legend_outside(fig, axes[0], ncol=3, fontsize=9)  # below the plots, off the curves
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -57,10 +58,13 @@ def plot_state_along_lap(
     stretch: tuple[float, float] | None = None,
 ) -> None:
     """True state and the state network's mean with a band of two MC-dropout spreads,
-    against ``s`` over the first lap; ``stretch`` (fractions of the lap) is shaded."""
+    against ``s`` over the first lap; ``stretch`` (fractions of the lap) is shaded; the
+    legend below the plots."""
     lap = first_lap(frames)
     s = frames["s_m"][lap]
-    fig, axes = plt.subplots(len(STATE_OUTPUTS), 1, figsize=(11, 8), sharex=True)
+    fig, axes = plt.subplots(
+        len(STATE_OUTPUTS), 1, figsize=(11, 8.5), sharex=True, layout="constrained"
+    )
     for column, (ax, name) in enumerate(zip(axes, STATE_OUTPUTS, strict=True)):
         mean, std = prediction.mean[lap, column], prediction.std[lap, column]
         ax.fill_between(
@@ -69,7 +73,7 @@ def plot_state_along_lap(
             mean + 2 * std,
             color="tab:blue",
             alpha=0.25,
-            label="prediction +- 2 spreads",
+            label="state network +- 2 MC-dropout spreads",
         )
         ax.plot(s, mean, color="tab:blue", lw=1.2, label="state network (MC mean)")
         ax.plot(s, frames["state"][lap, column], color="k", lw=1.2, label="true")
@@ -84,9 +88,8 @@ def plot_state_along_lap(
             )
         ax.set_ylabel(STATE_LABELS[name])
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8, loc="upper right", ncol=2)
     axes[0].set_title(title)
     axes[-1].set_xlabel("centerline arc length s [m]")
-    fig.tight_layout()
+    legend_outside(fig, axes[:1], ncol=4, fontsize=9)  # below the plots, off the lines
     fig.savefig(path, dpi=110)
     plt.close(fig)
