@@ -1,0 +1,126 @@
+"""Calibrated intervals for an uncertain state: split conformal prediction and its online
+variant.
+
+Normalised split conformal prediction (Vovk et al.; Lei et al. 2018): on ``n`` frames no
+network trained on, score each frame by ``max_i |error_i| / sigma_i`` over the outputs; the
+``ceil((n + 1)(1 - alpha))``-th smallest score ``q`` makes ``mean +- q sigma`` cover every
+output of a new exchangeable frame with probability at least ``1 - alpha``. Under a
+distribution shift no such guarantee holds (Ovadia et al. 2019): :class:`AdaptiveConformal`
+(Gibbs and Candes 2021) adapts the level online from the misses it is told of. The same
+quantile rule fits an out-of-distribution score's threshold: on exchangeable frames it
+raises on at most ``alpha`` of them.
+
+Numpy only (no learning code), so that the filter's layer can hold and apply a calibration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.stats import beta
+
+from saferace.errors import ConfigError, SafeRaceError
+
+#: Floor of a frame's sigma in a score (an output that never varies has none).
+MIN_SIGMA = 1e-9
+
+
+def conformal_quantile(scores: np.ndarray, alpha: float) -> float:
+    """The ``ceil((n + 1)(1 - alpha))``-th smallest of ``n`` scores; ``inf`` when that rank
+    exceeds ``n`` (too few frames for this ``alpha``: no finite threshold holds)."""
+    if not 0.0 < alpha < 1.0:
+        raise ConfigError("alpha", f"must be in (0, 1), got {alpha}")
+    scores = np.sort(np.asarray(scores, dtype=float).ravel())
+    if not len(scores):
+        raise SafeRaceError("a conformal quantile needs at least one calibration score")
+    rank = math.ceil((len(scores) + 1) * (1.0 - alpha))
+    return float(scores[rank - 1]) if rank <= len(scores) else math.inf
+
+
+def normalised_scores(mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per frame, the largest error over the outputs in units of its sigma: ``(n,)``."""
+    error = np.abs(np.asarray(mean, float) - np.asarray(truth, float))
+    return np.max(error / np.maximum(np.asarray(sigma, float), MIN_SIGMA), axis=-1)
+
+
+@dataclass(frozen=True)
+class ConformalCalibration:
+    """``mean +- scale * sigma`` covers the truth with probability ``1 - alpha`` on frames
+    exchangeable with the ``frames`` it was fitted on."""
+
+    alpha: float
+    scale: float
+    frames: int
+
+    def interval(self, mean: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        half = self.scale * np.asarray(sigma, float)
+        return np.asarray(mean, float) - half, np.asarray(mean, float) + half
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> ConformalCalibration:
+        return cls(float(values["alpha"]), float(values["scale"]), int(values["frames"]))
+
+
+def calibrate(
+    mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray, alpha: float = 0.05
+) -> ConformalCalibration:
+    """Fit the interval scale on held-out ``(n, outputs)`` predictions and truths."""
+    scores = normalised_scores(mean, sigma, truth)
+    return ConformalCalibration(alpha, conformal_quantile(scores, alpha), len(scores))
+
+
+def coverage(
+    lower: np.ndarray, upper: np.ndarray, truth: np.ndarray
+) -> tuple[float, tuple[float, float]]:
+    """The share of frames whose every output lies inside its interval, and its
+    Clopper-Pearson 95% band."""
+    inside = np.all((np.asarray(truth) >= lower) & (np.asarray(truth) <= upper), axis=-1)
+    return float(inside.mean()), clopper_pearson(int(inside.sum()), len(inside))
+
+
+def clopper_pearson(successes: int, trials: int, level: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper-Pearson) confidence band of a binomial proportion."""
+    tail = 0.5 * (1.0 - level)
+    low = 0.0 if successes == 0 else float(beta.ppf(tail, successes, trials - successes + 1))
+    high = (
+        1.0 if successes == trials else float(beta.ppf(1 - tail, successes + 1, trials - successes))
+    )
+    return low, high
+
+
+class AdaptiveConformal:
+    """Adaptive conformal inference (Gibbs and Candes 2021): the level moves with the misses,
+    ``alpha_{t+1} = alpha_t + gamma (alpha - miss_t)``, and the interval scale is the
+    calibration scores' quantile at that level. Over any sequence, shifted or not, the long-run
+    miss rate stays within ``(max(alpha_1, 1 - alpha_1) + gamma) / (gamma T)`` of ``alpha``.
+
+    Who says whether a step missed matters: lagged ground truth is *oracle feedback* (a
+    simulator has it, a real car does not); :meth:`update` takes either and the caller
+    names which in what it reports.
+    """
+
+    def __init__(self, scores: np.ndarray, alpha: float = 0.05, gamma: float = 0.005) -> None:
+        if gamma <= 0.0:
+            raise SafeRaceError(f"gamma must be positive, got {gamma}")
+        self.scores = np.sort(np.asarray(scores, float).ravel())
+        self.target = alpha
+        self.gamma = gamma
+        self.alpha_t = alpha
+
+    @property
+    def scale(self) -> float:
+        """The interval scale at the current level (``inf`` at a level of 0 or below)."""
+        if self.alpha_t <= 0.0:
+            return math.inf
+        if self.alpha_t >= 1.0:
+            return 0.0
+        return conformal_quantile(self.scores, self.alpha_t)
+
+    def update(self, missed: bool) -> None:
+        """One step's feedback: whether the interval used missed the truth."""
+        self.alpha_t += self.gamma * (self.target - float(missed))
