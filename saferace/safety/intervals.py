@@ -1,0 +1,75 @@
+"""Intervals of the perceived lane state: the set a robust filter must hold the car safe over.
+
+A state source gives samples of ``[e_y, e_psi, kappa]``; the robust filter needs a box that
+holds the truth. A source that knows its calibration says so through ``interval(samples)``
+(:class:`ConformalStateSource`: ``mean +- q sigma`` from a conformal calibration); any other
+source gets ``mean +- z std`` of its samples, ``z`` the filter's confidence quantile (the
+chance constraints' own assumption, calibrated or not). The truth itself (one sample) is a
+point.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from saferace.safety.conformal import ConformalCalibration
+from saferace.safety.state_sources import StateSource
+
+
+@runtime_checkable
+class IntervalStateSource(StateSource, Protocol):
+    """A state source that also knows the interval its samples stand for."""
+
+    def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(lower, upper)`` of ``[e_y, e_psi, kappa]`` for this step's ``samples``."""
+        ...
+
+
+def state_interval(
+    source: StateSource, samples: np.ndarray, z: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The interval ``source`` gives for ``samples``, or ``mean +- z std`` of them."""
+    if isinstance(source, IntervalStateSource):
+        return source.interval(samples)
+    mean, std = samples.mean(axis=0), samples.std(axis=0)
+    return mean - z * std, mean + z * std
+
+
+def interval_points(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The box's corners and centre, ``(k, 3)``: where a robust filter checks its barriers
+    (exactly the box's extremes where a condition is monotone in each state, as the lane
+    barriers are in ``e_y`` and, for headings within ``+-pi/2``, in ``e_psi``). A degenerate
+    side adds no corners: a point interval is one point."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    sides = [(lo,) if lo == hi else (lo, hi) for lo, hi in zip(lower, upper, strict=True)]
+    corners = np.array(list(itertools.product(*sides)), dtype=float)
+    if len(corners) == 1:
+        return corners
+    return np.vstack([corners, 0.5 * (lower + upper)])
+
+
+class ConformalStateSource:
+    """Another source's samples, with the interval of a conformal calibration of its spread:
+    ``mean +- scale * std`` of the samples (a
+    :class:`~saferace.safety.conformal.ConformalCalibration` fitted on frames the source
+    never trained on)."""
+
+    def __init__(self, source: StateSource, calibration: ConformalCalibration) -> None:
+        self.source = source
+        self.calibration = calibration
+
+    def reset(self, seed: int | None = None) -> None:
+        self.source.reset(seed)
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        return self.source.samples(observation, info)
+
+    def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.calibration.interval(samples.mean(axis=0), samples.std(axis=0))
+
+    def describe(self) -> dict:
+        inner: dict[str, Any] = getattr(self.source, "describe", dict)()
+        return {**inner, "conformal": self.calibration.as_dict()}
