@@ -186,7 +186,8 @@ class MPCExpert:
         self._P = sp.triu(P + sp.triu(P, 1).T, format="csc")
 
         # Constraint rows: dynamics, input bounds, steering rate, lane (upper, lower), slack >= 0.
-        self._A_rows, self._A_cols = [], []
+        self._A_rows: list[int] = []
+        self._A_cols: list[int] = []
         row = 0
         self._dyn_rows = row
         for k in range(N):

@@ -64,10 +64,18 @@ class SpeedingAgent(PurePursuit):
     """Pure pursuit of the task's reference line at ``speed_factor`` times its speed profile."""
 
     @classmethod
-    def for_env(cls, env, speed_factor: float = 1.6) -> SpeedingAgent:
-        settings = PurePursuitSettings(speed_scale=speed_factor, max_speed_mps=8.0)
+    def for_env(
+        cls, env, settings: PurePursuitSettings | None = None, speed_factor: float = 1.6
+    ) -> SpeedingAgent:
+        """Pure pursuit at ``speed_factor`` times the speed profile (at most 8 m/s), unless
+        ``settings`` say otherwise."""
+        settings = settings or PurePursuitSettings(speed_scale=speed_factor, max_speed_mps=8.0)
         base = env.unwrapped
         return cls(base.track, base.reference, settings)
 
 
-RECKLESS_AGENTS = {"drift": DriftAgent, "weave": WeaveAgent, "speeding": SpeedingAgent}
+RECKLESS_AGENTS: dict[str, type[_SteeringPattern] | type[SpeedingAgent]] = {
+    "drift": DriftAgent,
+    "weave": WeaveAgent,
+    "speeding": SpeedingAgent,
+}

@@ -9,10 +9,10 @@ torch, no MuJoCo).
 from __future__ import annotations
 
 import argparse
-import functools
 import importlib
 import logging
 import sys
+from typing import Any
 
 from saferace.cli.options import FLAGS_KEY
 from saferace.errors import ConfigError, SafeRaceError
@@ -31,6 +31,14 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
         return super()._get_help_string(action)
 
 
+class _CommandParser(argparse.ArgumentParser):
+    """A command's parser: formats its help as the top-level parser does."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``saferace`` parser with every command (also what the docs' reference renders)."""
     parser = argparse.ArgumentParser(
@@ -40,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(
         required=True,
         metavar="COMMAND",
-        parser_class=functools.partial(argparse.ArgumentParser, formatter_class=HelpFormatter),
+        parser_class=_CommandParser,
     )
     for name in COMMAND_MODULES:
         importlib.import_module(f"saferace.cli.{name}").register(commands)

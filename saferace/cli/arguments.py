@@ -90,6 +90,22 @@ def filter_config(args: argparse.Namespace):
         noise = DEFAULT_STATE_NOISE
     if learned and noise is not None:
         raise SafeRaceError("--state-noise is for the noisy oracle, not a learned state source")
+    option = vars(args)
+    needs_filter = (
+        noise is not None,
+        not option["filter.probabilistic"],
+        source != "oracle",
+        option["filter.map_curvature"],
+        option["filter.spread_scale"] is not None,
+        option["filter.fuse_odometry"],
+    )
+    if option["filter.kind"] == "none" and any(needs_filter):
+        raise SafeRaceError(
+            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale and "
+            "--fuse-odometry need --filter cbf"
+        )
+    if option["filter.fuse_odometry"] and not (noise is not None or learned):
+        raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
     samples = args.samples
     if samples is None:
         samples = MC_SAMPLES if learned else NOISY_SAMPLES
@@ -101,21 +117,6 @@ def filter_config(args: argparse.Namespace):
         samples=samples,
         state_source=source if learned else None,
     )
-    needs_filter = (
-        noise is not None,
-        not config.probabilistic,
-        source != "oracle",
-        config.map_curvature,
-        config.spread_scale is not None,
-        config.fuse_odometry,
-    )
-    if config.kind == "none" and any(needs_filter):
-        raise SafeRaceError(
-            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale and "
-            "--fuse-odometry need --filter cbf"
-        )
-    if config.fuse_odometry and not (noise is not None or learned):
-        raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
     return config
 
 

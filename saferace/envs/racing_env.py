@@ -7,7 +7,7 @@ import dataclasses
 import functools
 import math
 import weakref
-from typing import Any, ClassVar
+from typing import Any
 
 import gymnasium as gym
 import mujoco
@@ -133,7 +133,10 @@ class RacingEnv(gym.Env):
     - v0: first release.
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 20}
+    # gym.Env declares metadata an instance attribute: __init__ sets each env's render_fps.
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 20}  # noqa: RUF012
+    action_space: spaces.Box
+    observation_space: spaces.Dict
     reference_kind = "center"
 
     def __init__(
@@ -329,7 +332,7 @@ class RacingEnv(gym.Env):
         )
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(**state["kwargs"])
+        RacingEnv.__init__(self, **state["kwargs"])  # no subclass overrides __init__
         if state["variation_rng"] is not None:  # the same look and car, before any physics
             generator = type(state["np_random"].bit_generator)()
             generator.state = state["variation_rng"]
@@ -351,7 +354,7 @@ class RacingEnv(gym.Env):
         variations: dict[str, dict[str, Any]] = {}
         if self._look is None and self._car is None:
             return variations
-        self._variation_rng = self.np_random.bit_generator.state  # a copy
+        self._variation_rng = dict(self.np_random.bit_generator.state)  # a copy
         if self._look is not None:
             variations["look"] = self._look.apply(self.np_random)
             for renderer in self._renderers.values():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from saferace.errors import SafeRaceError
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine, center_line, racing_line
@@ -23,6 +25,9 @@ def reference_line(track: Track, kind: str) -> ReferenceLine:
     return _COMPUTED_LINES[key]
 
 
-_REFERENCE_LINES = {"center": center_line, "racing": racing_line}
+_REFERENCE_LINES: dict[str, Callable[[Track], ReferenceLine]] = {
+    "center": center_line,
+    "racing": racing_line,
+}
 _MAX_COMPUTED_LINES = 16
 _COMPUTED_LINES: dict[tuple[str, str], ReferenceLine] = {}  # oldest first

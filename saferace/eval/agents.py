@@ -68,4 +68,8 @@ def act(
 ) -> np.ndarray:
     """Call an agent object or a plain callable."""
     method = getattr(agent, "act", None)
-    return method(observation, info) if method is not None else agent(observation, info)
+    if method is not None:
+        return method(observation, info)
+    if not callable(agent):
+        raise TypeError(f"agent {agent!r} has no act() and is not callable")
+    return agent(observation, info)

@@ -8,6 +8,7 @@ import cv2
 import gymnasium as gym
 import numpy as np
 
+from saferace.envs.unwrap import racing_env
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.recording import EpisodeRecording
@@ -43,7 +44,7 @@ def drive(
         render_mode="rgb_array" if video else None,
         **env_kwargs,
     )
-    base = env.unwrapped
+    base = racing_env(env)
     writer = VideoWriter(video, fps=base.metadata["render_fps"]) if video else None
     recording = None
     if rerun:
@@ -56,7 +57,7 @@ def drive(
 
     def on_step(observation, info, action) -> None:
         if writer:
-            writer.write(side_by_side(observation["image"], env.render()))
+            writer.write(side_by_side(observation["image"], chase_view(env)))
         if recording:
             recording.log_step(observation, info, action)
 
@@ -74,6 +75,13 @@ def drive(
 #: Height of the white band above a snapshot that names its views, in pixels.
 CAPTION_HEIGHT_PX = 26
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def chase_view(env: gym.Env) -> np.ndarray:
+    """The chase view of an env made with ``render_mode="rgb_array"``."""
+    frame = env.render()
+    assert isinstance(frame, np.ndarray), "make the env with render_mode='rgb_array'"
+    return frame
 
 
 def captioned_views(onboard: np.ndarray, chase: np.ndarray) -> np.ndarray:
@@ -134,7 +142,7 @@ def snapshots(out_dir: str | Path, tracks: list[str], image_size: int = 64) -> l
                 render_mode="rgb_array",
             )
             observation, _ = env.reset(seed=0)
-            frame = captioned_views(observation["image"], env.render())
+            frame = captioned_views(observation["image"], chase_view(env))
             path = out_dir / f"{Path(name).stem}_{'stereo' if stereo else 'mono'}.png"
             written.append(write_rgb(path, frame))
             env.close()
@@ -162,10 +170,10 @@ def contact_sheets(
             render_mode="rgb_array",
             randomize=randomize,
         )
-        rows = []
+        rows: list[np.ndarray] = []
         for seed in seeds:
             observation, _ = env.reset(seed=seed)
-            row = captioned_views(observation["image"], env.render())
+            row = captioned_views(observation["image"], chase_view(env))
             if rows:  # one caption band, above the first row
                 row = row[CAPTION_HEIGHT_PX:]
             _boxed_text(row, f"seed {seed}", (4, row.shape[0] - 24))

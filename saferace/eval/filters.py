@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, cast
+
 import gymnasium as gym
+from gymnasium import spaces
 
 from saferace.errors import ConfigError
 from saferace.eval.agents import load_entry_point
@@ -14,6 +17,9 @@ from saferace.safety.state_sources import (
     OracleStateSource,
     SpreadScaledStateSource,
 )
+
+if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
+    from saferace.envs.racing_env import RacingEnv
 
 __all__ = ["STATE_SOURCE_FACTORIES", "FilterConfig", "apply_filter"]
 
@@ -29,7 +35,9 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
                 "state_source", f"{kind!r} names no checkpoint: use {kind}:CHECKPOINT"
             )
         factory = load_entry_point(STATE_SOURCE_FACTORIES[kind])
-        image_shape = env.observation_space["image"].shape
+        observation_space = env.observation_space
+        assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
+        image_shape = observation_space["image"].shape
         source = factory(argument, image_shape, n_samples=config.samples, seed=seed)
     elif config.state_noise is None:
         source = OracleStateSource()
@@ -39,7 +47,7 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
     if config.spread_scale is not None:
         source = SpreadScaledStateSource(source, config.spread_scale)
     if config.fuse_odometry:
-        base = env.unwrapped
+        base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
         source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
     return SafetyFilter(
         env,

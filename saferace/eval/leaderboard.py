@@ -86,6 +86,7 @@ def state_source_words(config: FilterConfig) -> str:
     details = []
     if config.state_source is None:
         words = "noisy"
+        assert config.state_noise is not None  # neither learned nor the truth: noisy
         e_y, e_psi = config.state_noise
         details.append(f"sd {e_y:g} m, {e_psi:g} rad")
     else:

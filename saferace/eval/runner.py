@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
+from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import act, make_agent
 from saferace.eval.filters import FilterConfig, apply_filter
@@ -92,7 +93,7 @@ def run_episode(
     fields = STEP_FIELDS + ("lane_barrier_m",) + (SAFETY_FIELDS if filtered else ())
     records: dict[str, list] = {name: [] for name in fields}
     terminated = truncated = False
-    base = env.unwrapped
+    base = racing_env(env)
     half_width = base.car_half_width_m
     # disable=None: a bar on a terminal only, not in logs and pipes.
     with tqdm(
@@ -157,15 +158,15 @@ def evaluate(
             agent = make_agent(agent_spec, env, model=model, mc_samples=mc_samples, seed=seed)
             result = run_episode(env, agent, seed=seed, progress=progress)
             row = result_row(
-                agent_spec, task, env.unwrapped.track.name, track, seed, laps, model, result,
+                agent_spec, task, racing_env(env).track.name, track, seed, laps, model, result,
                 safety=safety,
             )  # fmt: skip
             row["config"]["env"] = env_kwargs or {}
             if hasattr(agent, "describe"):
                 row["agent_checkpoint"] = agent.describe()
-            source = getattr(env, "state_source", None)
-            if hasattr(source, "describe"):
-                row["state_source"] = source.describe()
+            describe_source = getattr(getattr(env, "state_source", None), "describe", None)
+            if describe_source is not None:
+                row["state_source"] = describe_source()
             if hasattr(agent, "stats"):
                 row["solver"] = solver_summary(agent.stats)
             if "solve_time_s" in result.steps:

@@ -83,7 +83,7 @@ def plot_reference_lines(
     racing_xy = racing.path.position(racing.s_m)
     closed = np.vstack([racing_xy, racing_xy[:1]])
     segments = np.stack([closed[:-1], closed[1:]], axis=1)
-    lines = LineCollection(segments, cmap="plasma", linewidths=2.5, zorder=2.5)
+    lines = LineCollection(list(segments), cmap="plasma", linewidths=2.5, zorder=2.5)
     lines.set_array(racing.vx_mps)
     ax_map.add_collection(lines)
     # the legend's sample of the racing line: a colour from the middle of its scale

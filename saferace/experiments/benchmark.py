@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
@@ -169,7 +170,7 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
     finally:
         env.close()
     summary = result.summary
-    driven_s = len(result.steps["time_s"]) * env.unwrapped.control_dt_s
+    driven_s = len(result.steps["time_s"]) * racing_env(env).control_dt_s
     route_m = suite.laps * length_m
     expert_s = suite.expert_lap_time_s[spec.reference_key] * suite.laps
     completion = min(1.0, max(0.0, progress_m[0]) / route_m)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import load_entry_point, make_agent
 from saferace.eval.filters import STATE_SOURCE_FACTORIES
@@ -104,7 +105,7 @@ def drive_once(config: RobustnessConfig, preset: str, seed: int, progress: bool)
             config.agent, env, model=config.model, mc_samples=config.mc_samples, seed=seed
         )
         result = run_episode(env, agent, seed=seed, progress=progress, on_step=on_step)
-        length = env.unwrapped.track.length_m
+        length = racing_env(env).track.length_m
     finally:
         env.close()
     summary = result.summary

@@ -12,7 +12,7 @@ filter's QP bends the control the network is least sure of (paper's final QP).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -23,6 +23,9 @@ from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint
 from saferace.learning.networks import DrivingNetwork
 from saferace.safety.filter import NominalAction
+
+if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
+    from saferace.envs.racing_env import RacingEnv
 
 #: Streams of dropout masks drawn from one episode seed: the agent's and the state source's.
 AGENT_STREAM, STATE_STREAM = 0, 1
@@ -123,8 +126,12 @@ def learned_agent(
 ) -> LearnedAgent:
     """``learned:CHECKPOINT``: the checkpoint's control network driving ``env``."""
     loaded = load_checkpoint(checkpoint)
-    check_image_shape(loaded, env.observation_space["image"].shape)
-    base = env.unwrapped
+    observation_space = env.observation_space
+    assert isinstance(observation_space, gym.spaces.Dict), "SafeRace observations are a Dict"
+    image_shape = observation_space["image"].shape
+    assert image_shape is not None, "SafeRace images are a Box, with a shape"
+    check_image_shape(loaded, image_shape)
+    base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
     low, high = base.action_space.low, base.action_space.high
     gains = PIDGains(min_accel_mps2=float(low[1]), max_accel_mps2=float(high[1]))
     controller = PIDSpeedController(base.control_dt_s, gains)

@@ -103,10 +103,11 @@ def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
             f"{FORMAT_VERSION}: upgrade SafeRace"
         )
     try:
-        networks = [_network(payload["networks"][name]) for name in NETWORK_NAMES]
+        control, state = (_network(payload["networks"][name]) for name in NETWORK_NAMES)
     except (KeyError, RuntimeError, TypeError) as exc:
         raise SafeRaceError(f"{path} holds damaged or mismatched networks: {exc}") from None
-    return LearnedCheckpoint(*networks, payload["metadata"], path, hashlib.sha256(raw).hexdigest())
+    sha256 = hashlib.sha256(raw).hexdigest()
+    return LearnedCheckpoint(control, state, payload["metadata"], path, sha256)
 
 
 def _network(entry: dict) -> DrivingNetwork:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
+from saferace.envs.unwrap import racing_env
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.metrics import span_metrics, thinned_trajectory
 from saferace.eval.parallel import run_jobs
@@ -76,7 +78,7 @@ class LabellingDriver:
     def __init__(
         self,
         expert: MPCExpert,
-        driver: Agent | None,
+        driver: Agent | Callable | None,
         noise: SteeringNoise,
         action_space: gym.spaces.Box,
         episode: int = 0,
@@ -95,7 +97,7 @@ class LabellingDriver:
         self.expert.reset()
         self.noise.reset()
         self._mixing = np.random.default_rng(self._seed)
-        if hasattr(self.driver, "reset"):
+        if self.driver is not None and hasattr(self.driver, "reset"):
             self.driver.reset()
 
     def act(
@@ -103,8 +105,11 @@ class LabellingDriver:
     ) -> np.ndarray | NominalAction:
         expert_action = self.expert.act(observation, info)
         label = (expert_action[0], self.expert.planned_speed_mps(), expert_action[1])
-        expert_drives = self.driver is None or (self.beta and self._mixing.random() < self.beta)
-        action = expert_action if expert_drives else act(self.driver, observation, info)
+        driver = self.driver
+        if driver is None or (self.beta and self._mixing.random() < self.beta):
+            action = expert_action  # the expert drives
+        else:
+            action = act(driver, observation, info)
         mean, std = nominal_parts(action)
         mean = mean.copy()
         mean[0] += self.noise.sample()
@@ -222,7 +227,7 @@ def collect_episode(
         randomize=settings.randomize,
     )
     try:
-        base = env.unwrapped
+        base = racing_env(env)
         track_length = base.track.length_m
         expert = MPCExpert.for_env(env, model=settings.expert_model)
         driver = (

@@ -66,9 +66,9 @@ def gradcam_maps(
 
 def overlay(image_rgb: np.ndarray, heat: np.ndarray) -> np.ndarray:
     """``image_rgb`` (uint8) with ``heat`` in ``[0, 1]`` blended in as a jet colour map."""
-    coloured = cv2.applyColorMap(np.uint8(255 * np.clip(heat, 0, 1)), cv2.COLORMAP_JET)
+    coloured = cv2.applyColorMap((255 * np.clip(heat, 0, 1)).astype(np.uint8), cv2.COLORMAP_JET)
     coloured = cv2.cvtColor(coloured, cv2.COLOR_BGR2RGB)
-    return np.uint8((1 - HEAT_ALPHA) * image_rgb + HEAT_ALPHA * coloured)
+    return ((1 - HEAT_ALPHA) * image_rgb + HEAT_ALPHA * coloured).astype(np.uint8)
 
 
 def gradcam_sheet(
@@ -125,7 +125,7 @@ def colour_bar(height: int) -> np.ndarray:
     column = np.full((height, COLOUR_BAR_WIDTH_PX, 3), 255, np.uint8)
     top, bottom, left, right = 8, height - 8, 8, 24
     heat = np.linspace(1.0, 0.0, bottom - top)[:, None].repeat(right - left, axis=1)
-    coloured = cv2.applyColorMap(np.uint8(255 * heat), cv2.COLORMAP_JET)
+    coloured = cv2.applyColorMap((255 * heat).astype(np.uint8), cv2.COLORMAP_JET)
     column[top:bottom, left:right] = cv2.cvtColor(coloured, cv2.COLOR_BGR2RGB)
     cv2.rectangle(column, (left, top), (right - 1, bottom - 1), (0, 0, 0), 1)
     for value, text in ((1.0, "1 peak"), (0.5, "0.5"), (0.0, "0 none")):

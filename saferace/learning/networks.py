@@ -99,6 +99,14 @@ class DrivingNetwork(nn.Module):
     units with the MC-dropout spread.
     """
 
+    # Buffers (registered in __init__): the inputs' and outputs' normalisation.
+    image_mean: torch.Tensor
+    image_std: torch.Tensor
+    velocity_mean: torch.Tensor
+    velocity_std: torch.Tensor
+    output_mean: torch.Tensor
+    output_std: torch.Tensor
+
     def __init__(self, config: NetworkConfig) -> None:
         super().__init__()
         self.config = config

@@ -20,6 +20,7 @@ import uuid
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -88,13 +89,18 @@ def write_round(
     dataset_dir = Path(dataset_dir)
     arrays = _checked_frames(arrays)
     held_out_count = 0 if held_out is None else len(held_out["s_m"])
-    held_out = _checked_frames(held_out) if held_out_count else None
+    held_out = _checked_frames(held_out) if held_out is not None and held_out_count else None
     dataset_dir.mkdir(parents=True, exist_ok=True)
     _remove_abandoned_partials(dataset_dir)
     partial = dataset_dir / f"{PARTIAL_PREFIX}{os.getpid()}-{uuid.uuid4().hex[:8]}"
     partial.mkdir()
     try:
-        for name, part in ((FRAMES_FILE, arrays), (HELD_OUT_FILE, held_out)):
+        # Any: mypy cannot tell the arrays' names from savez's allow_pickle keyword.
+        parts: tuple[tuple[str, dict[str, Any] | None], ...] = (
+            (FRAMES_FILE, arrays),
+            (HELD_OUT_FILE, held_out),
+        )
+        for name, part in parts:
             if part is None:
                 continue
             with open(partial / name, "wb") as handle:
@@ -244,7 +250,9 @@ def _checked_frames(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def _round_number(path: Path) -> int:
-    return int(ROUND_NAME.match(path.name).group(1))
+    match = ROUND_NAME.match(path.name)
+    assert match is not None, f"{path} is not a round folder"  # callers pass only those
+    return int(match.group(1))
 
 
 def _remove_abandoned_partials(dataset_dir: Path) -> None:

@@ -33,7 +33,7 @@ linearisation around the nominal control ``u_0``:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import cache
 
@@ -142,7 +142,7 @@ def _constraint_function(model_name: str) -> Callable[..., list[float]]:
 
 def class_k_gains(lam: float | tuple[float, ...]) -> tuple[float, ...]:
     """The gain of each HOCBF order from one ``lam`` or a tuple ``(lam_1, lam_2, ...)``."""
-    gains = (float(lam),) if np.isscalar(lam) else tuple(float(g) for g in lam)
+    gains = tuple(float(g) for g in lam) if isinstance(lam, Iterable) else (float(lam),)
     if not gains or len(gains) > MAX_ORDER or min(gains) <= 0.0:
         raise ValueError(f"need 1 to {MAX_ORDER} positive class-K gains, got {lam!r}")
     return gains + gains[-1:] * (MAX_ORDER - len(gains))

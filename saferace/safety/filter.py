@@ -5,10 +5,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
 
 from saferace.safety.barriers import (
     BARRIER_NAMES,
@@ -24,11 +25,14 @@ from saferace.safety.chance import (
     spread_at_accel,
 )
 from saferace.safety.models import MIN_SPEED_MPS, param_values, symbolic_model
-from saferace.safety.qp import FilterProblem, solve_filter_qp
+from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.speed_limit import LaneSpeedLimit
 from saferace.safety.state_sources import OracleStateSource, StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
 from saferace.track.vehicle_envelope import VehicleEnvelope
+
+if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
+    from saferace.envs.racing_env import RacingEnv
 
 #: Fallback when a solve fails: brake at this rate and steer toward the centerline.
 FALLBACK_BRAKE_MPS2 = 2.0
@@ -213,12 +217,15 @@ class SafetyFilter(gym.Wrapper):
         params = params or load_params()
         self.wheelbase_m = params.wheelbase_m
         self.param_values = param_values(params)
-        self.lower = np.asarray(env.action_space.low, dtype=float)
-        self.upper = np.asarray(env.action_space.high, dtype=float)
-        self.control_dt_s = float(env.unwrapped.control_dt_s)
+        action_space = env.action_space
+        assert isinstance(action_space, spaces.Box), "SafeRace tasks act in a Box"
+        self.lower = np.asarray(action_space.low, dtype=float)
+        self.upper = np.asarray(action_space.high, dtype=float)
+        base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
+        self.control_dt_s = float(base.control_dt_s)
         if lane_margin_m < 0.0:
             raise ValueError(f"lane_margin_m must be non-negative, got {lane_margin_m}")
-        self.half_width_m = float(env.unwrapped.car_half_width_m) + lane_margin_m
+        self.half_width_m = float(base.car_half_width_m) + lane_margin_m
         if speed_limit_factor is not None and speed_limit_factor <= 0.0:
             raise ValueError(f"speed_limit_factor must be positive, got {speed_limit_factor}")
         self.speed_limit_factor = speed_limit_factor
@@ -232,11 +239,11 @@ class SafetyFilter(gym.Wrapper):
         if creep_speed_mps < 0.0:
             raise ValueError(f"creep_speed_mps must be non-negative, got {creep_speed_mps}")
         self.creep_speed_mps = creep_speed_mps
-        self.track = env.unwrapped.track
+        self.track = base.track
         self.speed_limit = (
             LaneSpeedLimit(
                 self.track,
-                env.unwrapped.reference,
+                base.reference,
                 speed_limit_factor,
                 SPEED_LIMIT_DECEL_MPS2,
                 SPEED_LIMIT_LATERAL_MPS2,
@@ -318,7 +325,10 @@ class SafetyFilter(gym.Wrapper):
             if self.speed_limit_factor
             else None
         )
-        solve_time, linearised_at, accepted = 0.0, u0, None
+        solve_time, linearised_at = 0.0, u0
+        accepted: (
+            tuple[FilterProblem, ConstraintStatistics | None, np.ndarray, FilterSolution] | None
+        ) = None
         for _ in range(self.linearisation_passes):
             problem, statistics, h = self._problem(
                 states, kappa, linearised_at, context, speed, nominal, spread, lower, upper, chance
@@ -332,6 +342,7 @@ class SafetyFilter(gym.Wrapper):
             if not solution.solved or abs(solution.u[0] - linearised_at[0]) < RELINEARISE_TOL:
                 break  # linearised in the steering only
             linearised_at = solution.u
+        assert accepted is not None  # linearisation_passes >= 1, and the first pass is kept
         problem, statistics, h, solution = accepted
         self.last_problem = problem
         a_mean, b_mean = problem.a, problem.b
@@ -344,7 +355,7 @@ class SafetyFilter(gym.Wrapper):
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         count = len(self.constraint_names)
         spread_at_u = np.zeros(count)
-        if chance:
+        if statistics is not None:  # chance-constrained
             spread_at_u[: len(BARRIER_NAMES)] = constraint_std(statistics, filtered)
         self.steps += 1
         self.interventions += intervened
@@ -416,7 +427,7 @@ class SafetyFilter(gym.Wrapper):
     def _model_states(self, lane: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """The model's state for each lane-state sample and the measured velocities."""
         v_x = max(float(velocity[0]), MIN_SPEED_MPS)
-        columns = {
+        columns: dict[str, np.ndarray | float] = {
             "e_y": lane[:, 0],
             "e_psi": lane[:, 1],
             "v": v_x,
@@ -455,8 +466,8 @@ class SafetyFilter(gym.Wrapper):
             right, left = self.track.widths(s_m)
             return float(right), float(left)
         ahead = s_m + np.linspace(0.0, preview_m, 2 + math.ceil(preview_m / MAP_DS_M))
-        right, left = self.track.widths(ahead)
-        return float(right.min()), float(left.min())
+        rights, lefts = self.track.widths(ahead)
+        return float(rights.min()), float(lefts.min())
 
     def _width_slopes(self, s_m: float, preview_m: float) -> tuple[float, float]:
         """``(d w_left / ds, d w_right / ds)`` of :meth:`_lane_widths` at ``s_m``."""
@@ -471,6 +482,7 @@ class SafetyFilter(gym.Wrapper):
         """Row, bound and barrier value of ``accel <= lam_1 h + dv_limit/ds * v_x``, at the
         lane offset (of the samples ``e_y_m``) with the lowest limit. The offset's own rate
         is left out: the limit's fall with the offset is a blend, not a dynamics."""
+        assert self.speed_limit is not None  # asked for only with a speed_limit_factor
         s, v_x = float(info["s_m"]), float(velocity[0])
         limit, e_y = self.speed_limit.lowest(s, e_y_m)
         ahead = self.speed_limit(s + MAP_DS_M, e_y)

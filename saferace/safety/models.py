@@ -172,9 +172,9 @@ class FrenetModel:
         return np.array([values[name] for name in self.state_names], dtype=float)
 
     def _args(self, x: np.ndarray, u: np.ndarray, kappa: float) -> tuple[float, ...]:
-        x = [float(v) for v in x]
-        x[self.speed_index] = max(x[self.speed_index], MIN_SPEED_MPS)
-        return (*x, float(u[0]), float(u[1]), float(kappa), *self._param_values)
+        values = [float(v) for v in x]
+        values[self.speed_index] = max(values[self.speed_index], MIN_SPEED_MPS)
+        return (*values, float(u[0]), float(u[1]), float(kappa), *self._param_values)
 
     def f(self, x: np.ndarray, u: np.ndarray, kappa: float) -> np.ndarray:
         """State derivative."""

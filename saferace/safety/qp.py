@@ -93,21 +93,24 @@ class _Objective:
         chance = problem.covariance is not None and problem.z > 0.0
         self.z = float(problem.z) if chance else 0.0
         a, b = np.asarray(problem.a, dtype=float).tolist(), np.asarray(problem.b).tolist()
+        sigmas: list[list[float]] | list[None] = [None] * len(b)
+        sigma_total = 0.0
         if chance:
-            sigmas = np.asarray(problem.covariance, dtype=float).reshape(len(b), 9).tolist()
-        else:
-            sigmas = [None] * len(b)
+            covariances: list[list[float]] = (
+                np.asarray(problem.covariance, dtype=float).reshape(len(b), 9).tolist()
+            )
+            sigmas, sigma_total = covariances, sum(map(sum, covariances))
+        anchor_stds: list[float] | list[None]
         if anchors is None:
-            anchors = [None] * len(b)
+            anchor_stds = [None] * len(b)
         else:
-            anchors = [max(anchor, MIN_ANCHOR_STD) for anchor in anchors]
+            anchor_stds = [max(anchor, MIN_ANCHOR_STD) for anchor in anchors]
         self.rows = [
             (row[0], row[1], offset, sigma, anchor)
-            for row, offset, sigma, anchor in zip(a, b, sigmas, anchors, strict=True)
+            for row, offset, sigma, anchor in zip(a, b, sigmas, anchor_stds, strict=True)
         ]
         total = sum(self.mean) + sum(self.weight) + sum(map(sum, a)) + sum(b)
-        if chance:
-            total += sum(map(sum, sigmas))
+        total += sigma_total
         self.finite = math.isfinite(total)  # a NaN or inf anywhere makes the sum non-finite
 
     @staticmethod
@@ -261,12 +264,13 @@ def _active_set_minimum(
                 r0 += 2 * k * b * a0
                 r1 += 2 * k * b * a1
         for face0, face1 in faces:
-            if face0 is None and face1 is None:
-                det = h00 * h11 - h01 * h01
-                u0, u1 = (h11 * r0 - h01 * r1) / det, (h00 * r1 - h01 * r0) / det
-            elif face0 is None:
-                u1 = bounds[face1][1]
-                u0 = (r0 - h01 * u1) / h00
+            if face0 is None:
+                if face1 is None:
+                    det = h00 * h11 - h01 * h01
+                    u0, u1 = (h11 * r0 - h01 * r1) / det, (h00 * r1 - h01 * r0) / det
+                else:
+                    u1 = bounds[face1][1]
+                    u0 = (r0 - h01 * u1) / h00
             elif face1 is None:
                 u0 = bounds[face0][0]
                 u1 = (r1 - h01 * u0) / h11

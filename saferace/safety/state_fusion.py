@@ -116,7 +116,7 @@ class OdometryFusedStateSource:
         return np.column_stack([mean + deviations, perceived[:, 2]])
 
     def describe(self) -> dict:
-        inner = getattr(self.source, "describe", dict)()
+        inner: dict[str, Any] = getattr(self.source, "describe", dict)()
         return {**inner, "fused_with_odometry": True, "gated_steps": self.gated}
 
 

@@ -98,5 +98,5 @@ class SpreadScaledStateSource:
         return mean + (samples - mean) * self.scale
 
     def describe(self) -> dict:
-        inner = getattr(self.source, "describe", dict)()
+        inner: dict[str, Any] = getattr(self.source, "describe", dict)()
         return {**inner, "spread_scale": self.scale.tolist()}

@@ -66,7 +66,7 @@ def fit_longitudinal(
 ) -> LongitudinalFit:
     """Lag, gain and linear drag of the realised response to the acceleration command."""
     measured = derivative(t_s, v_x) - v_y * r
-    best = None
+    best: LongitudinalFit | None = None
     for tau in np.geomspace(0.005, 0.5, 60):
         lagged = first_order_response(t_s, accel_cmd, tau, accel_cmd[0])
         design = np.column_stack([lagged, -v_x])
@@ -74,6 +74,7 @@ def fit_longitudinal(
         rms = float(np.sqrt(np.mean((design @ coef - measured) ** 2)))
         if best is None or rms < best.rms_residual_mps2:
             best = LongitudinalFit(float(tau), float(coef[0]), float(coef[1]), rms)
+    assert best is not None  # the first lag tried is the best so far
     return best
 
 

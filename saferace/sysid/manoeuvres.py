@@ -52,6 +52,24 @@ def linear_steer_amplitude(speed_mps: float) -> float:
     return float(min(0.3, 3.0 * DrivetrainParams().wheelbase_m / speed_mps**2))
 
 
+def doublet(amplitude: float) -> Steering:
+    """``amplitude`` from 0.5 to 1.5 s, ``-amplitude`` from 1.5 to 2.5 s, else straight."""
+
+    def steer(t: float) -> float:
+        return amplitude if 0.5 <= t < 1.5 else (-amplitude if 1.5 <= t < 2.5 else 0.0)
+
+    return steer
+
+
+def constant(angle: float) -> Steering:
+    """``angle`` throughout."""
+
+    def steer(t: float) -> float:
+        return angle
+
+    return steer
+
+
 def chirp(amplitude: float, f0_hz: float, f1_hz: float, duration_s: float) -> Steering:
     def steer(t: float) -> float:
         phase = 2 * np.pi * (f0_hz * t + 0.5 * (f1_hz - f0_hz) / duration_s * t * t)
@@ -62,18 +80,13 @@ def chirp(amplitude: float, f0_hz: float, f1_hz: float, duration_s: float) -> St
 
 def standard_manoeuvres(speeds_mps: tuple[float, ...] = (1.5, 3.0, 4.5)) -> list[Manoeuvre]:
     """Steps, sweeps and circles at each speed, then acceleration and braking steps."""
-    manoeuvres = []
+    manoeuvres: list[Manoeuvre] = []
     for v in speeds_mps:
         amp = linear_steer_amplitude(v)
         manoeuvres += [
-            Manoeuvre(
-                f"step_{v:g}",
-                v,
-                3.0,
-                lambda t, a=amp: a if 0.5 <= t < 1.5 else (-a if 1.5 <= t < 2.5 else 0.0),
-            ),
+            Manoeuvre(f"step_{v:g}", v, 3.0, doublet(amp)),
             Manoeuvre(f"sweep_{v:g}", v, 6.0, chirp(amp, 0.2, 3.0, 6.0)),
-            Manoeuvre(f"circle_{v:g}", v, 3.0, lambda t, a=amp: 0.7 * a),
+            Manoeuvre(f"circle_{v:g}", v, 3.0, constant(0.7 * amp)),
         ]
     manoeuvres.append(
         Manoeuvre(

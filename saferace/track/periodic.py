@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from bisect import bisect_right
+from typing import overload
 
 import numpy as np
 
@@ -25,7 +26,14 @@ class PeriodicInterpolator:
         self._s_list = self._s.tolist()
         self._v_list = self._v.tolist()
 
+    @overload
+    def __call__(self, s_m: float) -> float: ...
+    @overload
+    def __call__(self, s_m: np.ndarray) -> np.ndarray: ...
+    @overload
+    def __call__(self, s_m: np.ndarray | float) -> np.ndarray | float: ...
     def __call__(self, s_m: np.ndarray | float) -> np.ndarray | float:
+        """The value at ``s_m``: a float for a Python (or NumPy 64-bit) scalar, else an array."""
         if isinstance(s_m, float | int):
             s = s_m % self.period_m
             i = bisect_right(self._s_list, s) - 1

@@ -235,9 +235,11 @@ def min_curvature_offsets(
     lower, upper = offset_bounds(track, center_s_m, car_width_m, settings.margin_m)
     count = len(center_s_m)
     offsets = np.zeros(count)
-    solver = None
+    solver: osqp.OSQP | None = None
     change = relative = previous_integral = np.inf
-    draft = settings.draft_tolerance is not None
+    draft_tolerance = settings.draft_tolerance
+    draft = draft_tolerance is not None
+    draft_settings = _tolerance(draft_tolerance) if draft_tolerance is not None else {}
     for iteration in range(1, settings.max_iterations + 2):
         P, q, integral = curvature_qp(track, center_s_m, offsets)
         if iteration > 1:
@@ -255,6 +257,7 @@ def min_curvature_offsets(
                 if not draft:
                     return offsets
                 draft = False
+                assert solver is not None  # set up in the first iteration
                 solver.update_settings(**_tolerance(_OSQP_SETTINGS["eps_abs"]))
             if iteration > settings.max_iterations:
                 break
@@ -267,7 +270,7 @@ def min_curvature_offsets(
                 l=lower,
                 u=upper,
                 verbose=False,
-                **{**_OSQP_SETTINGS, **(_tolerance(settings.draft_tolerance) if draft else {})},
+                **{**_OSQP_SETTINGS, **(draft_settings if draft else {})},
             )
         else:
             solver.update(Px=sp.triu(P, format="csc").data, q=q)

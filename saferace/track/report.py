@@ -14,6 +14,7 @@ import numpy as np
 
 from saferace.errors import SafeRaceError
 from saferace.track.raceline import RacingLineSettings, ReferenceLine, center_line, racing_line
+from saferace.track.smoothing import SmoothingKeeps
 from saferace.track.track import Track
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
@@ -38,7 +39,7 @@ class TrackReport:
         track, center, racing = self.track, self.center, self.racing
         narrowest, widest = self.lane_width_range_m
         kappa_gain = 1.0 - racing.curvature_squared_integral / center.curvature_squared_integral
-        rows = []
+        rows: list[list] = []
         if track.smoothing:
             rows += [
                 ["smoothed lane keeps the given", track.smoothing.keeps],
@@ -82,7 +83,7 @@ def load_track_report(
     margin_m: float | None = None,
     strict: bool = False,
     smooth_rms_m: float | None = None,
-    smooth_keeps: str | None = None,
+    smooth_keeps: SmoothingKeeps | None = None,
 ) -> TrackReport:
     """Load ``track`` (a built-in name or a CSV) for a car ``car_width_m`` wide, smoothed by
     ``smooth_rms_m`` keeping ``smooth_keeps``, and report on it with a racing line kept

@@ -12,6 +12,7 @@ import hashlib
 import logging
 from importlib import resources
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 
@@ -83,17 +84,18 @@ class Track:
         """A built-in track by name, or a track CSV by path (``strict``, ``smooth_rms_m``,
         ``smooth_keeps``: see :meth:`from_arrays`)."""
         text = str(name_or_path)
-        options = {
-            "car_width_m": car_width_m,
-            "strict": strict,
-            "smooth_rms_m": smooth_rms_m,
-            "smooth_keeps": smooth_keeps,
-        }
+        load_csv = functools.partial(
+            cls.from_csv,
+            car_width_m=car_width_m,
+            strict=strict,
+            smooth_rms_m=smooth_rms_m,
+            smooth_keeps=smooth_keeps,
+        )
         if text in builtin_track_names():
-            return cls.from_csv(builtin_track_path(text), name=text, **options)
+            return load_csv(builtin_track_path(text), name=text)
         path = Path(text)
         if path.suffix.lower() == ".csv" or path.exists():
-            return cls.from_csv(path, **options)
+            return load_csv(path)
         raise TrackError(
             f"unknown track {text!r}: give a CSV path or one of {', '.join(builtin_track_names())}"
         )
@@ -245,6 +247,12 @@ class Track:
         """Index of the input point at or before each arc length (for error messages)."""
         return np.searchsorted(self._point_s, self.centerline.wrap(s_m), side="right") - 1
 
+    @overload
+    def widths(self, s_m: float) -> tuple[float, float]: ...
+    @overload
+    def widths(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    @overload
+    def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]: ...
     def widths(self, s_m: np.ndarray | float) -> tuple[np.ndarray | float, np.ndarray | float]:
         """Right and left lane half widths at ``s`` (linear between the input points)."""
         return self._w_right(s_m), self._w_left(s_m)

@@ -69,12 +69,12 @@ def _cells(found: list[dict]) -> list[str]:
 
 def _spread(values: list[float | None]) -> str:
     """``a`` for one value, ``mean +- std`` for several, ``-`` for none."""
-    values = [v for v in values if v is not None]
-    if not values:
+    present = [v for v in values if v is not None]
+    if not present:
         return "-"
-    if len(values) == 1:
-        return f"{values[0]:.3g}"
-    return f"{np.mean(values):.3g} +- {np.std(values):.2g}"
+    if len(present) == 1:
+        return f"{present[0]:.3g}"
+    return f"{np.mean(present):.3g} +- {np.std(present):.2g}"
 
 
 def claims(
@@ -118,10 +118,10 @@ def claims(
             text += "; final iteration did not complete its lap"
         lines.append(text)
     for (task, seed), row in sorted(from_1.items()):
-        unfiltered = rows[(task, seed, "none")][1]
+        unfiltered_1 = rows[(task, seed, "none")][1]
         lines.append(
             f"- {task}, seed {seed}, iteration 1 behind the perceived-state filter (a fork "
-            f"with k = 0): {_drive(row)}; without the filter {_drive(unfiltered)}"
+            f"with k = 0): {_drive(row)}; without the filter {_drive(unfiltered_1)}"
         )
     return lines
 
