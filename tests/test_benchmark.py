@@ -10,7 +10,7 @@ import pytest
 from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
-from saferace.eval import benchmark
+from saferace.experiments import benchmark
 from saferace.experiments.benchmark import (
     SUITE_VERSION,
     RunSpec,

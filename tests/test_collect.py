@@ -72,7 +72,7 @@ def test_steering_noise_is_stationary_and_correlated():
     noise.reset()
     assert noise.sample() == values[0]  # seeded: the same episode gets the same noise
     assert SteeringNoise(Perturbation(0.0), dt, seed=0).sample() == 0.0
-    with pytest.raises(SafeRaceError, match="perturb"):
+    with pytest.raises(SafeRaceError, match="steer_std_rad"):
         Perturbation(-0.1)
 
 

@@ -89,9 +89,7 @@ def test_the_train_split_keeps_no_frame_past_it(unfiltered: DaggerRun):
     assert frames.lap_fraction.max() < TINY.collection.train_fraction
     expert_round = load_rounds([unfiltered.layout.round(0)])
     drive_steps = unfiltered.metrics()[0]["trajectory"]["s_m"]
-    assert (
-        max(drive_steps) > TINY.collection.train_fraction * 24.13
-    )  # it drove past, but kept none of it
+    assert max(drive_steps) > TINY.collection.train_fraction * 24.13  # drove past, kept none
     assert len(expert_round) < 60
 
 
@@ -118,10 +116,9 @@ def test_fork_shares_iterations_up_to_k_bit_for_bit(unfiltered: DaggerRun, tmp_p
 
 
 def test_a_folder_refuses_a_run_with_other_settings(unfiltered: DaggerRun):
+    more_epochs = replace(TINY, training=replace(TINY.training, epochs=3))
     with pytest.raises(SafeRaceError, match="differing: epochs"):
-        DaggerRun(
-            unfiltered.out_dir, replace(TINY, training=replace(TINY.training, epochs=3)), False
-        )
+        DaggerRun(unfiltered.out_dir, more_epochs, progress=False)
     more = DaggerRun(unfiltered.out_dir, replace(TINY, iterations=2), progress=False)
     assert len(more.run()) == 3  # the same run: nothing is redone
     other_forks = replace(with_filter(TINY, state_source=None, gains="tuned"), filter_from=2)

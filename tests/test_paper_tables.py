@@ -66,11 +66,11 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
     assert header[:2] == ["iteration", "filter"]
     assert len(header) == 2 + len(TASKS) * len(CELL_NAMES)
     assert [line[:2] for line in lines] == [
-        ["0", "x"],
-        ["1", "x"],
-        ["2", "x"],
-        ["2", "v (perceived)"],
-        ["2", "v (true state)"],
+        ["0", "none"],
+        ["1", "none"],
+        ["2", "none"],
+        ["2", "perceived"],
+        ["2", "true state"],
     ]
     columns = {
         "lap [s]": "duration_s",  # 3 s drives: each cell is the time driven, starred
@@ -117,7 +117,7 @@ def test_unseen_tracks_timings_and_the_recording(tables):
     # The fork drives iteration 2 with the unfiltered run's networks: one policy per line,
     # scored once, without and with the filter.
     assert len(unseen) == len(TASKS) * 2
-    assert all(line.split("|")[4].strip() == "final of x run" for line in unseen)
+    assert all(line.split("|")[4].strip() == "final of none run" for line in unseen)
     assert all(line.split("|")[5].strip() == "oval" for line in unseen)
     seconds = {
         line.split("|")[1].strip(): float(line.split("|")[2])
@@ -146,7 +146,7 @@ def test_quick_preset_end_to_end(tmp_path: Path):
     assert result.returncode == 0, result.stderr
     assert "# Table 2" in result.stdout
     text = (tmp_path / "table2.md").read_text()
-    assert "v (perceived)" in text and "v (true state)" in text
+    assert "perceived" in text and "true state" in text
     rows = metrics(tmp_path, "CenterLine", "none")
     assert rows[0]["completed"] and rows[0]["time_outside_lane_s"] == 0.0  # the expert
     assert (tmp_path / "table2_trajectories.png").stat().st_size > 50_000

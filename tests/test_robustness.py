@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from saferace.errors import SafeRaceError
-from saferace.eval import robustness
 from saferace.eval.filters import FilterConfig
+from saferace.experiments import robustness
 from saferace.experiments.robustness import (
     TABLE_COLUMNS,
     RobustnessConfig,
@@ -21,8 +21,8 @@ from saferace.experiments.robustness import (
 
 def short(agent: str, **kwargs) -> RobustnessConfig:
     return RobustnessConfig(
-        agent=agent, track="lab", presets=("none", "strong"), seeds=(0,), max_seconds=2.0,
-        model="kinematic", **kwargs,
+        agent=agent, task="CenterLine", track="lab", presets=("none", "strong"), seeds=(0,),
+        max_seconds=2.0, model="kinematic", **kwargs,
     )  # fmt: skip
 
 

@@ -102,7 +102,7 @@ def test_a_network_left_out_is_taken_unchanged_from_init(frames, tmp_path: Path)
     assert not torch.equal(control.output_layer.weight, new_control.output_layer.weight)
     assert list(new_metadata["history"]) == ["control"]
     assert new_metadata["kept"] == {"state": str(init)}
-    with pytest.raises(SafeRaceError, match="--init"):
+    with pytest.raises(SafeRaceError, match="init is needed"):
         replace(FEW, networks=("control",))
     with pytest.raises(SafeRaceError, match="networks must be"):
         replace(FEW, init=str(init), networks=("steering",))

@@ -6,8 +6,10 @@ fast; the modules that run them import them from here.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 from saferace.config import setting
 from saferace.errors import ConfigError
@@ -320,14 +322,73 @@ class DaggerConfig:
     @property
     def fingerprint(self) -> dict:
         """What makes two runs the same run: the iterations may be extended, and an
-        unfiltered run is the same whatever filter its forks will use."""
-        values = asdict(self)
-        del values["iterations"]
-        values["trained_networks"] = list(self.trained_networks)
-        if not self.filters:
-            for name in ("filter", "filter_from", "calibrate_spread"):
+        unfiltered run is the same whatever filter its forks will use.
+
+        Flat, with the names run.json has always used, and JSON's types (lists, not
+        tuples), so that a folder written before the configs were nested, or read back
+        from its run.json, is the same run; a setting at its default that an older run
+        could not have had is left out."""
+        training, collection, safety = self.training, self.collection, self.filter
+        values: dict[str, Any] = {
+            "task": self.task,
+            "track": self.track,
+            "filter": safety.kind,
+            "filter_from": self.filter_from,
+            "state_source": "oracle" if safety.state_source is None else "learned",
+            "epochs": training.epochs,
+            "min_train_steps": training.min_steps,
+            "max_train_steps": training.max_steps,
+            "batch_size": training.batch_size,
+            "learning_rate": training.learning_rate,
+            "warm_start": self.warm_start,
+            "stereo": collection.stereo,
+            "image_size": collection.image_size,
+            "train_fraction": collection.train_fraction,
+            "laps": collection.laps,
+            "expert_perturb": self.expert_perturb,
+            "seed": training.seed,
+            "expert_model": collection.expert_model,
+            "filter_model": safety.model,
+            "filter_gains": safety.gains,
+            "map_curvature": safety.map_curvature,
+            "calibrate_spread": self.calibrate_spread,
+            "fuse_odometry": safety.fuse_odometry and self.perceived,
+            "mc_samples": collection.mc_samples,
+            "beta_rampdown": self.beta_rampdown,
+            "max_seconds": collection.max_seconds,
+            "randomize": collection.randomize,
+            "episodes": self.episodes,
+            "trained_networks": list(self.trained_networks),
+        }
+        newer = {  # settings the flat config never had, at the value it always used
+            "dropout": (training.dropout, 0.2),
+            "backbone_weights": (training.backbone_weights, None),
+            "state_noise": (safety.state_noise, None),
+            "filter_samples": (safety.samples, FilterConfig.samples),
+            "probabilistic": (safety.probabilistic, True),
+            "eta": (safety.eta, 0.95),
+            "spread_scale": (safety.spread_scale, None),
+        }
+        for name, (value, default) in newer.items():
+            if value != default:
+                values[name] = value
+        for name, default in (
+            ("randomize", "none"),
+            ("episodes", 1),
+            ("fuse_odometry", False),
+            ("max_train_steps", 0),
+            ("trained_networks", list(NETWORKS)),
+        ):
+            if values.get(name) == default:  # the same run as one made before the option
                 del values[name]
-        return values
+        if not self.filters:
+            for name in (
+                "filter_from", "state_source", "filter_model", "filter_gains", "map_curvature",
+                "calibrate_spread", "fuse_odometry", "state_noise", "filter_samples",
+                "probabilistic", "eta", "spread_scale",
+            ):  # fmt: skip
+                values.pop(name, None)
+        return json.loads(json.dumps(values))
 
     def filtered(self, iteration: int) -> bool:
         return self.filters and iteration > self.filter_from
