@@ -360,7 +360,7 @@ class DaggerConfig:
             "episodes": self.episodes,
             "trained_networks": list(self.trained_networks),
         }
-        newer = {  # settings the flat config never had, at the value it always used
+        newer: dict[str, tuple[Any, Any]] = {  # settings the flat config never had
             "dropout": (training.dropout, 0.2),
             "backbone_weights": (training.backbone_weights, None),
             "state_noise": (safety.state_noise, None),
@@ -372,13 +372,14 @@ class DaggerConfig:
         for name, (value, default) in newer.items():
             if value != default:
                 values[name] = value
-        for name, default in (
+        defaults: tuple[tuple[str, Any], ...] = (
             ("randomize", "none"),
             ("episodes", 1),
             ("fuse_odometry", False),
             ("max_train_steps", 0),
             ("trained_networks", list(NETWORKS)),
-        ):
+        )
+        for name, default in defaults:
             if values.get(name) == default:  # the same run as one made before the option
                 del values[name]
         if not self.filters:
