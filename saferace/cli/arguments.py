@@ -13,6 +13,7 @@ from saferace.names import (
     NOISY_SAMPLES,
     RANDOMIZATION_PRESETS,
     SMOOTHING_KEEPS,
+    STATE_SOURCE_KINDS,
     TASKS,
 )
 
@@ -81,7 +82,7 @@ def filter_config(args: argparse.Namespace):
 
     source = args.state_source
     learned = source.startswith("learned:")
-    if source not in ("oracle", "noisy") and not learned:
+    if not learned and (source not in STATE_SOURCE_KINDS or source == "learned"):
         raise SafeRaceError(
             f"unknown --state-source {source!r}: use oracle, noisy or learned:CHECKPOINT"
         )

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from saferace.errors import SafeRaceError
+from saferace.names import MANIFEST_FILE
 
 LOG = logging.getLogger(__name__)
 
@@ -45,7 +46,6 @@ FRAMES_FILE = "frames.npz"
 #: Frames a round keeps apart: driven, never trained on (DAgger's part of the lap past its
 #: ``train_fraction``), for scoring and calibrating the networks.
 HELD_OUT_FILE = "held_out.npz"
-MANIFEST_FILE = "manifest.json"
 ROUND_NAME = re.compile(r"^round_(\d{4,})$")
 PARTIAL_PREFIX = ".partial-"
 FORMAT_VERSION = 1
