@@ -20,6 +20,10 @@ DEFAULT_FILTER_MODEL = "kinematic"
 FILTER_KINDS = ("none", "cbf")
 #: Named gain settings of the filter (the keys of ``saferace.safety.filter.GAIN_PRESETS``).
 GAIN_NAMES = ("paper", "grip", "tuned")
+#: How the filter treats its state's uncertainty: chance constraints on the samples' spread
+#: (the paper's), or barrier conditions that hold for every state of the source's interval,
+#: with a fallback where they cannot (``saferace.safety.filter.SafetyFilter``).
+UNCERTAINTY_MODES = ("chance", "robust")
 DEFAULT_GAINS = "grip"
 
 #: What feeds the filter the lane state: the truth, the truth with noise, a state network.

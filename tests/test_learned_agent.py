@@ -17,7 +17,7 @@ from saferace.eval.runner import read_jsonl
 from saferace.learning.agent import learned_state_source
 from saferace.learning.checkpoint import load_checkpoint
 from saferace.learning.gradcam import gradcam_maps
-from saferace.safety.filter import NominalAction
+from saferace.safety.decision import NominalAction
 
 
 class ForbiddenInfo(dict):

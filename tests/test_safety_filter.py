@@ -19,7 +19,9 @@ from saferace.safety.barriers import (
     hocbf_condition,
     linearised_constraints,
 )
-from saferace.safety.filter import GAIN_PRESETS, NominalAction, SafetyFilter
+from saferace.safety.decision import NominalAction
+from saferace.safety.fallback import FALLBACK_BRAKE_MPS2
+from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.models import FrenetModel, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.state_sources import (
@@ -165,8 +167,8 @@ def test_failed_solves_fall_back_to_braking_toward_the_center(monkeypatch):
     for _ in range(3):
         _, _, _, _, info = env.step(np.array([0.3, 3.0]))
     safety = info["safety"]
-    assert safety["fallback"] and safety["status"] == "max_iterations"
-    assert safety["filtered_action"][1] == pytest.approx(-filter_module.FALLBACK_BRAKE_MPS2)
+    assert safety["fallback"] == "solver" and safety["status"] == "max_iterations"
+    assert safety["filtered_action"][1] == pytest.approx(-FALLBACK_BRAKE_MPS2)
     assert np.sign(safety["filtered_action"][0]) == -np.sign(info["e_y_m"] + info["e_psi_rad"])
     assert env.failures == 3
     env.close()

@@ -27,6 +27,9 @@ SAFETY_FIELDS = (
     "accel_correction_mps2",
     "max_slack",
     "failed_solve",
+    "fallback",
+    "alarm",
+    "covered",
     "solve_time_s",
 )
 
@@ -38,7 +41,10 @@ class LapMetrics:
     ``min_lane_barrier_m`` is the true lane barrier ``min(w_left - e_y, w_right + e_y) -
     half car width`` at its lowest (negative: part of the car was outside). The filter's
     fields are None for episodes driven without one: how many steps it changed the
-    action, by how much on average (over all steps), its largest slack and failed solves.
+    action, by how much on average (over all steps), its largest slack and failed solves,
+    the share of steps it fell back on (:mod:`saferace.safety.fallback`), the share its
+    out-of-distribution monitor raised on, and ``coverage``: the share of steps whose true
+    state lay inside the interval the filter used.
     """
 
     lap: int
@@ -56,6 +62,9 @@ class LapMetrics:
     mean_accel_correction_mps2: float | None = None
     max_slack: float | None = None
     failed_solves: int | None = None
+    fallback_rate: float | None = None
+    alarm_rate: float | None = None
+    coverage: float | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -143,6 +152,9 @@ def _safety_metrics(steps: dict[str, np.ndarray], mask: np.ndarray) -> dict:
         "mean_accel_correction_mps2": float(np.mean(steps["accel_correction_mps2"][mask])),
         "max_slack": float(np.max(steps["max_slack"][mask])),
         "failed_solves": int(np.sum(steps["failed_solve"][mask])),
+        "fallback_rate": float(np.mean(steps["fallback"][mask])),
+        "alarm_rate": float(np.mean(steps["alarm"][mask])),
+        "coverage": float(np.mean(steps["covered"][mask])),
     }
 
 
@@ -154,7 +166,10 @@ def safety_step_record(safety: dict) -> dict:
         "steer_correction_rad": abs(filtered[0] - nominal[0]),
         "accel_correction_mps2": abs(filtered[1] - nominal[1]),
         "max_slack": max(safety["slacks"].values()),
-        "failed_solve": safety["fallback"],
+        "failed_solve": safety["fallback"] == "solver",
+        "fallback": bool(safety["fallback"]),
+        "alarm": safety["alarm"],
+        "covered": safety["covered"],
         "solve_time_s": safety["solve_time_s"],
     }
 
@@ -203,6 +218,9 @@ def _summarize_safety(laps: list[LapMetrics]) -> dict:
         "mean_accel_correction_mps2": weighted("mean_accel_correction_mps2"),
         "max_slack": max(_filter_metric(lap.max_slack) for lap in filtered),
         "failed_solves": sum(_filter_metric(lap.failed_solves) for lap in filtered),
+        "fallback_rate": weighted("fallback_rate"),
+        "alarm_rate": weighted("alarm_rate"),
+        "coverage": weighted("coverage"),
     }
 
 

@@ -30,7 +30,8 @@ from saferace.eval.metrics import (
     summarize,
     thinned_trajectory,
 )
-from saferace.safety.filter import SafetyFilter, nominal_parts
+from saferace.safety.decision import nominal_parts
+from saferace.safety.filter import SafetyFilter
 from saferace.track import Track, builtin_track_names
 from saferace.version import __version__
 
@@ -82,7 +83,7 @@ def run_episode(
 
     Also recorded: the true lane barrier ``lane_barrier_m`` and, if ``env`` is wrapped in a
     :class:`~saferace.safety.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
-    return a :class:`~saferace.safety.filter.NominalAction`; without a filter its mean is
+    return a :class:`~saferace.safety.decision.NominalAction`; without a filter its mean is
     applied. ``on_step(observation, info, action)`` is called after each step with the
     action applied (videos, recordings).
     """

@@ -3,7 +3,7 @@
 :class:`LearnedAgent` drives from the observation alone (image and velocities; it never
 reads ``info``): the control network's MC-dropout mean steering and target speed, the
 target speed through the PID speed loop to ``accel_mps2``, handed to a safety filter as a
-:class:`~saferace.safety.filter.NominalAction` with the network's spread, so that the
+:class:`~saferace.safety.decision.NominalAction` with the network's spread, so that the
 filter's QP bends the control the network is least sure of (paper's final QP).
 :class:`LearnedStateSource` gives the filter the state network's MC-dropout samples of
 ``[e_y, e_psi, kappa]``: the perceived state (paper Sec. 3.4), from the image alone.
@@ -22,7 +22,7 @@ from saferace.agents.pid import PIDGains, PIDSpeedController
 from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint
 from saferace.learning.networks import DrivingNetwork
-from saferace.safety.filter import NominalAction
+from saferace.safety.decision import NominalAction
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
     from saferace.envs.racing_env import RacingEnv

@@ -46,13 +46,44 @@ def normalised_scores(mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray) ->
 
 
 @dataclass(frozen=True)
+class SpreadMonitor:
+    """An out-of-distribution alarm on a frame's spread: the score ``max_i sigma_i /
+    reference_i`` (``reference``: the calibration frames' median spread per output) raises
+    above ``threshold``, the conformal quantile of the calibration frames' scores at
+    ``alpha``, so on exchangeable frames it raises on at most ``alpha`` of them."""
+
+    reference: tuple[float, ...]
+    threshold: float
+    alpha: float
+
+    def score(self, sigma: np.ndarray) -> float:
+        ratio = np.asarray(sigma, float) / np.maximum(self.reference, MIN_SIGMA)
+        return float(np.max(ratio))
+
+    def raises(self, sigma: np.ndarray) -> tuple[float, bool]:
+        """``(score, alarm)`` of one frame's spread."""
+        score = self.score(sigma)
+        return score, score > self.threshold
+
+
+def fit_spread_monitor(sigma: np.ndarray, alpha: float = 0.05) -> SpreadMonitor:
+    """The :class:`SpreadMonitor` of held-out frames' ``(n, outputs)`` spreads."""
+    sigma = np.asarray(sigma, float)
+    reference = tuple(float(x) for x in np.maximum(np.median(sigma, axis=0), MIN_SIGMA))
+    scores = np.max(sigma / np.asarray(reference), axis=-1)
+    return SpreadMonitor(reference, conformal_quantile(scores, alpha), alpha)
+
+
+@dataclass(frozen=True)
 class ConformalCalibration:
     """``mean +- scale * sigma`` covers the truth with probability ``1 - alpha`` on frames
-    exchangeable with the ``frames`` it was fitted on."""
+    exchangeable with the ``frames`` it was fitted on; ``monitor`` (if any) raises on frames
+    unlike them."""
 
     alpha: float
     scale: float
     frames: int
+    monitor: SpreadMonitor | None = None
 
     def interval(self, mean: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         half = self.scale * np.asarray(sigma, float)
@@ -63,15 +94,33 @@ class ConformalCalibration:
 
     @classmethod
     def from_dict(cls, values: dict) -> ConformalCalibration:
-        return cls(float(values["alpha"]), float(values["scale"]), int(values["frames"]))
+        monitor = values.get("monitor")
+        return cls(
+            float(values["alpha"]),
+            float(values["scale"]),
+            int(values["frames"]),
+            None
+            if monitor is None
+            else SpreadMonitor(
+                tuple(float(x) for x in monitor["reference"]),
+                float(monitor["threshold"]),
+                float(monitor["alpha"]),
+            ),
+        )
 
 
 def calibrate(
-    mean: np.ndarray, sigma: np.ndarray, truth: np.ndarray, alpha: float = 0.05
+    mean: np.ndarray,
+    sigma: np.ndarray,
+    truth: np.ndarray,
+    alpha: float = 0.05,
+    monitor_alpha: float | None = 0.05,
 ) -> ConformalCalibration:
-    """Fit the interval scale on held-out ``(n, outputs)`` predictions and truths."""
+    """Fit the interval scale (and, with a ``monitor_alpha``, the monitor) on held-out
+    ``(n, outputs)`` predictions and truths."""
     scores = normalised_scores(mean, sigma, truth)
-    return ConformalCalibration(alpha, conformal_quantile(scores, alpha), len(scores))
+    monitor = None if monitor_alpha is None else fit_spread_monitor(sigma, monitor_alpha)
+    return ConformalCalibration(alpha, conformal_quantile(scores, alpha), len(scores), monitor)
 
 
 def coverage(

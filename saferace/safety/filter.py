@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from saferace.names import UNCERTAINTY_MODES
 from saferace.safety.barriers import (
     BARRIER_NAMES,
     BarrierContext,
@@ -24,27 +24,23 @@ from saferace.safety.chance import (
     constraint_std,
     spread_at_accel,
 )
+from saferace.safety.decision import SafetyDecision, nominal_parts
+from saferace.safety.fallback import (
+    FALLBACK_LATERAL_MPS2,
+    fallback_accel_bounds,
+    fitting_speed_mps,
+    steer_to_centre,
+)
+from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
+from saferace.safety.intervals import MonitoredStateSource, interval_points, state_interval
 from saferace.safety.models import MIN_SPEED_MPS, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
-from saferace.safety.speed_limit import LaneSpeedLimit
 from saferace.safety.state_sources import OracleStateSource, StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
-from saferace.track.vehicle_envelope import VehicleEnvelope
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
     from saferace.envs.racing_env import RacingEnv
 
-#: Fallback when a solve fails: brake at this rate and steer toward the centerline.
-FALLBACK_BRAKE_MPS2 = 2.0
-FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
-FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
-#: Step (m) of the finite differences of the speed limit and lane widths along the track.
-MAP_DS_M = 0.05
-#: The friction ellipse the speed limit brakes within (m/s^2): braking at half the car's
-#: 4 on a straight, none where the limit turns at 7 (the limit's corners take 6.05, the
-#: tyres' grip is about 9.8), so braking ends as the car turns in.
-SPEED_LIMIT_DECEL_MPS2 = 2.0
-SPEED_LIMIT_LATERAL_MPS2 = 7.0
 #: Settings of ``SafetyFilter`` by name (:data:`saferace.names.GAIN_NAMES`): the paper's
 #: gain; the same with the steering held within the tyres' grip (``max_lateral_accel_mps2``,
 #: :data:`saferace.names.DEFAULT_GAINS`), since at racing speed the paper's kinematic filter
@@ -66,60 +62,9 @@ CREEP_ACCEL_MPS2 = 1.0
 #: A filtered action this close to the nominal one is not an intervention.
 INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2)
 RELINEARISE_TOL = 1e-3  # rad: a steering this close to the linearisation point is final
-
-
-@dataclass(frozen=True)
-class NominalAction:
-    """An agent's action with the spread of its own uncertainty (e.g. its MC-dropout std).
-
-    Agents may return this instead of a plain action; the filter then weighs each control's
-    deviation by ``1 / std^2``, so it bends the controls the agent is least sure of.
-    """
-
-    mean: np.ndarray
-    std: np.ndarray | None = None
-
-
-def nominal_parts(action: Any) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(mean, std or None)`` of a plain action or a :class:`NominalAction`."""
-    if isinstance(action, NominalAction):
-        std = None if action.std is None else np.asarray(action.std, dtype=float).ravel()
-        return np.asarray(action.mean, dtype=float).ravel(), std
-    return np.asarray(action, dtype=float).ravel(), None
-
-
-@dataclass(frozen=True)
-class SafetyDecision:
-    """What the filter did in one step (``info["safety"]``); per-barrier values by name.
-
-    ``barriers`` are the estimated ``h`` (mean over state samples; m for the lanes, rad for
-    the heading); ``constraints`` the HOCBF condition ``psi_m`` at the filtered action (mean
-    over samples, ``>= 0`` holds); ``tightening`` the chance-constraint margin
-    ``Phi^-1(eta) * std`` (the spread at the agent's acceleration, see below); ``slacks`` what each
-    constraint needed. ``state_mean`` and ``state_std`` are the ``[e_y, e_psi, kappa]`` the
-    filter believed (the curvature from the map where it takes it from there),
-    ``state_true`` the simulator's at the same moment.
-    """
-
-    nominal_action: list[float]
-    filtered_action: list[float]
-    state_true: list[float]
-    state_mean: list[float]
-    state_std: list[float]
-    barriers: dict[str, float]
-    constraints: dict[str, float]
-    tightening: dict[str, float]
-    slacks: dict[str, float]
-    intervened: bool
-    fallback: bool
-    status: str
-    iterations: int
-    solve_time_s: float
-    filter_time_s: float
-    n_samples: int
-
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+#: A robust constraint needing more slack than this has no control that satisfies it (the
+#: slack penalty leaves about 1e-4 on a constraint it holds at its edge; m/s^2 for a lane).
+INFEASIBLE_SLACK = 1e-2
 
 
 class SafetyFilter(gym.Wrapper):
@@ -136,9 +81,21 @@ class SafetyFilter(gym.Wrapper):
 
     within the actuator limits (:mod:`saferace.safety.qp`), never braking the car backwards.
     With one sample, or ``probabilistic=False``, it is the deterministic HOCBF filter on the
-    samples' mean. ``info["safety"]`` holds a :class:`SafetyDecision` every step; a failed
-    solve brakes at ``FALLBACK_BRAKE_MPS2`` while steering toward the centre line, and is
-    counted in ``failures``.
+    samples' mean. ``info["safety"]`` holds a
+    :class:`~saferace.safety.decision.SafetyDecision` every step; a failed solve brakes at
+    ``FALLBACK_BRAKE_MPS2`` while steering toward the centre line, and is counted in
+    ``failures``.
+
+    ``uncertainty="robust"`` replaces the chance constraints by barrier conditions that must
+    hold at every point of the state's interval (its corners and centre, see
+    :func:`~saferace.safety.intervals.interval_points`; the measurement-robust CBF of Dean
+    et al. 2020 and Cosner et al. 2021: the margin grows with the interval's width). The
+    interval is the source's own (a conformal calibration) or ``mean +- z std`` of its
+    samples. Where no control satisfies them, or the source's out-of-distribution monitor
+    raises, the filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a
+    speed at which the interval fits inside the lane (a creep speed, or a stop where even
+    the interval's offsets do not fit) and keeps the steering inside the tyres' grip; each
+    such step is counted in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -166,7 +123,8 @@ class SafetyFilter(gym.Wrapper):
     ``action_std``: the spread assumed when the agent gives none, ``min_action_std`` its
     floor; ``lane_margin_m``: added to the car's half width in the lane barriers (the
     models are not exact); ``params``: vehicle parameters (default: identified ones).
-    ``GAIN_PRESETS`` names the settings the command line offers.
+    ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`. ``GAIN_PRESETS``
+    names the settings the command line offers.
     """
 
     def __init__(
@@ -190,8 +148,12 @@ class SafetyFilter(gym.Wrapper):
         width_preview_s: float = 0.0,
         creep_speed_mps: float = 0.5,
         params: VehicleParams | None = None,
+        uncertainty: str = "chance",
     ) -> None:
         super().__init__(env)
+        if uncertainty not in UNCERTAINTY_MODES:
+            raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
+        self.robust = uncertainty == "robust"
         gains = class_k_gains(lam)
         for name, value in (
             ("lateral_decel_mps2", lateral_decel_mps2),
@@ -226,36 +188,19 @@ class SafetyFilter(gym.Wrapper):
         if lane_margin_m < 0.0:
             raise ValueError(f"lane_margin_m must be non-negative, got {lane_margin_m}")
         self.half_width_m = float(base.car_half_width_m) + lane_margin_m
-        if speed_limit_factor is not None and speed_limit_factor <= 0.0:
-            raise ValueError(f"speed_limit_factor must be positive, got {speed_limit_factor}")
-        self.speed_limit_factor = speed_limit_factor
         self.map_curvature = map_curvature
         if linearisation_passes < 1:
             raise ValueError(f"linearisation_passes must be at least 1, got {linearisation_passes}")
         self.linearisation_passes = linearisation_passes
-        if width_preview_s < 0.0:
-            raise ValueError(f"width_preview_s must be non-negative, got {width_preview_s}")
-        self.width_preview_s = width_preview_s
         if creep_speed_mps < 0.0:
             raise ValueError(f"creep_speed_mps must be non-negative, got {creep_speed_mps}")
         self.creep_speed_mps = creep_speed_mps
         self.track = base.track
-        self.speed_limit = (
-            LaneSpeedLimit(
-                self.track,
-                base.reference,
-                speed_limit_factor,
-                SPEED_LIMIT_DECEL_MPS2,
-                SPEED_LIMIT_LATERAL_MPS2,
-                path_lateral_mps2=speed_limit_factor**2 * VehicleEnvelope().a_lat_max_mps2,
-            )
-            if speed_limit_factor
-            else None
+        self.map = FilterMap(
+            self.track, base.reference, width_preview_s, speed_limit_factor, self.speed_gain
         )
-        self.constraint_names = BARRIER_NAMES + (("speed",) if speed_limit_factor else ())
-        self.interventions = 0
-        self.failures = 0
-        self.steps = 0
+        self.constraint_names = BARRIER_NAMES + (("speed",) if self.map.speed_limit else ())
+        self.interventions = self.failures = self.fallbacks = self.steps = 0
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
@@ -263,7 +208,7 @@ class SafetyFilter(gym.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
         self.state_source.reset(seed)
-        self.interventions = self.failures = self.steps = 0
+        self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         return observation, info
 
@@ -296,35 +241,105 @@ class SafetyFilter(gym.Wrapper):
         u0 = np.clip(nominal, self.lower, self.upper)
 
         samples = np.atleast_2d(self.state_source.samples(observation, info))
-        lane = samples
-        chance = self.probabilistic and len(lane) > 1
-        if not chance:
-            lane = lane.mean(axis=0, keepdims=True)
-        states = self._model_states(lane, observation["velocity"])
         s_m = float(info["s_m"])
-        v_x = float(observation["velocity"][0])
-        preview_m = self.width_preview_s * max(v_x, 0.0)
-        w_right, w_left = self._lane_widths(s_m, preview_m)
-        w_left_slope, w_right_slope = self._width_slopes(s_m, preview_m)
-        context = BarrierContext(
-            w_left_m=w_left,
-            w_right_m=w_right,
-            half_width_m=self.half_width_m,
-            theta_max_rad=self.theta_max,
-            lam=self.lam,
-            lateral_decel_mps2=self.lateral_decel_mps2,
-            w_left_slope=w_left_slope,
-            w_right_slope=w_right_slope,
-        )
-        kappa, kappa_std = lane[:, 2], float(samples[:, 2].std())
+        state_lower, state_upper = state_interval(self.state_source, samples, self.z)
         if self.map_curvature:
-            kappa = np.full(len(lane), self.track.centerline.curvature_scalar(s_m))
-        lower, upper = self._action_box(v_x, float(u0[1]))
-        speed = (
-            self._speed_constraint(info, observation["velocity"], lane[:, 0])
-            if self.speed_limit_factor
-            else None
+            state_lower[2] = state_upper[2] = self.track.centerline.curvature_scalar(s_m)
+        score, alarm = (
+            self.state_source.monitor(samples)
+            if isinstance(self.state_source, MonitoredStateSource)
+            else (None, False)
         )
+        chance = not self.robust and self.probabilistic and len(samples) > 1
+        if self.robust:
+            lane = interval_points(state_lower, state_upper)
+        else:
+            lane = samples if chance else samples.mean(axis=0, keepdims=True)
+            if self.map_curvature:
+                lane = np.column_stack([lane[:, :2], np.full(len(lane), state_lower[2])])
+        v_x = float(observation["velocity"][0])
+        context = self._context(s_m, v_x)
+        speed = self.map.speed_constraint(s_m, v_x, lane[:, 0])
+        states = self._model_states(lane, observation["velocity"])
+        solve = (states, lane[:, 2], u0, context, speed, nominal, spread, chance)
+        problem, statistics, h, solution, solve_time = self._solve(
+            *solve, *self._action_box(v_x, float(u0[1]))
+        )
+        fallback = "solver" if not solution.solved else "alarm" if alarm else ""
+        barrier_rows = len(problem.b) - (speed is not None)
+        if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
+            fallback = "infeasible"
+        if fallback in ("alarm", "infeasible"):
+            problem, statistics, h, solution, more_time = self._solve(
+                *solve,
+                *self._fallback_box(v_x, float(u0[1]), (state_lower, state_upper), context, alarm),
+            )
+            solve_time += more_time
+            fallback = fallback if solution.solved else "solver"
+        self.last_problem = problem
+        if fallback == "solver":  # brakes whatever the creep rule asks
+            filtered = steer_to_centre(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
+        else:
+            filtered = solution.u
+        intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
+        count = len(self.constraint_names)
+        spread_at_u = np.zeros(count)
+        if statistics is not None:  # chance-constrained
+            spread_at_u[: len(BARRIER_NAMES)] = constraint_std(statistics, filtered)
+        self.steps += 1
+        self.interventions += intervened
+        self.failures += fallback == "solver"
+        self.fallbacks += bool(fallback)
+        truth = np.array([info[name] for name in ("e_y_m", "e_psi_rad", "kappa_radpm")], float)
+        checked = slice(0, 2 if self.map_curvature else 3)  # the map's curvature is no estimate
+        reduce = np.min if self.robust else np.mean
+        return SafetyDecision(
+            nominal_action=nominal.tolist(),
+            filtered_action=filtered.tolist(),
+            state_true=truth.tolist(),
+            state_mean=[*samples[:, :2].mean(axis=0), float(lane[:, 2].mean())],
+            state_std=[
+                *samples[:, :2].std(axis=0),
+                0.0 if self.map_curvature else float(samples[:, 2].std()),
+            ],
+            state_lower=state_lower.tolist(),
+            state_upper=state_upper.tolist(),
+            covered=bool(
+                np.all(state_lower[checked] <= truth[checked])
+                and np.all(truth[checked] <= state_upper[checked])
+            ),
+            barriers=self._by_name(reduce(h, axis=0)),
+            constraints=self._by_name(
+                self._per_constraint(problem.b - problem.a @ filtered, np.min)
+            ),
+            tightening=self._by_name(self.z * spread_at_u),
+            slacks=self._by_name(self._per_constraint(solution.slack, np.max)),
+            intervened=intervened,
+            monitor_score=score,
+            alarm=alarm,
+            fallback=fallback,
+            status=solution.status,
+            iterations=solution.iterations,
+            solve_time_s=solve_time,
+            filter_time_s=time.perf_counter() - started,
+            n_samples=len(samples),
+        )
+
+    def _solve(
+        self,
+        states: np.ndarray,
+        kappa: np.ndarray,
+        u0: np.ndarray,
+        context: BarrierContext,
+        speed: tuple[np.ndarray, float, float] | None,
+        nominal: np.ndarray,
+        spread: np.ndarray,
+        chance: bool,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> tuple[FilterProblem, ConstraintStatistics | None, np.ndarray, FilterSolution, float]:
+        """The last solved pass of linearising at ``u0`` and then at each solution (the first
+        pass if none solved), and the seconds spent solving."""
         solve_time, linearised_at = 0.0, u0
         accepted: (
             tuple[FilterProblem, ConstraintStatistics | None, np.ndarray, FilterSolution] | None
@@ -343,41 +358,7 @@ class SafetyFilter(gym.Wrapper):
                 break  # linearised in the steering only
             linearised_at = solution.u
         assert accepted is not None  # linearisation_passes >= 1, and the first pass is kept
-        problem, statistics, h, solution = accepted
-        self.last_problem = problem
-        a_mean, b_mean = problem.a, problem.b
-
-        fallback = not solution.solved
-        if fallback:  # brakes whatever the creep rule asks
-            filtered = self._fallback(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
-        else:
-            filtered = solution.u
-        intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
-        count = len(self.constraint_names)
-        spread_at_u = np.zeros(count)
-        if statistics is not None:  # chance-constrained
-            spread_at_u[: len(BARRIER_NAMES)] = constraint_std(statistics, filtered)
-        self.steps += 1
-        self.interventions += intervened
-        self.failures += fallback
-        return SafetyDecision(
-            nominal_action=nominal.tolist(),
-            filtered_action=filtered.tolist(),
-            state_true=[float(info[name]) for name in ("e_y_m", "e_psi_rad", "kappa_radpm")],
-            state_mean=[*samples[:, :2].mean(axis=0), float(np.mean(kappa))],
-            state_std=[*samples[:, :2].std(axis=0), 0.0 if self.map_curvature else kappa_std],
-            barriers=self._by_name(h.mean(axis=0)),
-            constraints=self._by_name(b_mean - a_mean @ filtered),
-            tightening=self._by_name(self.z * spread_at_u),
-            slacks=self._by_name(solution.slack),
-            intervened=intervened,
-            fallback=fallback,
-            status=solution.status,
-            iterations=solution.iterations,
-            solve_time_s=solve_time,
-            filter_time_s=time.perf_counter() - started,
-            n_samples=len(lane),
-        )
+        return (*accepted, solve_time)
 
     def _problem(
         self,
@@ -393,7 +374,8 @@ class SafetyFilter(gym.Wrapper):
         chance: bool,
     ) -> tuple[FilterProblem, ConstraintStatistics | None, np.ndarray]:
         """The QP with the constraints linearised in the steering at ``linearised_at``, the
-        samples' statistics (``None`` if deterministic) and the barrier values."""
+        samples' statistics (``None`` if deterministic) and the barrier values. Robust: a
+        row per constraint and state point, all of which must hold."""
         a, b, h = linearised_constraints(
             self.model_name, self.param_values, states, kappa, linearised_at, context
         )
@@ -403,7 +385,7 @@ class SafetyFilter(gym.Wrapper):
         if statistics is not None:
             a_mean, b_mean, covariance = statistics.a_mean, statistics.b_mean, statistics.covariance
         else:
-            a_mean, b_mean, covariance = a[0], b[0], None
+            a_mean, b_mean, covariance = a.reshape(-1, 2), b.ravel(), None
         if speed is not None:
             speed_row, speed_bound, speed_h = speed
             a_mean = np.vstack([a_mean, speed_row])
@@ -423,6 +405,59 @@ class SafetyFilter(gym.Wrapper):
             z=self.z if chance else 0.0,
         )
         return problem, statistics, h
+
+    def _context(self, s_m: float, v_x: float) -> BarrierContext:
+        """The barriers' map and gains at ``s_m`` (widths previewed at speed ``v_x``)."""
+        w_right, w_left, w_left_slope, w_right_slope = self.map.widths(s_m, v_x)
+        return BarrierContext(
+            w_left_m=w_left,
+            w_right_m=w_right,
+            half_width_m=self.half_width_m,
+            theta_max_rad=self.theta_max,
+            lam=self.lam,
+            lateral_decel_mps2=self.lateral_decel_mps2,
+            w_left_slope=w_left_slope,
+            w_right_slope=w_right_slope,
+        )
+
+    def _fallback_box(
+        self,
+        v_x: float,
+        agent_accel: float,
+        interval: tuple[np.ndarray, np.ndarray],
+        context: BarrierContext,
+        alarm: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The action box of a fallback step: the acceleration towards the speed at which
+        the interval fits inside the lane (no faster than creeping when the monitor raised:
+        then the interval itself is in doubt), the steering inside the tyres' grip."""
+        target = fitting_speed_mps(
+            *interval,
+            context.w_left_m,
+            context.w_right_m,
+            self.half_width_m,
+            self.creep_speed_mps,
+        )
+        if alarm:
+            target = min(target, self.creep_speed_mps)
+        lower, upper = self._action_box(v_x, agent_accel if target > 0.0 else -math.inf)
+        accel_low, accel_high = fallback_accel_bounds(v_x, target, self.control_dt_s)
+        upper[1] = min(upper[1], accel_high)
+        lower[1] = min(max(lower[1], accel_low), upper[1])
+        steer_max = self._grip_steer_rad(v_x, self.max_lateral_accel_mps2 or FALLBACK_LATERAL_MPS2)
+        lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
+        return lower, upper
+
+    def _grip_steer_rad(self, v_x: float, lateral_mps2: float) -> float:
+        """The steering at which ``v_x^2 tan(delta) / L`` reaches ``lateral_mps2``."""
+        return math.atan(lateral_mps2 * self.wheelbase_m / max(v_x, MIN_SPEED_MPS) ** 2)
+
+    def _per_constraint(self, rows: np.ndarray, reduce: Any) -> np.ndarray:
+        """One value per constraint name from a value per QP row (``reduce`` over the robust
+        mode's state points)."""
+        barrier_rows = len(rows) - (len(self.constraint_names) - len(BARRIER_NAMES))
+        per_point = np.asarray(rows[:barrier_rows]).reshape(-1, len(BARRIER_NAMES))
+        return np.concatenate([reduce(per_point, axis=0), rows[barrier_rows:]])
 
     def _model_states(self, lane: np.ndarray, velocity: np.ndarray) -> np.ndarray:
         """The model's state for each lane-state sample and the measured velocities."""
@@ -454,46 +489,9 @@ class SafetyFilter(gym.Wrapper):
         if self.creep_speed_mps > 0.0 and v_x < self.creep_speed_mps:
             lower[1] = max(lower[1], min(agent_accel, CREEP_ACCEL_MPS2))
         if self.max_lateral_accel_mps2 is not None:
-            speed_sq = max(v_x, MIN_SPEED_MPS) ** 2
-            steer_max = math.atan(self.max_lateral_accel_mps2 * self.wheelbase_m / speed_sq)
+            steer_max = self._grip_steer_rad(v_x, self.max_lateral_accel_mps2)
             lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
         return lower, upper
 
-    def _lane_widths(self, s_m: float, preview_m: float) -> tuple[float, float]:
-        """Right and left half widths of the map at ``s_m``: the narrowest over the next
-        ``preview_m`` (sampled every ``MAP_DS_M``) when previewing."""
-        if preview_m <= 0.0:
-            right, left = self.track.widths(s_m)
-            return float(right), float(left)
-        ahead = s_m + np.linspace(0.0, preview_m, 2 + math.ceil(preview_m / MAP_DS_M))
-        rights, lefts = self.track.widths(ahead)
-        return float(rights.min()), float(lefts.min())
-
-    def _width_slopes(self, s_m: float, preview_m: float) -> tuple[float, float]:
-        """``(d w_left / ds, d w_right / ds)`` of :meth:`_lane_widths` at ``s_m``."""
-        right_ahead, left_ahead = self._lane_widths(s_m + MAP_DS_M, preview_m)
-        right_behind, left_behind = self._lane_widths(s_m - MAP_DS_M, preview_m)
-        scale = 0.5 / MAP_DS_M
-        return (left_ahead - left_behind) * scale, (right_ahead - right_behind) * scale
-
-    def _speed_constraint(
-        self, info: dict[str, Any], velocity: np.ndarray, e_y_m: np.ndarray
-    ) -> tuple[np.ndarray, float, float]:
-        """Row, bound and barrier value of ``accel <= lam_1 h + dv_limit/ds * v_x``, at the
-        lane offset (of the samples ``e_y_m``) with the lowest limit. The offset's own rate
-        is left out: the limit's fall with the offset is a blend, not a dynamics."""
-        assert self.speed_limit is not None  # asked for only with a speed_limit_factor
-        s, v_x = float(info["s_m"]), float(velocity[0])
-        limit, e_y = self.speed_limit.lowest(s, e_y_m)
-        ahead = self.speed_limit(s + MAP_DS_M, e_y)
-        slope = (ahead - limit) / MAP_DS_M
-        h = limit - v_x
-        return np.array([0.0, 1.0]), self.speed_gain * h + slope * max(v_x, 0.0), h
-
     def _by_name(self, values: np.ndarray) -> dict[str, float]:
         return {name: float(v) for name, v in zip(self.constraint_names, values, strict=True)}
-
-    @staticmethod
-    def _fallback(lane_mean: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-        steer = -FALLBACK_STEER_PER_M * lane_mean[0] - FALLBACK_STEER_PER_RAD * lane_mean[1]
-        return np.clip(np.array([steer, -FALLBACK_BRAKE_MPS2]), lower, upper)

@@ -28,6 +28,15 @@ class IntervalStateSource(StateSource, Protocol):
         ...
 
 
+@runtime_checkable
+class MonitoredStateSource(StateSource, Protocol):
+    """A state source that can tell when its input is unlike what it was calibrated on."""
+
+    def monitor(self, samples: np.ndarray) -> tuple[float | None, bool]:
+        """``(score, alarm)`` of this step's ``samples`` (``None``: no monitor)."""
+        ...
+
+
 def state_interval(
     source: StateSource, samples: np.ndarray, z: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +64,7 @@ class ConformalStateSource:
     """Another source's samples, with the interval of a conformal calibration of its spread:
     ``mean +- scale * std`` of the samples (a
     :class:`~saferace.safety.conformal.ConformalCalibration` fitted on frames the source
-    never trained on)."""
+    never trained on), and the calibration's out-of-distribution monitor on their spread."""
 
     def __init__(self, source: StateSource, calibration: ConformalCalibration) -> None:
         self.source = source
@@ -69,6 +78,11 @@ class ConformalStateSource:
 
     def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.calibration.interval(samples.mean(axis=0), samples.std(axis=0))
+
+    def monitor(self, samples: np.ndarray) -> tuple[float | None, bool]:
+        if self.calibration.monitor is None:
+            return None, False
+        return self.calibration.monitor.raises(samples.std(axis=0))
 
     def describe(self) -> dict:
         inner: dict[str, Any] = getattr(self.source, "describe", dict)()

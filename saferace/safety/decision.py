@@ -1,0 +1,77 @@
+"""What passes through the safety filter: an agent's action in, the filter's decision out."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+#: Why the filter stopped trusting its state source in a step (``SafetyDecision.fallback``):
+#: the out-of-distribution monitor raised, no control satisfied the robust constraints, or
+#: the solver failed.
+FALLBACK_REASONS = ("", "alarm", "infeasible", "solver")
+
+
+@dataclass(frozen=True)
+class NominalAction:
+    """An agent's action with the spread of its own uncertainty (e.g. its MC-dropout std).
+
+    Agents may return this instead of a plain action; the filter then weighs each control's
+    deviation by ``1 / std^2``, so it bends the controls the agent is least sure of.
+    """
+
+    mean: np.ndarray
+    std: np.ndarray | None = None
+
+
+def nominal_parts(action: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(mean, std or None)`` of a plain action or a :class:`NominalAction`."""
+    if isinstance(action, NominalAction):
+        std = None if action.std is None else np.asarray(action.std, dtype=float).ravel()
+        return np.asarray(action.mean, dtype=float).ravel(), std
+    return np.asarray(action, dtype=float).ravel(), None
+
+
+@dataclass(frozen=True)
+class SafetyDecision:
+    """What the filter did in one step (``info["safety"]``); per-barrier values by name.
+
+    ``barriers`` are the estimated ``h`` (mean over state samples, or the lowest over the
+    interval's points in the robust mode; m for the lanes, rad for the heading);
+    ``constraints`` the HOCBF condition ``psi_m`` at the filtered action (likewise, ``>= 0``
+    holds); ``tightening`` the chance-constraint margin ``Phi^-1(eta) * std`` (the spread at
+    the agent's acceleration); ``slacks`` what each constraint needed. ``state_mean`` and
+    ``state_std`` are the ``[e_y, e_psi, kappa]`` the filter believed (the curvature from
+    the map where it takes it from there), ``state_lower`` and ``state_upper`` the interval
+    it held the state to (``mean +- z std`` in the chance mode), ``state_true`` the
+    simulator's at the same moment and ``covered`` whether the interval held it.
+    ``monitor_score`` is the out-of-distribution score (None without a monitor), ``alarm``
+    whether it passed its threshold; ``fallback`` is why the filter braked towards a speed
+    the interval fits at (one of :data:`FALLBACK_REASONS`, ``""``: it did not).
+    """
+
+    nominal_action: list[float]
+    filtered_action: list[float]
+    state_true: list[float]
+    state_mean: list[float]
+    state_std: list[float]
+    state_lower: list[float]
+    state_upper: list[float]
+    covered: bool
+    barriers: dict[str, float]
+    constraints: dict[str, float]
+    tightening: dict[str, float]
+    slacks: dict[str, float]
+    intervened: bool
+    monitor_score: float | None
+    alarm: bool
+    fallback: str
+    status: str
+    iterations: int
+    solve_time_s: float
+    filter_time_s: float
+    n_samples: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)

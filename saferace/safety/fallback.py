@@ -1,0 +1,75 @@
+"""The filter's fallback when it cannot trust its state: slow to a speed the interval fits at.
+
+When the out-of-distribution monitor raises, or no control keeps every state of the
+calibrated interval inside the lane, the lane constraints cannot be trusted to hold the car.
+What still holds is physics: a car heading for an edge at ``v sin(e_psi)`` can turn away
+within a lateral margin ``m`` if ``(v sin e_psi)^2 <= 2 a m`` at a lateral acceleration
+``a`` its tyres can give. The fallback takes the worst of the interval (the smallest margin
+to either edge, the largest heading error) and brakes towards the speed that satisfies this,
+no lower than a creep speed (below which the steering barely acts); where even the interval's
+offsets do not fit inside the lane, towards a controlled stop.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Braking of the fallback (m/s^2): firm but far inside the tyres' grip.
+FALLBACK_BRAKE_MPS2 = 2.0
+#: When a solve fails: steer toward the centerline (with the fallback's braking).
+FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
+FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
+#: Lateral acceleration the fallback counts on to turn away from an edge (m/s^2).
+FALLBACK_LATERAL_MPS2 = 4.0
+#: Heading errors below this (rad) count as this: a car square to its lane still drifts.
+MIN_HEADING_RAD = 0.05
+
+
+def interval_margin_m(
+    lower: np.ndarray, upper: np.ndarray, w_left_m: float, w_right_m: float, half_width_m: float
+) -> float:
+    """The lane barrier at the interval's worst offset: negative where some offset in the
+    interval puts the car outside."""
+    return min(w_left_m - float(upper[0]), w_right_m + float(lower[0])) - half_width_m
+
+
+def fitting_speed_mps(
+    lower: np.ndarray,
+    upper: np.ndarray,
+    w_left_m: float,
+    w_right_m: float,
+    half_width_m: float,
+    creep_speed_mps: float,
+    lateral_mps2: float = FALLBACK_LATERAL_MPS2,
+) -> float:
+    """The speed the fallback slows to: ``sqrt(2 a m) / sin|e_psi|`` at the interval's worst
+    margin ``m`` and heading, at least ``creep_speed_mps``; 0 (stop) where ``m < 0``."""
+    margin = interval_margin_m(lower, upper, w_left_m, w_right_m, half_width_m)
+    if margin < 0.0:
+        return 0.0
+    heading = max(abs(float(lower[1])), abs(float(upper[1])), MIN_HEADING_RAD)
+    speed = math.sqrt(2.0 * lateral_mps2 * margin) / math.sin(min(heading, 0.5 * math.pi))
+    return max(speed, creep_speed_mps)
+
+
+def fallback_accel_bounds(
+    v_x_mps: float, target_mps: float, control_dt_s: float
+) -> tuple[float, float]:
+    """``(lower, upper)`` of the acceleration that moves the speed towards ``target_mps``:
+    braking at ``FALLBACK_BRAKE_MPS2`` from above it (less where that would pass a
+    standstill), and from below, as much as the agent asks or accelerating no faster than
+    reaching it within a step."""
+    gap = (target_mps - v_x_mps) / control_dt_s
+    if gap < 0.0:
+        brake = max(gap, -FALLBACK_BRAKE_MPS2, -max(v_x_mps, 0.0) / control_dt_s)
+        return brake, brake
+    return -FALLBACK_BRAKE_MPS2, gap
+
+
+def steer_to_centre(lane_mean: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Where the filter's QP failed: brake at ``FALLBACK_BRAKE_MPS2`` and steer toward the
+    centre line from the believed ``[e_y, e_psi]``, within the box ``lower..upper``."""
+    steer = -FALLBACK_STEER_PER_M * lane_mean[0] - FALLBACK_STEER_PER_RAD * lane_mean[1]
+    return np.clip(np.array([steer, -FALLBACK_BRAKE_MPS2]), lower, upper)

@@ -1,0 +1,123 @@
+"""The filter's robust mode: barrier conditions over the whole state interval, a monitor
+that stops it trusting the source, and the fallback that slows to a speed the interval
+fits at."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.safety.fallback import (
+    FALLBACK_BRAKE_MPS2,
+    fallback_accel_bounds,
+    fitting_speed_mps,
+)
+from saferace.safety.filter import SafetyFilter
+from saferace.safety.intervals import interval_points
+
+
+class IntervalSource:
+    """Samples at ``mean`` with the interval ``mean +- half`` and, optionally, an alarm."""
+
+    def __init__(self, mean: list[float], half: list[float], alarm: bool = False) -> None:
+        self.mean, self.half, self.alarm = np.array(mean), np.array(half), alarm
+
+    def reset(self, seed: int | None = None) -> None:
+        """Nothing to reset."""
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> np.ndarray:
+        return self.mean[None, :]
+
+    def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.mean - self.half, self.mean + self.half
+
+    def monitor(self, samples: np.ndarray) -> tuple[float | None, bool]:
+        return (10.0 if self.alarm else 1.0), self.alarm
+
+
+def filtered_on_lab(source: IntervalSource, uncertainty: str, action, speed: float = 2.0):
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track="lab", max_laps=1),
+        state_source=source,
+        uncertainty=uncertainty,
+        speed_limit_factor=None,
+    )
+    observation, info = env.reset(seed=0, options={"start_s_m": 0.5, "start_speed_mps": speed})
+    decision = env.certify(observation, info, np.asarray(action, float))
+    return env, decision
+
+
+def test_a_control_that_breaks_the_barrier_at_one_corner_is_corrected():
+    # Believed on the centre line, but the interval reaches 0.12 m to the left of it; a
+    # left turn is safe for the mean and not for the interval's left corner.
+    source = IntervalSource([0.0, 0.0, 0.0], [0.12, 0.01, 0.0])
+    action = [0.09, 0.0]
+    _, chance = filtered_on_lab(source, "chance", action)
+    env, robust = filtered_on_lab(source, "robust", action)
+    assert chance.filtered_action == pytest.approx(action)  # the mean alone: nothing to fix
+    assert robust.intervened and robust.filtered_action[0] < action[0] - 0.04
+    assert robust.fallback == ""
+    # Every constraint row, one per barrier and interval point, holds at the filtered action
+    # (up to what the slack penalty leaves).
+    problem = env.last_problem
+    points = interval_points(*source.interval(source.mean[None]))
+    assert problem is not None and len(problem.b) == 4 * len(points)
+    assert np.min(problem.b - problem.a @ np.array(robust.filtered_action)) > -1e-3
+    assert robust.constraints["lane_left"] == pytest.approx(
+        np.min((problem.b - problem.a @ np.array(robust.filtered_action))[0::4]), abs=1e-9
+    )
+    assert robust.state_lower[0] == pytest.approx(-0.12) and robust.state_upper[0] == 0.12
+
+
+def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
+    # lab's half widths are 0.4 m and the car's 0.15 m (+0.05 margin): +-0.25 m cannot fit.
+    source = IntervalSource([0.0, 0.0, 0.0], [0.25, 0.01, 0.0])
+    _, decision = filtered_on_lab(source, "robust", [0.0, 1.0])
+    assert decision.fallback == "infeasible"
+    assert decision.filtered_action[1] == pytest.approx(-FALLBACK_BRAKE_MPS2)
+    # The same interval in the chance mode is only its samples' mean: no fallback, no brake.
+    _, chance = filtered_on_lab(source, "chance", [0.0, 1.0])
+    assert chance.fallback == "" and chance.filtered_action[1] == pytest.approx(1.0)
+
+
+def test_an_alarm_slows_the_car_to_a_speed_its_interval_fits_at():
+    narrow = IntervalSource([0.0, 0.0, 0.0], [0.02, 0.02, 0.0], alarm=True)
+    _, decision = filtered_on_lab(narrow, "robust", [0.0, 2.0], speed=3.0)
+    assert decision.alarm and decision.fallback == "alarm"
+    assert decision.filtered_action[1] < 0.0  # brakes although the agent accelerates
+    trusted = IntervalSource([0.0, 0.0, 0.0], [0.02, 0.02, 0.0])
+    _, calm = filtered_on_lab(trusted, "robust", [0.0, 2.0], speed=3.0)
+    assert not calm.alarm and calm.filtered_action[1] == pytest.approx(2.0)
+
+
+def test_the_fitting_speed_falls_with_the_margin_and_is_a_stop_without_one():
+    def speed(half_e_y: float, half_e_psi: float = 0.1) -> float:
+        lower, upper = np.array([-half_e_y, -half_e_psi]), np.array([half_e_y, half_e_psi])
+        return fitting_speed_mps(lower, upper, 0.5, 0.5, 0.1, creep_speed_mps=0.5)
+
+    assert speed(0.05) > speed(0.2) > speed(0.35) >= 0.5
+    assert speed(0.45) == 0.0
+    assert speed(0.2, half_e_psi=0.4) < speed(0.2)
+    assert fallback_accel_bounds(3.0, 0.0, 0.05) == (-FALLBACK_BRAKE_MPS2, -FALLBACK_BRAKE_MPS2)
+    low, high = fallback_accel_bounds(0.2, 0.5, 0.05)
+    assert low < 0.0 < high == pytest.approx(6.0)
+
+
+def test_the_oracle_makes_the_robust_filter_the_deterministic_one():
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track="lab", max_laps=1), uncertainty="robust"
+    )
+    observation, info = env.reset(seed=0, options={"start_s_m": 0.5})
+    decision = env.certify(observation, info, np.array([0.3, 1.0]))
+    plain = SafetyFilter(gym.make("saferace/CenterLine-v0", track="lab", max_laps=1))
+    observation, info = plain.reset(seed=0, options={"start_s_m": 0.5})
+    assert decision.filtered_action == pytest.approx(
+        plain.certify(observation, info, np.array([0.3, 1.0])).filtered_action
+    )
+    assert decision.covered and decision.state_lower == decision.state_upper
+    with pytest.raises(ValueError, match="uncertainty"):
+        SafetyFilter(gym.make("saferace/CenterLine-v0", track="lab"), uncertainty="hopeful")
