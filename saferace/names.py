@@ -24,6 +24,12 @@ GAIN_NAMES = ("paper", "grip", "tuned")
 #: (the paper's), or barrier conditions that hold for every state of the source's interval,
 #: with a fallback where they cannot (``saferace.safety.filter.SafetyFilter``).
 UNCERTAINTY_MODES = ("chance", "robust")
+#: How the state network gives its uncertainty: MC dropout (the paper's) or a deep ensemble
+#: of heteroscedastic networks (``saferace.learning.ensemble``).
+STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble")
+#: The miss rate a conformal calibration of the state network allows (its interval covers
+#: the truth on at least 1 - alpha of exchangeable frames, its monitor raises on at most alpha).
+CONFORMAL_ALPHA = 0.05
 DEFAULT_GAINS = "grip"
 
 #: What feeds the filter the lane state: the truth, the truth with noise, a state network.

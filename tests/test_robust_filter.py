@@ -12,7 +12,7 @@ import pytest
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.safety.fallback import (
-    FALLBACK_BRAKE_MPS2,
+    DISTRUST_BRAKE_MPS2,
     fallback_accel_bounds,
     fitting_speed_mps,
 )
@@ -78,7 +78,7 @@ def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
     source = IntervalSource([0.0, 0.0, 0.0], [0.25, 0.01, 0.0])
     _, decision = filtered_on_lab(source, "robust", [0.0, 1.0])
     assert decision.fallback == "infeasible"
-    assert decision.filtered_action[1] == pytest.approx(-FALLBACK_BRAKE_MPS2)
+    assert decision.filtered_action[1] == pytest.approx(-DISTRUST_BRAKE_MPS2)
     # The same interval in the chance mode is only its samples' mean: no fallback, no brake.
     _, chance = filtered_on_lab(source, "chance", [0.0, 1.0])
     assert chance.fallback == "" and chance.filtered_action[1] == pytest.approx(1.0)
@@ -102,7 +102,7 @@ def test_the_fitting_speed_falls_with_the_margin_and_is_a_stop_without_one():
     assert speed(0.05) > speed(0.2) > speed(0.35) >= 0.5
     assert speed(0.45) == 0.0
     assert speed(0.2, half_e_psi=0.4) < speed(0.2)
-    assert fallback_accel_bounds(3.0, 0.0, 0.05) == (-FALLBACK_BRAKE_MPS2, -FALLBACK_BRAKE_MPS2)
+    assert fallback_accel_bounds(3.0, 0.0, 0.05) == (-DISTRUST_BRAKE_MPS2, -DISTRUST_BRAKE_MPS2)
     low, high = fallback_accel_bounds(0.2, 0.5, 0.05)
     assert low < 0.0 < high == pytest.approx(6.0)
 

@@ -16,6 +16,7 @@ from saferace.names import (
     FILTER_KINDS,
     GAIN_NAMES,
     NOISY_SAMPLES,
+    UNCERTAINTY_MODES,
     VEHICLE_MODELS,
 )
 
@@ -82,6 +83,15 @@ class FilterConfig:
         "the state network's, see `saferace dagger --calibrate-spread`)",
         metavar=("E_Y", "E_PSI", "KAPPA"),
     )
+    uncertainty: str = setting(
+        "chance",
+        "how the filter treats the state's uncertainty: chance constraints on the samples' "
+        "spread (the paper's), or barriers that hold over the whole interval (a learned "
+        "source's conformal one, if calibrated) with a fallback that slows the car where "
+        "they cannot, or where the source's monitor raises",
+        flag="--filter-uncertainty",
+        choices=UNCERTAINTY_MODES,
+    )
     fuse_odometry: bool = setting(
         False,
         "fuse the state samples with odometry (yaw rate, speed, the map's curvature) in a "
@@ -96,6 +106,11 @@ class FilterConfig:
         if self.gains not in GAIN_NAMES:
             raise ConfigError(
                 "gains", f"must be one of {', '.join(GAIN_NAMES)}, got {self.gains!r}"
+            )
+        if self.uncertainty not in UNCERTAINTY_MODES:
+            raise ConfigError(
+                "uncertainty",
+                f"must be one of {', '.join(UNCERTAINTY_MODES)}, got {self.uncertainty!r}",
             )
         if self.model not in VEHICLE_MODELS:
             raise ConfigError(
@@ -140,14 +155,16 @@ class FilterConfig:
     @property
     def label(self) -> str:
         """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
-        ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused)."""
+        ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused;
+        ``-robust`` in place of ``-prob`` in the robust mode)."""
         if self.kind == "none":
             return "none"
         if self.state_source is None and self.state_noise is None:
             return "oracle"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
         fused = "-fused" if self.fuse_odometry else ""
-        return f"{source}{fused}-{'prob' if self.probabilistic else 'det'}"
+        mode = "robust" if self.uncertainty == "robust" else "prob" if self.probabilistic else "det"
+        return f"{source}{fused}-{mode}"
 
     def as_dict(self) -> dict:
         return asdict(self)

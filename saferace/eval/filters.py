@@ -56,5 +56,6 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         eta=config.eta,
         probabilistic=config.probabilistic,
         map_curvature=config.map_curvature,
+        uncertainty=config.uncertainty,
         **GAIN_PRESETS[config.gains],
     )

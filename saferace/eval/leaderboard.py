@@ -55,11 +55,14 @@ def _uncertain(config: FilterConfig) -> bool:
 
 def filter_words(config: FilterConfig) -> str:
     """The filter in words: ``none``; ``cbf`` on the true state; ``cbf, probabilistic`` or
-    ``cbf, on the mean`` on uncertain state samples; then any setting off its default."""
+    ``cbf, on the mean`` on uncertain state samples, ``cbf, robust over the interval`` in
+    the robust mode; then any setting off its default."""
     if config.kind == "none":
         return "none"
     parts = [config.kind]
-    if _uncertain(config):
+    if config.uncertainty == "robust":
+        parts.append("robust over the interval")
+    elif _uncertain(config):
         parts.append("probabilistic" if config.probabilistic else "on the mean")
         if config.probabilistic and config.eta != _DEFAULT_FILTER.eta:
             parts.append(f"eta {config.eta:g}")

@@ -20,9 +20,12 @@ import torch
 
 from saferace.agents.pid import PIDGains, PIDSpeedController
 from saferace.errors import SafeRaceError
-from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint
+from saferace.learning.checkpoint import CONFORMAL_KEY, LearnedCheckpoint, load_checkpoint
+from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import DrivingNetwork
+from saferace.safety.conformal import ConformalCalibration
 from saferace.safety.decision import NominalAction
+from saferace.safety.intervals import ConformalStateSource
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
     from saferace.envs.racing_env import RacingEnv
@@ -93,7 +96,7 @@ class LearnedStateSource:
 
     def __init__(
         self,
-        network: DrivingNetwork,
+        network: StateNetwork,
         n_samples: int = 10,
         seed: int | None = None,
         checkpoint: dict | None = None,
@@ -143,12 +146,17 @@ def learned_state_source(
     image_shape: tuple[int, ...],
     n_samples: int = 10,
     seed: int | None = None,
-) -> LearnedStateSource:
+) -> LearnedStateSource | ConformalStateSource:
     """``--state-source learned:CHECKPOINT``: the checkpoint's state network, for a task
-    whose images have ``image_shape``."""
+    whose images have ``image_shape``; with the checkpoint's conformal calibration (see
+    ``saferace calibrate``), if it has one, as its interval and monitor."""
     loaded = load_checkpoint(checkpoint)
     check_image_shape(loaded, image_shape)
-    return LearnedStateSource(loaded.state, n_samples, seed, checkpoint=loaded.describe())
+    source = LearnedStateSource(loaded.state, n_samples, seed, checkpoint=loaded.describe())
+    calibration = loaded.metadata.get(CONFORMAL_KEY)
+    if calibration is None:
+        return source
+    return ConformalStateSource(source, ConformalCalibration.from_dict(calibration))
 
 
 def check_image_shape(checkpoint: LearnedCheckpoint, image_shape: tuple[int, ...]) -> None:

@@ -1,6 +1,6 @@
 """Checkpoints of the learned driver: both networks, their normalisation and their training.
 
-One file holds the control network and the state network (weights with their
+One file holds the control network and the state network or ensemble (weights with their
 normalisation buffers, and each one's :class:`~saferace.learning.networks.NetworkConfig`)
 and metadata: the training configuration, the data rounds' manifests, the loss history of
 each network trained (one kept unchanged is named with its source), the validation table,
@@ -22,11 +22,15 @@ from typing import BinaryIO
 import torch
 
 from saferace.errors import SafeRaceError
+from saferace.learning.ensemble import StateEnsemble, StateNetwork
 from saferace.learning.networks import DrivingNetwork, NetworkConfig
 
 FORMAT = "saferace-learned-driver"
 FORMAT_VERSION = 1
 NETWORK_NAMES = ("control", "state")
+#: The metadata entry of the state network's conformal calibration
+#: (:class:`~saferace.safety.conformal.ConformalCalibration` as a dict), if it has one.
+CONFORMAL_KEY = "conformal"
 
 
 @dataclass
@@ -34,7 +38,7 @@ class LearnedCheckpoint:
     """The two networks (in eval mode) and the checkpoint's metadata."""
 
     control: DrivingNetwork
-    state: DrivingNetwork
+    state: StateNetwork
     metadata: dict
     path: Path | None = None
     sha256: str | None = None
@@ -45,19 +49,33 @@ class LearnedCheckpoint:
 
 
 def save_checkpoint(
-    path: str | Path, control: DrivingNetwork, state: DrivingNetwork, metadata: dict
+    path: str | Path, control: DrivingNetwork, state: StateNetwork, metadata: dict
 ) -> Path:
     """Write both networks and ``metadata`` to ``path`` atomically."""
     payload = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
         "networks": {
-            name: {"config": network.config.as_dict(), "weights": network.state_dict()}
+            name: _entry(network)
             for name, network in zip(NETWORK_NAMES, (control, state), strict=True)
         },
         "metadata": metadata,
     }
     return save_atomically(payload, path)
+
+
+def _entry(network: StateNetwork) -> dict:
+    """A network's config and weights (an ensemble's: each member's)."""
+    if isinstance(network, StateEnsemble):
+        return {"members": [_entry(member) for member in network.members]}
+    return {"config": network.config.as_dict(), "weights": network.state_dict()}
+
+
+def save_with_metadata(source: str | Path, metadata: dict, out: str | Path) -> Path:
+    """Write ``source``'s networks with ``metadata`` merged into its own to ``out``
+    atomically (``out`` may be ``source``)."""
+    loaded = load_checkpoint(source)
+    return save_checkpoint(out, loaded.control, loaded.state, {**loaded.metadata, **metadata})
 
 
 def save_atomically(payload: dict, path: str | Path) -> Path:
@@ -103,14 +121,21 @@ def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
             f"{FORMAT_VERSION}: upgrade SafeRace"
         )
     try:
-        control, state = (_network(payload["networks"][name]) for name in NETWORK_NAMES)
+        control = _single_network(payload["networks"]["control"])
+        state = _network(payload["networks"]["state"])
     except (KeyError, RuntimeError, TypeError) as exc:
         raise SafeRaceError(f"{path} holds damaged or mismatched networks: {exc}") from None
     sha256 = hashlib.sha256(raw).hexdigest()
     return LearnedCheckpoint(control, state, payload["metadata"], path, sha256)
 
 
-def _network(entry: dict) -> DrivingNetwork:
+def _network(entry: dict) -> StateNetwork:
+    if "members" in entry:
+        return StateEnsemble([_single_network(member) for member in entry["members"]])
+    return _single_network(entry)
+
+
+def _single_network(entry: dict) -> DrivingNetwork:
     network = DrivingNetwork(NetworkConfig.from_dict(entry["config"]))
     network.load_state_dict(entry["weights"])
     network.eval()

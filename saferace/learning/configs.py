@@ -18,6 +18,7 @@ from saferace.names import (
     DEFAULT_EXPERT_MODEL,
     MC_SAMPLES,
     RANDOMIZATION_PRESETS,
+    STATE_UNCERTAINTY_METHODS,
     TASKS,
     VEHICLE_MODELS,
 )
@@ -65,9 +66,26 @@ class TrainConfig:
     backbone_weights: str | None = setting(
         None, "a torchvision ResNet-18 state dict (e.g. ImageNet) to start both backbones from"
     )
+    state_uncertainty: str = setting(
+        "mc-dropout",
+        "the state network's uncertainty: MC dropout (the paper's) or a deep ensemble of "
+        "heteroscedastic networks, each from its own seed",
+        choices=STATE_UNCERTAINTY_METHODS,
+    )
+    ensemble_members: int = setting(5, "state networks in an ensemble", metavar="K")
     networks: tuple[str, ...] = NETWORKS
 
     def __post_init__(self) -> None:
+        if self.state_uncertainty not in STATE_UNCERTAINTY_METHODS:
+            raise ConfigError(
+                "state_uncertainty",
+                f"must be one of {', '.join(STATE_UNCERTAINTY_METHODS)}, "
+                f"got {self.state_uncertainty!r}",
+            )
+        if self.ensemble_members < 2:
+            raise ConfigError(
+                "ensemble_members", f"must be at least 2, got {self.ensemble_members}"
+            )
         start, end = self.val_stretch or (0.0, 1.0)
         if not 0.0 <= start < end <= 1.0:
             raise ConfigError(
@@ -287,6 +305,16 @@ class DaggerConfig:
                 f"must be learned (the run's own networks) or None (the truth), "
                 f"got {self.filter.state_source!r}",
             )
+        if (
+            self.perceived
+            and self.filter.uncertainty == "robust"
+            and self.collection.train_fraction >= 1.0
+        ):
+            raise ConfigError(
+                "uncertainty",
+                "robust calibrates the state network on the part of the lap no network "
+                "trained on: it needs train_fraction < 1",
+            )
         if self.calibrates_spread and self.collection.train_fraction >= 1.0:
             raise ConfigError(
                 "calibrate_spread",
@@ -368,6 +396,12 @@ class DaggerConfig:
             "probabilistic": (safety.probabilistic, True),
             "eta": (safety.eta, 0.95),
             "spread_scale": (safety.spread_scale, None),
+            "uncertainty": (safety.uncertainty, "chance"),
+            "state_uncertainty": (training.state_uncertainty, "mc-dropout"),
+            "ensemble_members": (
+                training.ensemble_members if training.state_uncertainty == "ensemble" else 5,
+                5,
+            ),
         }
         for name, (value, default) in newer.items():
             if value != default:
@@ -386,7 +420,7 @@ class DaggerConfig:
             for name in (
                 "filter_from", "state_source", "filter_model", "filter_gains", "map_curvature",
                 "calibrate_spread", "fuse_odometry", "state_noise", "filter_samples",
-                "probabilistic", "eta", "spread_scale",
+                "probabilistic", "eta", "spread_scale", "uncertainty",
             ):  # fmt: skip
                 values.pop(name, None)
         return json.loads(json.dumps(values))

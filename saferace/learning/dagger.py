@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
-from saferace.learning.calibration import spread_scale_of
+from saferace.learning.calibration import conformal_of, spread_scale_of
 from saferace.learning.checkpoint import save_checkpoint
 from saferace.learning.collect import collect_round
 from saferace.learning.configs import (
@@ -44,6 +44,7 @@ from saferace.learning.configs import (
 from saferace.learning.rounds import load_rounds
 from saferace.learning.run_layout import RunLayout
 from saferace.learning.training import train_networks
+from saferace.names import CONFORMAL_ALPHA
 from saferace.version import __version__
 
 #: Columns of ``metrics.csv`` (the held-out part's are prefixed ``held_out_``).
@@ -185,6 +186,10 @@ class DaggerRun:
             return FilterConfig()
         if not config.perceived:
             return config.filter
+        if config.filter.uncertainty == "robust":
+            conformal_of(
+                self.layout, iteration, CONFORMAL_ALPHA, config.collection.mc_samples, config.seed
+            )
         return replace(
             config.filter,
             state_source=f"learned:{self.layout.checkpoint(iteration)}",

@@ -32,11 +32,15 @@ CONTROL_OUTPUTS = ("steer_rad", "target_speed_mps")
 STATE_OUTPUTS = ("e_y_m", "e_psi_rad", "kappa_radpm")
 VELOCITY_INPUTS = ("v_x_mps", "v_y_mps", "yaw_rate_radps")
 FEATURES = 512  # ResNet-18's feature width
+#: The log-variances (of normalised outputs) a heteroscedastic head is held within.
+LOG_VARIANCE_RANGE = (-12.0, 6.0)
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    """Shape of one network: its outputs, input channels and head."""
+    """Shape of one network: its outputs, input channels and head; ``log_variance``: a
+    heteroscedastic head that also outputs each output's log-variance (an ensemble member,
+    trained on the Gaussian negative log-likelihood)."""
 
     outputs: tuple[str, ...]
     in_channels: int = 3
@@ -44,6 +48,7 @@ class NetworkConfig:
     dropout: float = 0.2
     hidden: int = 128
     velocity_hidden: int = 64
+    log_variance: bool = False
 
     def __post_init__(self) -> None:
         if self.in_channels not in (3, 6):
@@ -68,9 +73,17 @@ def control_config(stereo: bool = False, dropout: float = 0.2) -> NetworkConfig:
     return NetworkConfig(CONTROL_OUTPUTS, 6 if stereo else 3, uses_velocity=True, dropout=dropout)
 
 
-def state_config(stereo: bool = False, dropout: float = 0.2) -> NetworkConfig:
-    """``M_st``: image to ``[e_y_m, e_psi_rad, kappa_radpm]``."""
-    return NetworkConfig(STATE_OUTPUTS, 6 if stereo else 3, uses_velocity=False, dropout=dropout)
+def state_config(
+    stereo: bool = False, dropout: float = 0.2, log_variance: bool = False
+) -> NetworkConfig:
+    """``M_st``: image to ``[e_y_m, e_psi_rad, kappa_radpm]`` (and their log-variances)."""
+    return NetworkConfig(
+        STATE_OUTPUTS,
+        6 if stereo else 3,
+        uses_velocity=False,
+        dropout=dropout,
+        log_variance=log_variance,
+    )
 
 
 @dataclass(frozen=True)
@@ -117,7 +130,7 @@ class DrivingNetwork(nn.Module):
         if config.uses_velocity:
             self.velocity_branch = nn.Linear(len(VELOCITY_INPUTS), config.velocity_hidden)
             width += config.velocity_hidden
-        self.output_layer = nn.Linear(width, outputs)
+        self.output_layer = nn.Linear(width, 2 * outputs if config.log_variance else outputs)
         self.register_buffer("image_mean", torch.full((channels,), 0.5))
         self.register_buffer("image_std", torch.full((channels,), 0.25))
         self.register_buffer("velocity_mean", torch.zeros(len(VELOCITY_INPUTS)))
@@ -178,8 +191,9 @@ class DrivingNetwork(nn.Module):
         """Mean and spread of ``n_samples`` MC-dropout passes of the head.
 
         ``image`` is ``(H, W, C)`` or ``(N, H, W, C)`` uint8. With ``n_samples=1`` or no
-        dropout the head runs once without dropout and the spread is exactly 0. Call
-        ``eval()`` first: BatchNorm must use its running statistics.
+        dropout the head runs once without dropout and the spread is exactly 0; a
+        heteroscedastic head runs once and gives its own variance. Call ``eval()`` first:
+        BatchNorm must use its running statistics.
         """
         if self.training:
             raise SafeRaceError("call eval() before predict(): MC dropout samples the head only")
@@ -191,6 +205,8 @@ class DrivingNetwork(nn.Module):
         if velocity is not None:
             velocity = torch.as_tensor(velocity, dtype=torch.float32).reshape(len(image), -1)
         features = self.features(image)
+        if self.config.log_variance:
+            return self._gaussian_prediction(self.head(features, velocity, sample=False))
         if n_samples == 1 or self.config.dropout == 0.0:
             samples = self.head(features, velocity, sample=False)[:, None, :]
         else:
@@ -204,6 +220,15 @@ class DrivingNetwork(nn.Module):
         samples = self.denormalise_outputs(samples)
         mean = samples.mean(dim=1)
         std = torch.zeros_like(mean) if samples.shape[1] == 1 else samples.std(dim=1, correction=0)
+        return Prediction(mean.numpy(), std.numpy(), samples.numpy())
+
+    def _gaussian_prediction(self, outputs: torch.Tensor) -> Prediction:
+        """A heteroscedastic head's mean and std in physical units; its samples are the two
+        points ``mean +- std`` (their mean and population spread are exactly those)."""
+        count = len(self.config.outputs)
+        mean = self.denormalise_outputs(outputs[:, :count])
+        std = torch.exp(0.5 * outputs[:, count:].clamp(*LOG_VARIANCE_RANGE)) * self.output_std
+        samples = torch.stack([mean - std, mean + std], dim=1)
         return Prediction(mean.numpy(), std.numpy(), samples.numpy())
 
     def _dropout(

@@ -32,10 +32,13 @@ from tqdm import tqdm
 
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
-from saferace.learning.checkpoint import load_checkpoint, save_atomically
+from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint, save_atomically
 from saferace.learning.configs import NETWORKS, TrainConfig
+from saferace.learning.ensemble import StateEnsemble
 from saferace.learning.networks import (
+    LOG_VARIANCE_RANGE,
     DrivingNetwork,
+    NetworkConfig,
     control_config,
     load_torchvision_weights,
     state_config,
@@ -46,6 +49,8 @@ from saferace.version import __version__
 LOG = logging.getLogger(__name__)
 #: Frames sampled to estimate the images' per-channel mean and spread.
 IMAGE_STATISTICS_FRAMES = 2000
+#: Apart in seed between the weights of two ensemble members.
+ENSEMBLE_SEED_STRIDE = 7919
 #: Floor of an output's or input's standard deviation (a constant curvature on an oval).
 MIN_STD = 1e-3
 
@@ -105,16 +110,19 @@ def fit(
     progress: bool = True,
     resume: dict | None = None,
     on_epoch: Callable[[dict], None] | None = None,
+    shuffle_seed: int | None = None,
 ) -> dict[str, list[float]]:
-    """Adam on the MSE of normalised targets; returns per-batch and per-epoch losses, and the
-    step each epoch ended at (the last one may be cut short, see ``TrainConfig.max_steps``).
+    """Adam on the MSE of normalised targets (the Gaussian negative log-likelihood for a
+    heteroscedastic head); returns per-batch and per-epoch losses, and the step each epoch
+    ended at (the last one may be cut short, see ``TrainConfig.max_steps``).
 
-    After each epoch ``on_epoch`` gets the state to continue from (weights, optimiser,
-    generators, losses, epochs done); ``resume`` is such a state.
+    Batches are drawn with ``shuffle_seed`` (default: the config's seed; an ensemble's
+    members each draw their own). After each epoch ``on_epoch`` gets the state to continue
+    from (weights, optimiser, generators, losses, epochs done); ``resume`` is such a state.
     """
     network.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
-    generator = torch.Generator().manual_seed(config.seed)
+    generator = torch.Generator().manual_seed(config.seed if shuffle_seed is None else shuffle_seed)
     history: dict[str, list[float]] = {
         "batch_loss": [],
         "train_loss": [],
@@ -147,7 +155,7 @@ def fit(
             total = 0.0
             for start in range(0, len(order), config.batch_size):
                 index = order[start : start + config.batch_size]
-                loss = functional.mse_loss(_forward(network, train, index), targets[index])
+                loss = training_loss(network, _forward(network, train, index), targets[index])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -176,15 +184,28 @@ def fit(
     return history
 
 
+def training_loss(
+    network: DrivingNetwork, outputs: torch.Tensor, targets: torch.Tensor
+) -> torch.Tensor:
+    """The MSE of normalised targets, or for a heteroscedastic head the Gaussian negative
+    log-likelihood of its means and variances."""
+    if not network.config.log_variance:
+        return functional.mse_loss(outputs, targets)
+    count = targets.shape[1]
+    log_variance = outputs[:, count:].clamp(*LOG_VARIANCE_RANGE)
+    return functional.gaussian_nll_loss(outputs[:, :count], targets, log_variance.exp())
+
+
 @torch.inference_mode()
 def validation_loss(network: DrivingNetwork, data: NetworkData, batch_size: int) -> float:
-    """MSE of normalised targets with dropout off."""
+    """MSE of normalised targets with dropout off (of the means, for a heteroscedastic
+    head: comparable with a dropout network's)."""
     network.eval()
     targets = network.normalise_outputs(torch.as_tensor(data.targets, dtype=torch.float32))
     total = 0.0
     for start in range(0, len(data), batch_size):
         index = np.arange(start, min(start + batch_size, len(data)))
-        error = _forward(network, data, index) - targets[index]
+        error = _forward(network, data, index)[:, : targets.shape[1]] - targets[index]
         total += float((error**2).mean(dim=1).sum())
     return total / len(data)
 
@@ -199,12 +220,14 @@ def train_networks(
     config: TrainConfig,
     progress: bool = True,
     resume_file: str | Path | None = None,
-) -> tuple[DrivingNetwork, DrivingNetwork, dict]:
-    """Train the control and the state network; return them and the run's metadata.
+) -> tuple[DrivingNetwork, DrivingNetwork | StateEnsemble, dict]:
+    """Train the control and the state network (or ensemble); return them and the run's
+    metadata.
 
     ``resume_file``: where to keep the run's state after every epoch, and to continue from.
-    The metadata's ``history`` holds the networks trained, ``kept`` where the others came
-    from (see ``TrainConfig.networks``).
+    The metadata's ``history`` holds the networks trained (an ensemble's first member;
+    ``member_history`` the others'), ``kept`` where the others came from (see
+    ``TrainConfig.networks``).
     """
     held_out = held_out_mask(frames, config.val_stretch)
     if held_out.all() or (config.val_stretch is not None and not held_out.any()):
@@ -216,7 +239,6 @@ def train_networks(
     train_frames, validation_frames = frames.subset(~held_out), frames.subset(held_out)
     stereo = frames["image"].shape[-1] == 6
     initial = load_checkpoint(config.init) if config.init else None
-    networks = {}
     history = {}
     started = time.perf_counter()
     train_data, validation_data = network_data(train_frames), network_data(validation_frames)
@@ -225,51 +247,56 @@ def train_networks(
         "data": [(str(Path(m["path"]).resolve()), m["frame_count"]) for m in frames.manifests],
     }
     run = _resumed_run(resume_file, fingerprint)
-    makers = (control_config, state_config)
-    for index, (name, make_config) in enumerate(zip(NETWORKS, makers, strict=True)):
-        torch.manual_seed(config.seed + index)
-        network = DrivingNetwork(make_config(stereo, config.dropout))
-        if initial is not None:
-            source = getattr(initial, name)
-            if source.config != network.config:
-                raise SafeRaceError(
-                    f"--init {config.init} has a {name} network {source.config}, "
-                    f"the data need {network.config}"
-                )
+    trained: dict[str, list[DrivingNetwork]] = {}
+    member_history = {}
+    for unit in training_units(config, stereo):
+        name = unit.network
+        torch.manual_seed(unit.seed)
+        network = DrivingNetwork(unit.config)
+        source = None if initial is None else _initial_unit(initial, unit, config.init)
         if name not in config.networks:
-            networks[name] = source
             continue
-        if name in run["done"]:
-            network.load_state_dict(run["done"][name]["weights"])
+        if unit.name in run["done"]:
+            network.load_state_dict(run["done"][unit.name]["weights"])
             network.eval()
-            history[name] = run["done"][name]["history"]
-            networks[name] = network
-            continue
-        if initial is not None:
-            network.load_state_dict(source.state_dict())  # its normalisation too
+            losses = run["done"][unit.name]["history"]
         else:
-            if config.backbone_weights:
-                load_torchvision_weights(network, config.backbone_weights)
-            network.set_normalisation(normalisation(train_data[name], config.seed))
-        current = run["current"] if run["current"].get("name") == name else None
+            if source is not None:
+                network.load_state_dict(source.state_dict())  # its normalisation too
+            else:
+                if config.backbone_weights:
+                    load_torchvision_weights(network, config.backbone_weights)
+                network.set_normalisation(normalisation(train_data[name], config.seed))
+            current = run["current"] if run["current"].get("name") == unit.name else None
 
-        def keep(state: dict, name: str = name) -> None:
-            run["current"] = {"name": name, **state}
-            if resume_file is not None:
-                save_atomically(run, resume_file)
+            def keep(state: dict, unit_name: str = unit.name) -> None:
+                run["current"] = {"name": unit_name, **state}
+                if resume_file is not None:
+                    save_atomically(run, resume_file)
 
-        history[name] = fit(
-            network, train_data[name], validation_data[name], config, name, progress,
-            current, keep,
-        )  # fmt: skip
-        run["done"][name] = {"weights": network.state_dict(), "history": history[name]}
-        networks[name] = network
+            losses = fit(
+                network, train_data[name], validation_data[name], config, unit.name, progress,
+                current, keep, unit.shuffle_seed,
+            )  # fmt: skip
+            run["done"][unit.name] = {"weights": network.state_dict(), "history": losses}
+        if unit.member == 0:
+            history[name] = losses
+        else:
+            member_history[unit.name] = losses
+        trained.setdefault(name, []).append(network)
+    networks = {
+        name: getattr(initial, name) if name not in config.networks else _assembled(trained[name])
+        for name in NETWORKS
+    }
+    control = networks["control"]
+    assert isinstance(control, DrivingNetwork), "the control network is never an ensemble"
     metadata = {
         "training": config.as_dict(),
         "image_shape": list(frames["image"].shape[1:]),
         "frames": {"train": len(train_frames), "validation": len(validation_frames)},
         "data": [_round_summary(manifest) for manifest in frames.manifests],
         "history": history,
+        "member_history": member_history,
         "kept": {name: config.init for name in NETWORKS if name not in config.networks},
         "train_seconds": time.perf_counter() - started,
         "saferace_version": __version__,
@@ -277,7 +304,60 @@ def train_networks(
         "packages": package_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    return networks["control"], networks["state"], metadata
+    return control, networks["state"], metadata
+
+
+@dataclass(frozen=True)
+class TrainingUnit:
+    """One network a training run fits: the control network, the state network, or one
+    member of the state ensemble (``member`` > 0 for all but the first), with the seeds of
+    its weights and of its batches."""
+
+    name: str
+    network: str
+    member: int
+    config: NetworkConfig
+    seed: int
+    shuffle_seed: int
+
+
+def training_units(config: TrainConfig, stereo: bool) -> list[TrainingUnit]:
+    """The networks ``config`` trains, in order; the control network and a dropout state
+    network keep the seeds they have always had."""
+    units = [TrainingUnit("control", "control", 0, control_config(stereo, config.dropout),
+                          config.seed, config.seed)]  # fmt: skip
+    if config.state_uncertainty == "mc-dropout":
+        state = state_config(stereo, config.dropout)
+        return [*units, TrainingUnit("state", "state", 0, state, config.seed + 1, config.seed)]
+    member_config = state_config(stereo, dropout=0.0, log_variance=True)
+    for member in range(config.ensemble_members):
+        name = "state" if member == 0 else f"state_member_{member}"
+        seed = config.seed + 1 + ENSEMBLE_SEED_STRIDE * member
+        units.append(TrainingUnit(name, "state", member, member_config, seed, config.seed + member))
+    return units
+
+
+def _initial_unit(
+    initial: LearnedCheckpoint, unit: TrainingUnit, path: str | None
+) -> DrivingNetwork:
+    """The network of checkpoint ``initial`` that ``unit`` starts from (its config checked)."""
+    source = getattr(initial, unit.network)
+    if isinstance(source, StateEnsemble):
+        source = source.members[unit.member] if unit.member < len(source.members) else None
+    elif unit.member > 0:
+        source = None
+    if source is None or source.config != unit.config:
+        found = "no such network" if source is None else source.config
+        raise SafeRaceError(
+            f"--init {path} has {found} for the {unit.name} network; the training needs "
+            f"{unit.config} (train from scratch to change the state uncertainty or members)"
+        )
+    return source
+
+
+def _assembled(networks: list[DrivingNetwork]) -> DrivingNetwork | StateEnsemble:
+    """One trained network, or the ensemble of its members."""
+    return networks[0] if len(networks) == 1 else StateEnsemble(networks)
 
 
 def _resumed_run(resume_file: str | Path | None, fingerprint: dict) -> dict:

@@ -16,7 +16,8 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from saferace.eval.tables import markdown_table
-from saferace.learning.networks import DrivingNetwork, Prediction
+from saferace.learning.ensemble import StateNetwork
+from saferace.learning.networks import Prediction
 from saferace.learning.rounds import FrameSet
 from saferace.learning.training import NetworkData, network_data
 
@@ -35,7 +36,7 @@ MAX_SCORED_TRAIN_FRAMES = 1000
 
 
 def predict_frames(
-    network: DrivingNetwork,
+    network: StateNetwork,
     data: NetworkData,
     n_samples: int = 10,
     batch_size: int = 64,
@@ -54,7 +55,7 @@ def predict_frames(
 
 
 def error_rows(
-    split: str, network_name: str, network: DrivingNetwork, prediction: Prediction, targets
+    split: str, network_name: str, network: StateNetwork, prediction: Prediction, targets
 ) -> list[dict]:
     """One row per output of ``network`` on one split."""
     rows = []
@@ -93,7 +94,7 @@ def distance_to_training(training: FrameSet, frames: FrameSet) -> np.ndarray:
 
 
 def validation_rows(
-    networks: dict[str, DrivingNetwork],
+    networks: dict[str, StateNetwork],
     splits: dict[str, FrameSet],
     training: FrameSet | None = None,
     held_out: str | None = None,

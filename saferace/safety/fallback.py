@@ -16,8 +16,12 @@ import math
 
 import numpy as np
 
-#: Braking of the fallback (m/s^2): firm but far inside the tyres' grip.
+#: Braking where the filter's QP failed (m/s^2): firm but far inside the tyres' grip.
 FALLBACK_BRAKE_MPS2 = 2.0
+#: Braking where the state cannot be trusted (m/s^2): harder, since the car must slow
+#: before an error it cannot see takes it out; the car brakes at up to 4, and the rest of
+#: the tyres' grip is left for steering.
+DISTRUST_BRAKE_MPS2 = 3.0
 #: When a solve fails: steer toward the centerline (with the fallback's braking).
 FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
 FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
@@ -58,14 +62,14 @@ def fallback_accel_bounds(
     v_x_mps: float, target_mps: float, control_dt_s: float
 ) -> tuple[float, float]:
     """``(lower, upper)`` of the acceleration that moves the speed towards ``target_mps``:
-    braking at ``FALLBACK_BRAKE_MPS2`` from above it (less where that would pass a
+    braking at ``DISTRUST_BRAKE_MPS2`` from above it (less where that would pass a
     standstill), and from below, as much as the agent asks or accelerating no faster than
     reaching it within a step."""
     gap = (target_mps - v_x_mps) / control_dt_s
     if gap < 0.0:
-        brake = max(gap, -FALLBACK_BRAKE_MPS2, -max(v_x_mps, 0.0) / control_dt_s)
+        brake = max(gap, -DISTRUST_BRAKE_MPS2, -max(v_x_mps, 0.0) / control_dt_s)
         return brake, brake
-    return -FALLBACK_BRAKE_MPS2, gap
+    return -DISTRUST_BRAKE_MPS2, gap
 
 
 def steer_to_centre(lane_mean: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:

@@ -94,8 +94,10 @@ class SafetyFilter(gym.Wrapper):
     samples. Where no control satisfies them, or the source's out-of-distribution monitor
     raises, the filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a
     speed at which the interval fits inside the lane (a creep speed, or a stop where even
-    the interval's offsets do not fit) and keeps the steering inside the tyres' grip; each
-    such step is counted in ``fallbacks``.
+    the interval's offsets do not fit), steers by the deterministic filter on the
+    interval's centre (a compromise over an interval too wide to satisfy steers for none of
+    its states) and keeps the steering inside the tyres' grip; each such step is counted in
+    ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -269,9 +271,15 @@ class SafetyFilter(gym.Wrapper):
         barrier_rows = len(problem.b) - (speed is not None)
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
             fallback = "infeasible"
-        if fallback in ("alarm", "infeasible"):
+        if fallback in ("alarm", "infeasible"):  # slow down, steer by the interval's centre
+            centre = 0.5 * (state_lower + state_upper)[None, :]
             problem, statistics, h, solution, more_time = self._solve(
-                *solve,
+                self._model_states(centre, observation["velocity"]),
+                centre[:, 2],
+                *solve[2:4],
+                self.map.speed_constraint(s_m, v_x, centre[:, 0]),
+                *solve[5:7],
+                False,
                 *self._fallback_box(v_x, float(u0[1]), (state_lower, state_upper), context, alarm),
             )
             solve_time += more_time
