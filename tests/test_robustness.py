@@ -21,7 +21,7 @@ from saferace.experiments.robustness import (
 
 def short(agent: str, **kwargs) -> RobustnessConfig:
     return RobustnessConfig(
-        agent=agent, task="CenterLine", track="lab", presets=("none", "strong"), seeds=(0,),
+        agent=agent, task="CenterLine", tracks=("lab",), presets=("none", "strong"), seeds=(0,),
         max_seconds=2.0, model="kinematic", **kwargs,
     )  # fmt: skip
 
@@ -75,3 +75,33 @@ def test_settings_with_tuples_resume(tmp_path: Path):
     first = run_robustness(replace(config, presets=("none",)), tmp_path, progress=False)
     both = run_robustness(config, tmp_path, progress=False)  # read back from JSON: lists
     assert both[0] == first[0] and len(both) == 2
+
+
+def test_tracks_and_shift_severities_score_the_filters_interval(tmp_path: Path, tiny_checkpoint):
+    checkpoint, _ = tiny_checkpoint(False)
+    config = replace(
+        short(
+            "pure-pursuit",
+            safety=FilterConfig(
+                kind="cbf", state_source=f"learned:{checkpoint}", samples=3, uncertainty="robust"
+            ),
+        ),
+        tracks=("lab", "oval"),
+        presets=("severity-0", "severity-5"),
+        max_seconds=1.0,
+    )
+    runs = run_robustness(config, tmp_path, progress=False)
+    assert sorted((run["track"], run["look"]) for run in runs) == [
+        ("lab", "severity-0"), ("lab", "severity-5"),
+        ("oval", "severity-0"), ("oval", "severity-5"),
+    ]  # fmt: skip
+    for run in runs:
+        steps = run["scored_steps"]
+        assert 1 <= steps <= 20 and 0 <= run["covered_steps"] <= steps  # at most 1 s at 20 Hz
+        assert run["coverage"] == pytest.approx(run["covered_steps"] / steps)
+        assert run["e_y_half_width_m"] > 0.0 and run["alarm_rate"] is not None
+    rows = robustness_rows(runs, config.presets)
+    coverage = rows[0][TABLE_COLUMNS.index("coverage [%] (95% band)")]
+    plain = [r for r in runs if r["look"] == "severity-0"]
+    share = sum(r["covered_steps"] for r in plain) / sum(r["scored_steps"] for r in plain)
+    assert coverage.startswith(f"{100 * share:.1f} (")

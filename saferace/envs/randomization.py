@@ -8,7 +8,8 @@ what the expert's and the filter's models assume. Each field is a closed range
 range ``(x, x)`` keeps that value as built (any visual randomisation builds the
 randomizable scene, whose lines are not emissive: they dim with the light).
 ``RacingEnv(randomize=..., physics_randomize=...)`` takes a preset name (``none``,
-``mild``, ``strong``) or an instance.
+``mild``, ``strong``; for the looks also a shift severity ``severity-0`` .. ``severity-5``)
+or an instance.
 """
 
 from __future__ import annotations
@@ -45,6 +46,30 @@ def _checked_range(name: str, value: Range, low: float, high: float) -> Range:
 def _check_probability(name: str, value: float) -> None:
     if not (isinstance(value, int | float) and 0.0 <= value <= 1.0):
         raise RandomizationError(f"{name} must be a probability in [0, 1], got {value!r}")
+
+
+_VISUAL_LIMITS = {
+    "light_azimuth_rad": (-math.pi, math.pi),
+    "light_elevation_rad": (-0.9, 0.3),
+    "light_intensity": (0.0, 3.0),
+    "line_width_scale": (0.1, 2.0),
+    "line_fade": (0.0, 1.0),
+    "line_wear": (0.0, 1.0),
+    "camera_height_m": (-0.05, 0.1),
+    "camera_pitch_rad": (-0.3, 0.3),
+    "camera_fovy_deg": (-40.0, 40.0),
+    "image_noise_std": (0.0, 100.0),
+    "image_blur_sigma_px": (0.0, 10.0),
+}
+
+
+def _field_limits(name: str) -> Range:
+    """What a range of :class:`VisualRandomization` may span."""
+    if name.endswith("_tint"):
+        return 0.0, 1.0
+    if name.endswith(("_brightness", "_contrast")):
+        return 0.0, 3.0 if "brightness" in name else 1.0
+    return _VISUAL_LIMITS[name]
 
 
 @dataclass(frozen=True)
@@ -84,31 +109,12 @@ class VisualRandomization:
     image_blur_sigma_px: Range = (0.0, 0.0)  # Gaussian blur
 
     def __post_init__(self) -> None:
-        bounds = {
-            "light_azimuth_rad": (-math.pi, math.pi),
-            "light_elevation_rad": (-0.9, 0.3),
-            "light_intensity": (0.0, 3.0),
-            "line_width_scale": (0.1, 2.0),
-            "line_fade": (0.0, 1.0),
-            "line_wear": (0.0, 1.0),
-            "camera_height_m": (-0.05, 0.1),
-            "camera_pitch_rad": (-0.3, 0.3),
-            "camera_fovy_deg": (-40.0, 40.0),
-            "image_noise_std": (0.0, 100.0),
-            "image_blur_sigma_px": (0.0, 10.0),
-        }
         for field in fields(self):
             name, value = field.name, getattr(self, field.name)
             if name.endswith("_probability"):
                 _check_probability(name, value)
                 continue
-            if name.endswith("_tint"):
-                limits = (0.0, 1.0)
-            elif name.endswith(("_brightness", "_contrast")):
-                limits = (0.0, 3.0 if "brightness" in name else 1.0)
-            else:
-                limits = bounds[name]
-            object.__setattr__(self, name, _checked_range(name, value, *limits))
+            object.__setattr__(self, name, _checked_range(name, value, *_field_limits(name)))
 
     @property
     def is_identity(self) -> bool:
@@ -194,6 +200,34 @@ PHYSICS_PRESETS: dict[str, PhysicsRandomization] = {
     ),
 }
 
+#: Shift severities (Ovadia et al. 2019): 0 is the training look, ``k`` the ``strong``
+#: preset's ranges stretched from the built scene by ``k / SEVERITY_OF_STRONG`` (clipped to
+#: what each field allows), so that light, textures, line wear, camera pose, noise and blur
+#: all change more at each level; 3 is ``strong`` itself.
+SEVERITIES = (0, 1, 2, 3, 4, 5)
+SEVERITY_OF_STRONG = 3
+SEVERITY_PREFIX = "severity-"
+
+
+def severity_randomization(level: int) -> VisualRandomization:
+    """The looks of shift severity ``level`` (see :data:`SEVERITIES`)."""
+    if level not in SEVERITIES:
+        raise RandomizationError(f"severity must be one of {SEVERITIES}, got {level!r}")
+    factor = level / SEVERITY_OF_STRONG
+    identity, strong = VisualRandomization(), VISUAL_PRESETS["strong"]
+    stretched = {}
+    for field in fields(VisualRandomization):
+        built, wide = getattr(identity, field.name), getattr(strong, field.name)
+        if field.name.endswith("_probability"):  # of a change: none in the built scene
+            stretched[field.name] = built if level == 0 else min(1.0, factor * wide)
+            continue
+        low, high = _field_limits(field.name)
+        stretched[field.name] = tuple(
+            min(max(b + factor * (w - b), low), high) for b, w in zip(built, wide, strict=True)
+        )
+    return VisualRandomization(**stretched)
+
+
 _Spec = TypeVar("_Spec", VisualRandomization, PhysicsRandomization)
 
 
@@ -214,7 +248,12 @@ def _resolve(value: str | _Spec | None, presets: dict[str, _Spec], kind: type[_S
 
 
 def visual_randomization(value: str | VisualRandomization | None) -> VisualRandomization:
-    """The ranges of a preset name, an instance, or None (no randomisation)."""
+    """The ranges of a preset name (or ``severity-K``), an instance, or None (none)."""
+    if isinstance(value, str) and value.startswith(SEVERITY_PREFIX):
+        level = value.removeprefix(SEVERITY_PREFIX)
+        if not level.isdigit():
+            raise RandomizationError(f"{value!r} names no severity: use severity-0 .. -5")
+        return severity_randomization(int(level))
     return _resolve(value, VISUAL_PRESETS, VisualRandomization)
 
 

@@ -31,6 +31,8 @@ from saferace.eval.runner import (
 )
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.experiments.robustness_config import RobustnessConfig
+from saferace.safety.conformal import MIN_SIGMA, clopper_pearson
+from saferace.safety.intervals import state_interval
 
 RUNS_FILE = "runs.jsonl"
 TABLE_COLUMNS = (
@@ -46,6 +48,11 @@ TABLE_COLUMNS = (
     "e_psi error [rad]",
     "e_psi spread [rad]",
     "truth within 2 spreads [%]",
+    "coverage [%] (95% band)",
+    "e_y half width [m]",
+    "Gaussian NLL",
+    "alarms [%]",
+    "lowest lane barrier [m]",
 )
 
 
@@ -56,7 +63,9 @@ def run_robustness(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     settings = json.loads(  # as read back from runs.jsonl: tuples become lists
-        json.dumps({k: v for k, v in config.as_dict().items() if k not in ("presets", "seeds")})
+        json.dumps(
+            {k: v for k, v in config.as_dict().items() if k not in ("tracks", "presets", "seeds")}
+        )
     )
     path = out_dir / RUNS_FILE
     done = read_jsonl(path) if path.exists() else []
@@ -66,24 +75,34 @@ def run_robustness(
                 f"{path} holds runs of other settings ({_difference(row['settings'], settings)}): "
                 "use another --out"
             )
-    finished = {(row["look"], row["seed"]) for row in done}
-    for preset in config.presets:
-        for seed in config.seeds:
-            if (preset, seed) in finished:
-                continue
-            row = {"look": preset, "seed": seed, **drive_once(config, preset, seed, progress)}
-            row["settings"] = settings
-            append_jsonl(path, row)
-            done.append(row)
-    wanted = {(p, s) for p in config.presets for s in config.seeds}
-    return [row for row in done if (row["look"], row["seed"]) in wanted]
+    finished = {_key(row) for row in done}
+    wanted = [(t, p, s) for t in config.tracks for p in config.presets for s in config.seeds]
+    for track, preset, seed in wanted:
+        if (track, preset, seed) in finished:
+            continue
+        row = {
+            "track": track,
+            "look": preset,
+            "seed": seed,
+            **drive_once(config, track, preset, seed, progress),
+            "settings": settings,
+        }
+        append_jsonl(path, row)
+        done.append(row)
+    return [row for row in done if _key(row) in set(wanted)]
 
 
-def drive_once(config: RobustnessConfig, preset: str, seed: int, progress: bool) -> dict:
-    """One run's metrics in the look (and car) ``preset`` draws for ``seed``."""
+def _key(row: dict) -> tuple[str, str, int]:
+    return row["track"], row["look"], row["seed"]
+
+
+def drive_once(
+    config: RobustnessConfig, track: str, preset: str, seed: int, progress: bool
+) -> dict:
+    """One run's metrics on ``track`` in the look (and car) ``preset`` draws for ``seed``."""
     env = make_task_env(
         config.task,
-        config.track,
+        track,
         config.laps,
         config.safety,
         seed,
@@ -116,39 +135,55 @@ def drive_once(config: RobustnessConfig, preset: str, seed: int, progress: bool)
         "lap_time_s": summary["mean_lap_time_s"],
         "time_outside_lane_s": summary["time_outside_lane_s"],
         "intervention_rate": None if intervened is None else float(np.mean(intervened)),
+        "min_lane_barrier_m": summary["min_lane_barrier_m"],
+        "alarm_rate": summary.get("alarm_rate"),
+        "fallback_rate": summary.get("fallback_rate"),
         "terminated": result.terminated,
         **monitor.summary(),
     }
 
 
-class _StateErrors:
-    """Collects a state network's samples against the truth, step by step."""
+#: A state sample's view for the tables: mean, spread, truth, and the interval's bounds.
+StateView = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+#: The interval of an unfiltered run's monitored source that knows none of its own.
+MONITOR_Z = 1.96
 
-    def __init__(
-        self, sample: Callable[[dict, dict], tuple[np.ndarray, np.ndarray, np.ndarray]] | None
-    ):
+
+class _StateErrors:
+    """Collects a state network's samples and interval against the truth, step by step."""
+
+    def __init__(self, sample: Callable[[dict, dict], StateView] | None):
         self.sample = sample
-        self.errors: list[np.ndarray] = []
-        self.spreads: list[np.ndarray] = []
+        self.views: list[StateView] = []
 
     def __call__(self, observation: dict, info: dict) -> None:
-        if self.sample is None:
-            return
-        mean, spread, truth = self.sample(observation, info)
-        self.errors.append(np.abs(mean - truth))
-        self.spreads.append(spread)
+        if self.sample is not None:
+            self.views.append(self.sample(observation, info))
 
     def summary(self) -> dict:
-        if not self.errors:
+        """Errors and spreads of ``[e_y, e_psi]``, the Gaussian negative log-likelihood of
+        the truth (summed over both), and the interval's coverage (of both) and width."""
+        if not self.views:
             return {}
-        errors, spreads = np.array(self.errors), np.array(self.spreads)
-        within = np.all(errors <= 2.0 * spreads, axis=1)
+        mean, spread, truth, lower, upper = (
+            np.array(part) for part in zip(*self.views, strict=True)
+        )
+        errors = np.abs(mean - truth)
+        within = np.all(errors <= 2.0 * spread, axis=1)
+        sigma = np.maximum(spread, MIN_SIGMA)
+        nll = 0.5 * np.log(2.0 * np.pi * sigma**2) + 0.5 * (errors / sigma) ** 2
+        covered = np.all((lower <= truth) & (truth <= upper), axis=1)
         return {
             "e_y_error_m": float(np.sqrt(np.mean(errors[:, 0] ** 2))),
-            "e_y_spread_m": float(np.mean(spreads[:, 0])),
+            "e_y_spread_m": float(np.mean(spread[:, 0])),
             "e_psi_error_rad": float(np.sqrt(np.mean(errors[:, 1] ** 2))),
-            "e_psi_spread_rad": float(np.mean(spreads[:, 1])),
+            "e_psi_spread_rad": float(np.mean(spread[:, 1])),
             "truth_within_2_spreads": float(np.mean(within)),
+            "gaussian_nll": float(np.mean(nll.sum(axis=1))),
+            "coverage": float(np.mean(covered)),
+            "covered_steps": int(covered.sum()),
+            "scored_steps": len(covered),
+            "e_y_half_width_m": float(np.mean(0.5 * (upper[:, 0] - lower[:, 0]))),
         }
 
 
@@ -156,12 +191,11 @@ def _state_monitor(config: RobustnessConfig, env, seed: int) -> _StateErrors:
     """Scores the filter's learned state source, or a monitoring one, or nothing."""
     if config.safety.kind == "cbf" and config.safety.state_source is not None:
 
-        def from_filter(observation: dict, info: dict):
+        def from_filter(observation: dict, info: dict) -> StateView:
             decision = info["safety"]  # the state the filter believed before this step
-            return (
-                np.asarray(decision["state_mean"][:2]),
-                np.asarray(decision["state_std"][:2]),
-                np.asarray(decision["state_true"][:2]),
+            return tuple(  # type: ignore[return-value]
+                np.asarray(decision[name][:2])
+                for name in ("state_mean", "state_std", "state_true", "state_lower", "state_upper")
             )
 
         return _StateErrors(from_filter)
@@ -174,17 +208,19 @@ def _state_monitor(config: RobustnessConfig, env, seed: int) -> _StateErrors:
     image_shape = env.observation_space["image"].shape
     source = factory(argument, image_shape, n_samples=config.mc_samples, seed=seed)
 
-    def from_monitor(observation: dict, info: dict):
-        samples = np.atleast_2d(source.samples(observation, info))[:, :2]
+    def from_monitor(observation: dict, info: dict) -> StateView:
+        samples = np.atleast_2d(source.samples(observation, info))
+        lower, upper = state_interval(source, samples, MONITOR_Z)
         truth = np.array([info["e_y_m"], info["e_psi_rad"]])
-        return samples.mean(axis=0), samples.std(axis=0), truth
+        mean, spread = samples.mean(axis=0), samples.std(axis=0)
+        return mean[:2], spread[:2], truth, lower[:2], upper[:2]
 
     return _StateErrors(from_monitor)
 
 
 def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -> list[list]:
-    """One row of :data:`TABLE_COLUMNS` per preset: means over its seeds (``laps`` each),
-    ``-`` where nothing was measured."""
+    """One row of :data:`TABLE_COLUMNS` per look: means over its tracks and seeds (``laps``
+    each), the pooled coverage, the lowest barrier; ``-`` where nothing was measured."""
     rows = []
     for preset in presets:
         mine = [run for run in runs if run["look"] == preset]
@@ -209,9 +245,33 @@ def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -
                 mean("e_psi_error_rad"),
                 mean("e_psi_spread_rad"),
                 mean("truth_within_2_spreads", 100.0),
+                pooled_coverage(mine),
+                mean("e_y_half_width_m"),
+                mean("gaussian_nll"),
+                mean("alarm_rate", 100.0),
+                min(
+                    (
+                        r["min_lane_barrier_m"]
+                        for r in mine
+                        if r.get("min_lane_barrier_m") is not None
+                    ),
+                    default="-",
+                ),
             ]
         )
     return rows
+
+
+def pooled_coverage(runs: list[dict]) -> str:
+    """The share of all scored steps of ``runs`` whose truth lay inside the interval, with
+    its Clopper-Pearson 95% band (steps of one drive are not independent: the band is the
+    steps' own, narrower than the drives' would be)."""
+    covered = sum(run.get("covered_steps", 0) for run in runs)
+    steps = sum(run.get("scored_steps", 0) for run in runs)
+    if not steps:
+        return "-"
+    low, high = clopper_pearson(covered, steps)
+    return f"{100 * covered / steps:.1f} ({100 * low:.1f}-{100 * high:.1f})"
 
 
 def _difference(stored: dict, wanted: dict) -> str:

@@ -15,7 +15,8 @@ AGENT_HELP = "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT o
 
 @dataclass(frozen=True)
 class RobustnessConfig:
-    """One robustness evaluation: ``agent`` on ``task``/``track`` in each preset's looks.
+    """One robustness evaluation: ``agent`` on ``task`` and each of ``tracks`` in each
+    preset's (or shift severity's) looks.
 
     ``physics``: the car varies with the same preset too. ``monitor_state_source``
     (``learned:CKPT``): a state network scored beside an unfiltered run; a filtered run
@@ -24,8 +25,15 @@ class RobustnessConfig:
 
     agent: str = setting("expert", AGENT_HELP)
     task: str = setting("RacingLine", "the reference line to follow", choices=TASKS)
-    track: str = setting("technical", "built-in track name or track CSV path")
-    presets: tuple[str, ...] = setting(("none", "mild", "strong"), "looks to drive in")
+    tracks: tuple[str, ...] = setting(
+        ("technical",), "built-in track names or track CSV paths", flag="--track"
+    )
+    presets: tuple[str, ...] = setting(
+        ("none", "mild", "strong"),
+        "looks to drive in: presets, or shift severities severity-0 (the training look) .. "
+        "severity-5",
+        metavar="LOOK",
+    )
     seeds: tuple[int, ...] = setting((0, 1, 2), "a look per seed")
     laps: int = setting(1, "laps per run")
     max_seconds: float | None = setting(60.0, "end a run after this much simulated time")
@@ -43,7 +51,7 @@ class RobustnessConfig:
     mc_samples: int = setting(MC_SAMPLES, "MC-dropout samples per step of a learned agent")
 
     def __post_init__(self) -> None:
-        for name in ("presets", "seeds"):
+        for name in ("tracks", "presets", "seeds"):
             if not getattr(self, name):
                 raise ConfigError(name, "must name at least one")
         if self.laps < 1:

@@ -94,10 +94,11 @@ class SafetyFilter(gym.Wrapper):
     samples. Where no control satisfies them, or the source's out-of-distribution monitor
     raises, the filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a
     speed at which the interval fits inside the lane (a creep speed, or a stop where even
-    the interval's offsets do not fit), steers by the deterministic filter on the
-    interval's centre (a compromise over an interval too wide to satisfy steers for none of
-    its states) and keeps the steering inside the tyres' grip; each such step is counted in
-    ``fallbacks``.
+    the interval's offsets do not fit) and keeps the steering inside the tyres' grip. An
+    interval too wide to satisfy is steered by the deterministic filter on its centre (a
+    compromise over the whole interval steers for none of its states); after an alarm the
+    state is in doubt, and the agent's own steering is kept, slowed to a creep. Each such
+    step is counted in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -260,18 +261,21 @@ class SafetyFilter(gym.Wrapper):
             if self.map_curvature:
                 lane = np.column_stack([lane[:, :2], np.full(len(lane), state_lower[2])])
         v_x = float(observation["velocity"][0])
-        context = self._context(s_m, v_x)
+        context = self.map.barrier_context(
+            s_m, v_x, self.half_width_m, self.theta_max, self.lam, self.lateral_decel_mps2
+        )
         speed = self.map.speed_constraint(s_m, v_x, lane[:, 0])
         states = self._model_states(lane, observation["velocity"])
         solve = (states, lane[:, 2], u0, context, speed, nominal, spread, chance)
         problem, statistics, h, solution, solve_time = self._solve(
             *solve, *self._action_box(v_x, float(u0[1]))
         )
-        fallback = "solver" if not solution.solved else "alarm" if alarm else ""
+        fallback = "alarm" if alarm and self.robust else "" if solution.solved else "solver"
         barrier_rows = len(problem.b) - (speed is not None)
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
             fallback = "infeasible"
-        if fallback in ("alarm", "infeasible"):  # slow down, steer by the interval's centre
+        interval = (state_lower, state_upper)
+        if fallback == "infeasible":  # a trusted interval too wide: steer by its centre
             centre = 0.5 * (state_lower + state_upper)[None, :]
             problem, statistics, h, solution, more_time = self._solve(
                 self._model_states(centre, observation["velocity"]),
@@ -280,12 +284,14 @@ class SafetyFilter(gym.Wrapper):
                 self.map.speed_constraint(s_m, v_x, centre[:, 0]),
                 *solve[5:7],
                 False,
-                *self._fallback_box(v_x, float(u0[1]), (state_lower, state_upper), context, alarm),
+                *self._fallback_box(v_x, float(u0[1]), interval, context, alarm),
             )
             solve_time += more_time
             fallback = fallback if solution.solved else "solver"
         self.last_problem = problem
-        if fallback == "solver":  # brakes whatever the creep rule asks
+        if fallback == "alarm":  # the state is in doubt: the agent's steering, slowed
+            filtered = np.clip(u0, *self._fallback_box(v_x, float(u0[1]), interval, context, True))
+        elif fallback == "solver":  # brakes whatever the creep rule asks
             filtered = steer_to_centre(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
         else:
             filtered = solution.u
@@ -413,20 +419,6 @@ class SafetyFilter(gym.Wrapper):
             z=self.z if chance else 0.0,
         )
         return problem, statistics, h
-
-    def _context(self, s_m: float, v_x: float) -> BarrierContext:
-        """The barriers' map and gains at ``s_m`` (widths previewed at speed ``v_x``)."""
-        w_right, w_left, w_left_slope, w_right_slope = self.map.widths(s_m, v_x)
-        return BarrierContext(
-            w_left_m=w_left,
-            w_right_m=w_right,
-            half_width_m=self.half_width_m,
-            theta_max_rad=self.theta_max,
-            lam=self.lam,
-            lateral_decel_mps2=self.lateral_decel_mps2,
-            w_left_slope=w_left_slope,
-            w_right_slope=w_right_slope,
-        )
 
     def _fallback_box(
         self,

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from saferace.safety.barriers import BarrierContext
 from saferace.safety.speed_limit import LaneSpeedLimit
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine
@@ -65,6 +66,28 @@ class FilterMap:
             w_left,
             (left_ahead - left_behind) * scale,
             (right_ahead - right_behind) * scale,
+        )
+
+    def barrier_context(
+        self,
+        s_m: float,
+        v_x: float,
+        half_width_m: float,
+        theta_max_rad: float,
+        lam: float | tuple[float, ...],
+        lateral_decel_mps2: float,
+    ) -> BarrierContext:
+        """The barriers' map at ``s_m`` (widths previewed at speed ``v_x``) and gains."""
+        w_right, w_left, w_left_slope, w_right_slope = self.widths(s_m, v_x)
+        return BarrierContext(
+            w_left_m=w_left,
+            w_right_m=w_right,
+            half_width_m=half_width_m,
+            theta_max_rad=theta_max_rad,
+            lam=lam,
+            lateral_decel_mps2=lateral_decel_mps2,
+            w_left_slope=w_left_slope,
+            w_right_slope=w_right_slope,
         )
 
     def _lane_widths(self, s_m: float, preview_m: float) -> tuple[float, float]:
