@@ -89,6 +89,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
     calibrate.add_argument("--seed", type=int, default=0, help="seeds the split and the dropout")
     calibrate.add_argument(
+        "--no-monitor",
+        action="store_true",
+        help="fit no out-of-distribution monitor (the interval alone, to compare)",
+    )
+    calibrate.add_argument(
         "--out", type=Path, required=True, help="checkpoint to write (may be the same)"
     )
     calibrate.set_defaults(command=_calibrate)
@@ -199,8 +204,9 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     check_count("--samples", args.samples)
     rows = recalibrate(
-        args.checkpoint, args.data, args.out, args.alpha, args.samples, args.test_share, args.seed
-    )
+        args.checkpoint, args.data, args.out, args.alpha, args.samples, args.test_share,
+        args.seed, monitor=not args.no_monitor,
+    )  # fmt: skip
     print(markdown_table(list(rows[0]), [list(row.values()) for row in rows]))
     print(f"written: {args.out}")
     return 0

@@ -1,4 +1,4 @@
-"""Safety commands: ``safety-table`` and ``robustness``."""
+"""Safety commands: ``safety-table``, ``robustness`` and ``shift-sweep``."""
 
 from __future__ import annotations
 
@@ -103,6 +103,24 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_filter_arguments(robust)
     robust.set_defaults(command=_robustness)
 
+    sweep = commands.add_parser(
+        "shift-sweep",
+        help="uncertainty methods side by side: robustness folders' coverage and lane keeping "
+        "against the shift severity",
+        epilog=example(
+            "saferace shift-sweep mc-dropout=results/mc ensemble+conformal=results/ens "
+            "--out results/sweep",
+        ),
+    )
+    sweep.add_argument(
+        "methods",
+        nargs="+",
+        metavar="LABEL=FOLDER",
+        help="a method's label and the saferace robustness folder it drove in",
+    )
+    sweep.add_argument("--out", type=Path, required=True, help="folder for the table and plot")
+    sweep.set_defaults(command=_shift_sweep)
+
 
 def _safety_table(args: argparse.Namespace) -> int:
     from saferace.experiments.safety_table import run_table
@@ -149,4 +167,15 @@ def _robustness(args: argparse.Namespace) -> int:
     runs = run_robustness(config, args.out)
     print(write_report(runs, config, args.out))
     print(f"runs.jsonl, robustness.md, .csv and .png written to {args.out}")
+    return 0
+
+
+def _shift_sweep(args: argparse.Namespace) -> int:
+    from saferace.experiments.shift_sweep import write_sweep_report
+
+    folders = dict(method.partition("=")[::2] for method in args.methods)
+    if any(not label or not folder for label, folder in folders.items()):
+        raise SafeRaceError("name each method as LABEL=FOLDER, e.g. ensemble=results/ens")
+    print(write_sweep_report(folders, args.out))
+    print(f"shift_sweep.md, .csv and .png written to {args.out}")
     return 0

@@ -110,10 +110,11 @@ def fit_conformal(
     alpha: float = 0.05,
     n_samples: int = 10,
     seed: int = 0,
+    monitor: bool = True,
 ) -> ConformalCalibration:
-    """The network's conformal calibration (interval scale and spread monitor, both at
-    ``alpha``) on ``frames`` it never trained on, with ``n_samples`` MC-dropout samples (as
-    many as the state source that will use it draws)."""
+    """The network's conformal calibration (interval scale and, with ``monitor``, the
+    spread monitor, both at ``alpha``) on ``frames`` it never trained on, with
+    ``n_samples`` MC-dropout samples (as many as the state source that will use it draws)."""
     if len(frames) < MIN_CALIBRATION_FRAMES:
         raise SafeRaceError(
             f"a conformal calibration needs at least {MIN_CALIBRATION_FRAMES} frames the "
@@ -121,7 +122,9 @@ def fit_conformal(
         )
     data = network_data(frames)["state"]
     prediction = predict_frames(state_network, data, n_samples, seed=seed)
-    return calibrate(prediction.mean, prediction.std, data.targets, alpha, alpha)
+    return calibrate(
+        prediction.mean, prediction.std, data.targets, alpha, alpha if monitor else None
+    )
 
 
 def conformal_of(

@@ -35,16 +35,20 @@ def recalibrate(
     mc_samples: int = 10,
     test_share: float = 0.5,
     seed: int = 0,
+    monitor: bool = True,
 ) -> list[dict]:
-    """Write ``checkpoint`` with a conformal calibration fitted on ``data_paths`` to ``out``;
-    the rows of the test frames' table (see the module)."""
+    """Write ``checkpoint`` with a conformal calibration fitted on ``data_paths`` (and, unless
+    ``monitor`` is False, its out-of-distribution monitor) to ``out``; the rows of the test
+    frames' table (see the module)."""
     if not 0.0 < test_share < 1.0:
         raise ConfigError("test_share", f"must be in (0, 1), got {test_share}")
     loaded = load_checkpoint(checkpoint)
     frames = load_rounds(data_paths)
     check_image_shape(loaded, frames["image"].shape[1:])
     test = np.random.default_rng(seed).random(len(frames)) < test_share
-    calibration = fit_conformal(loaded.state, frames.subset(~test), alpha, mc_samples, seed)
+    calibration = fit_conformal(
+        loaded.state, frames.subset(~test), alpha, mc_samples, seed, monitor=monitor
+    )
     data = network_data(frames.subset(test))["state"]
     prediction = predict_frames(loaded.state, data, mc_samples, seed=seed + 1)
     z = float(norm.ppf(1.0 - 0.5 * alpha))
