@@ -1,7 +1,8 @@
 """The safety filter's QP solve time per control step, beside the cvxpy reference's.
 
-The problems are the ones the filter met while a weaving reckless agent drove (true state,
-and 20 noisy state samples with chance constraints). Each is solved by the filter's own
+The problems are the ones the filter met while a weaving reckless agent drove (true state;
+20 noisy state samples with chance constraints; and the robust mode's rows, one per barrier
+and corner or centre of the samples' interval). Each is solved by the filter's own
 solver (``saferace.safety.qp``) and by the cvxpy formulation with Clarabel
 (``saferace.safety.reference_qp``); the table gives the median and 95th percentile per
 solve, cvxpy's both as wall time and as Clarabel's own solve time. Target: under 0.1 ms.
@@ -31,9 +32,9 @@ TARGET_MS = 0.1
 REPEATS = 20
 
 
-def collect_problems(track: str, seconds: float, state_source) -> list:
+def collect_problems(track: str, seconds: float, state_source, uncertainty: str) -> list:
     env = gym.make("saferace/CenterLine-v0", track=track, max_laps=3, max_steps=int(seconds * 20))
-    env = SafetyFilter(env, state_source=state_source)
+    env = SafetyFilter(env, state_source=state_source, uncertainty=uncertainty)
     problems = []
 
     def record(*_) -> None:
@@ -79,11 +80,12 @@ def main() -> None:
     args = parser.parse_args()
     warnings.filterwarnings("ignore", message="Solution may be inaccurate")  # tight tolerances
     rows = []
-    for label, source in (
-        ("true state", OracleStateSource()),
-        ("20 noisy samples (chance)", NoisyOracleStateSource(seed=0)),
+    for label, source, uncertainty in (
+        ("true state", OracleStateSource(), "chance"),
+        ("20 noisy samples (chance)", NoisyOracleStateSource(seed=0), "chance"),
+        ("their interval's 9 points (robust)", NoisyOracleStateSource(seed=0), "robust"),
     ):
-        problems = collect_problems(args.track, args.seconds, source)
+        problems = collect_problems(args.track, args.seconds, source, uncertainty)
         ours = our_times_ms(problems)
         wall, inner, worst = cvxpy_times_ms(problems)
         rows.append(
