@@ -27,6 +27,9 @@ UNCERTAINTY_MODES = ("chance", "robust")
 #: How the state network gives its uncertainty: MC dropout (the paper's) or a deep ensemble
 #: of heteroscedastic networks (``saferace.learning.ensemble``).
 STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble")
+#: Feedback an adaptive conformal interval learns from: the truth a step late (oracle
+#: feedback) or the odometry's prediction (``saferace.safety.adaptive``).
+ADAPTIVE_FEEDBACK = ("oracle", "odometry")
 #: The miss rate a conformal calibration of the state network allows (its interval covers
 #: the truth on at least 1 - alpha of exchangeable frames, its monitor raises on at most alpha).
 CONFORMAL_ALPHA = 0.05

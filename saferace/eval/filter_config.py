@@ -11,6 +11,9 @@ from dataclasses import asdict, dataclass
 from saferace.config import setting
 from saferace.errors import ConfigError
 from saferace.names import (
+    ADAPTIVE_FEEDBACK as FEEDBACK_KINDS,
+)
+from saferace.names import (
     DEFAULT_FILTER_MODEL,
     DEFAULT_GAINS,
     FILTER_KINDS,
@@ -92,6 +95,14 @@ class FilterConfig:
         flag="--filter-uncertainty",
         choices=UNCERTAINTY_MODES,
     )
+    adaptive: str | None = setting(
+        None,
+        "adapt a calibrated learned source's interval online (adaptive conformal inference) "
+        "from the truth a step late (oracle feedback, which no real car has) or from the "
+        "odometry's prediction",
+        flag="--adaptive-conformal",
+        choices=FEEDBACK_KINDS,
+    )
     fuse_odometry: bool = setting(
         False,
         "fuse the state samples with odometry (yaw rate, speed, the map's curvature) in a "
@@ -140,6 +151,15 @@ class FilterConfig:
                 raise ConfigError(
                     "state_noise", "is for the noisy oracle, not a learned state source"
                 )
+        if self.adaptive is not None and (
+            self.adaptive not in FEEDBACK_KINDS or self.state_source is None
+        ):
+            raise ConfigError(
+                "adaptive",
+                f"adapts a calibrated learned state source's interval with feedback "
+                f"{' or '.join(FEEDBACK_KINDS)}, got {self.adaptive!r} with state source "
+                f"{self.state_source!r}",
+            )
         if self.fuse_odometry and self.state_source is None and self.state_noise is None:
             raise ConfigError(
                 "fuse_odometry", "fuses an uncertain state source (noisy or learned), not the truth"
@@ -163,6 +183,7 @@ class FilterConfig:
             return "oracle"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
         fused = "-fused" if self.fuse_odometry else ""
+        fused += f"-aci-{self.adaptive}" if self.adaptive else ""
         mode = "robust" if self.uncertainty == "robust" else "prob" if self.probabilistic else "det"
         return f"{source}{fused}-{mode}"
 

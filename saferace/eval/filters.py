@@ -10,7 +10,9 @@ from gymnasium import spaces
 from saferace.errors import ConfigError
 from saferace.eval.agents import load_entry_point
 from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, FilterConfig
+from saferace.safety.adaptive import AdaptiveConformalStateSource
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.intervals import ConformalStateSource
 from saferace.safety.state_fusion import OdometryFusedStateSource
 from saferace.safety.state_sources import (
     NoisyOracleStateSource,
@@ -46,8 +48,18 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         source = NoisyOracleStateSource((e_y_std, e_psi_std, 0.0), config.samples, seed)
     if config.spread_scale is not None:
         source = SpreadScaledStateSource(source, config.spread_scale)
+    base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
+    if config.adaptive is not None:
+        if not isinstance(source, ConformalStateSource):
+            raise ConfigError(
+                "adaptive",
+                f"needs a conformally calibrated state source: {config.state_source} has no "
+                "calibration (saferace calibrate CKPT DATA --out CKPT2)",
+            )
+        source = AdaptiveConformalStateSource(
+            source, config.adaptive, base.track, base.control_dt_s
+        )
     if config.fuse_odometry:
-        base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
         source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
     return SafetyFilter(
         env,

@@ -72,6 +72,10 @@ def filter_words(config: FilterConfig) -> str:
         parts.append(f"{config.model} model")
     if config.map_curvature:
         parts.append("map curvature")
+    if config.adaptive == "oracle":
+        parts.append("adaptive conformal, oracle feedback")
+    elif config.adaptive is not None:
+        parts.append(f"adaptive conformal, {config.adaptive} feedback")
     if config.spread_scale is not None:
         parts.append("spread x" + "/".join(f"{factor:g}" for factor in config.spread_scale))
     return ", ".join(parts)

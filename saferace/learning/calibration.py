@@ -41,6 +41,9 @@ from saferace.track import Track, VehicleEnvelope
 
 #: Floor of a frame's spread in the ratio (a constant output gives no spread at all).
 MIN_SPREAD = 1e-6
+#: The outputs a conformal calibration covers: the lane state the barriers need (the robust
+#: filter takes the curvature from the map).
+CALIBRATED_OUTPUTS = ("e_y_m", "e_psi_rad")
 #: Held-out frames a state network's spread is calibrated on, at least.
 MIN_CALIBRATION_FRAMES = 20
 
@@ -112,8 +115,9 @@ def fit_conformal(
     seed: int = 0,
     monitor: bool = True,
 ) -> ConformalCalibration:
-    """The network's conformal calibration (interval scale and, with ``monitor``, the
-    spread monitor, both at ``alpha``) on ``frames`` it never trained on, with
+    """The network's conformal calibration of :data:`CALIBRATED_OUTPUTS` (interval scale and,
+    with ``monitor``, the spread monitor, both at ``alpha``) on ``frames`` it never trained
+    on, with
     ``n_samples`` MC-dropout samples (as many as the state source that will use it draws)."""
     if len(frames) < MIN_CALIBRATION_FRAMES:
         raise SafeRaceError(
@@ -122,8 +126,13 @@ def fit_conformal(
         )
     data = network_data(frames)["state"]
     prediction = predict_frames(state_network, data, n_samples, seed=seed)
+    lane = slice(0, len(CALIBRATED_OUTPUTS))
     return calibrate(
-        prediction.mean, prediction.std, data.targets, alpha, alpha if monitor else None
+        prediction.mean[:, lane],
+        prediction.std[:, lane],
+        data.targets[:, lane],
+        alpha,
+        alpha if monitor else None,
     )
 
 

@@ -397,6 +397,7 @@ class DaggerConfig:
             "eta": (safety.eta, 0.95),
             "spread_scale": (safety.spread_scale, None),
             "uncertainty": (safety.uncertainty, "chance"),
+            "adaptive": (safety.adaptive, None),
             "state_uncertainty": (training.state_uncertainty, "mc-dropout"),
             "ensemble_members": (
                 training.ensemble_members if training.state_uncertainty == "ensemble" else 5,
@@ -420,7 +421,7 @@ class DaggerConfig:
             for name in (
                 "filter_from", "state_source", "filter_model", "filter_gains", "map_curvature",
                 "calibrate_spread", "fuse_odometry", "state_noise", "filter_samples",
-                "probabilistic", "eta", "spread_scale", "uncertainty",
+                "probabilistic", "eta", "spread_scale", "uncertainty", "adaptive",
             ):  # fmt: skip
                 values.pop(name, None)
         return json.loads(json.dumps(values))

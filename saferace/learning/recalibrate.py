@@ -5,7 +5,8 @@ The rounds' frames are split at random (seeded): ``1 - test_share`` of them fit 
 interval scale and the monitor, the rest measure what a consumer will get. On those test
 frames the table compares the state network's raw MC-dropout interval (``mean +- z std``
 at the calibration's level, what the chance constraints assume) with the calibrated one:
-coverage of every output with its Clopper-Pearson 95% band, the mean half width of
+coverage of ``e_y`` and ``e_psi`` together (what the calibration covers: the robust filter
+takes the curvature from the map) with its Clopper-Pearson 95% band, the mean half width of
 ``e_y``, and the share of frames the monitor raised on. The frames should be ones the
 network never trained on (other rounds, another track, another look).
 """
@@ -19,7 +20,7 @@ from scipy.stats import norm
 
 from saferace.errors import ConfigError
 from saferace.learning.agent import check_image_shape
-from saferace.learning.calibration import fit_conformal
+from saferace.learning.calibration import CALIBRATED_OUTPUTS, fit_conformal
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint, save_with_metadata
 from saferace.learning.rounds import load_rounds
 from saferace.learning.training import network_data
@@ -62,11 +63,12 @@ def recalibrate(
             prediction.mean - scale * prediction.std,
             prediction.mean + scale * prediction.std,
         )
-        covered, (low, high) = coverage(lower, upper, data.targets)
+        lane = slice(0, len(CALIBRATED_OUTPUTS))
+        covered, (low, high) = coverage(lower[:, lane], upper[:, lane], data.targets[:, lane])
         alarms = (
             None
             if calibrated is None or calibrated.monitor is None
-            else float(np.mean([calibrated.monitor.raises(s)[1] for s in prediction.std]))
+            else float(np.mean([calibrated.monitor.raises(s[lane])[1] for s in prediction.std]))
         )
         rows.append(
             {

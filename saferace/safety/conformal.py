@@ -25,6 +25,8 @@ from saferace.errors import ConfigError, SafeRaceError
 
 #: Floor of a frame's sigma in a score (an output that never varies has none).
 MIN_SIGMA = 1e-9
+#: Calibration scores a calibration keeps for online adaptation, at most.
+MAX_STORED_SCORES = 1000
 
 
 def conformal_quantile(scores: np.ndarray, alpha: float) -> float:
@@ -78,12 +80,15 @@ def fit_spread_monitor(sigma: np.ndarray, alpha: float = 0.05) -> SpreadMonitor:
 class ConformalCalibration:
     """``mean +- scale * sigma`` covers the truth with probability ``1 - alpha`` on frames
     exchangeable with the ``frames`` it was fitted on; ``monitor`` (if any) raises on frames
-    unlike them."""
+    unlike them. ``scores``: the calibration scores, sorted (at most
+    :data:`MAX_STORED_SCORES`, evenly spaced in rank), for an online adaptation of the
+    level (:class:`AdaptiveConformal`)."""
 
     alpha: float
     scale: float
     frames: int
     monitor: SpreadMonitor | None = None
+    scores: tuple[float, ...] = ()
 
     def interval(self, mean: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         half = self.scale * np.asarray(sigma, float)
@@ -91,6 +96,10 @@ class ConformalCalibration:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def summary(self) -> dict:
+        """What a result row records: all but the scores."""
+        return {k: v for k, v in self.as_dict().items() if k != "scores"}
 
     @classmethod
     def from_dict(cls, values: dict) -> ConformalCalibration:
@@ -106,6 +115,7 @@ class ConformalCalibration:
                 float(monitor["threshold"]),
                 float(monitor["alpha"]),
             ),
+            tuple(float(x) for x in values.get("scores", ())),
         )
 
 
@@ -120,7 +130,11 @@ def calibrate(
     ``(n, outputs)`` predictions and truths."""
     scores = normalised_scores(mean, sigma, truth)
     monitor = None if monitor_alpha is None else fit_spread_monitor(sigma, monitor_alpha)
-    return ConformalCalibration(alpha, conformal_quantile(scores, alpha), len(scores), monitor)
+    ranks = np.linspace(0, len(scores) - 1, min(len(scores), MAX_STORED_SCORES))
+    kept = tuple(float(x) for x in np.sort(scores)[np.round(ranks).astype(int)])
+    return ConformalCalibration(
+        alpha, conformal_quantile(scores, alpha), len(scores), monitor, kept
+    )
 
 
 def coverage(

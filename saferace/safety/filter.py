@@ -91,7 +91,8 @@ class SafetyFilter(gym.Wrapper):
     :func:`~saferace.safety.intervals.interval_points`; the measurement-robust CBF of Dean
     et al. 2020 and Cosner et al. 2021: the margin grows with the interval's width). The
     interval is the source's own (a conformal calibration) or ``mean +- z std`` of its
-    samples. Where no control satisfies them, or the source's out-of-distribution monitor
+    samples; the curvature comes from the map (a network's is its worst output). Where no
+    control satisfies them, or the source's out-of-distribution monitor
     raises, the filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a
     speed at which the interval fits inside the lane (a creep speed, or a stop where even
     the interval's offsets do not fit) and keeps the steering inside the tyres' grip. An
@@ -156,7 +157,6 @@ class SafetyFilter(gym.Wrapper):
         super().__init__(env)
         if uncertainty not in UNCERTAINTY_MODES:
             raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
-        self.robust = uncertainty == "robust"
         gains = class_k_gains(lam)
         for name, value in (
             ("lateral_decel_mps2", lateral_decel_mps2),
@@ -191,7 +191,8 @@ class SafetyFilter(gym.Wrapper):
         if lane_margin_m < 0.0:
             raise ValueError(f"lane_margin_m must be non-negative, got {lane_margin_m}")
         self.half_width_m = float(base.car_half_width_m) + lane_margin_m
-        self.map_curvature = map_curvature
+        self.robust = uncertainty == "robust"
+        self.map_curvature = map_curvature or self.robust
         if linearisation_passes < 1:
             raise ValueError(f"linearisation_passes must be at least 1, got {linearisation_passes}")
         self.linearisation_passes = linearisation_passes
@@ -253,8 +254,10 @@ class SafetyFilter(gym.Wrapper):
             if isinstance(self.state_source, MonitoredStateSource)
             else (None, False)
         )
+        bounded = bool(np.all(np.isfinite(state_lower)) and np.all(np.isfinite(state_upper)))
+        alarm = alarm or not bounded  # an unbounded interval rules out no state at all
         chance = not self.robust and self.probabilistic and len(samples) > 1
-        if self.robust:
+        if self.robust and bounded:
             lane = interval_points(state_lower, state_upper)
         else:
             lane = samples if chance else samples.mean(axis=0, keepdims=True)

@@ -82,8 +82,9 @@ class ConformalStateSource:
     def monitor(self, samples: np.ndarray) -> tuple[float | None, bool]:
         if self.calibration.monitor is None:
             return None, False
-        return self.calibration.monitor.raises(samples.std(axis=0))
+        spread = samples.std(axis=0)[: len(self.calibration.monitor.reference)]
+        return self.calibration.monitor.raises(spread)
 
     def describe(self) -> dict:
         inner: dict[str, Any] = getattr(self.source, "describe", dict)()
-        return {**inner, "conformal": self.calibration.as_dict()}
+        return {**inner, "conformal": self.calibration.summary()}
