@@ -56,3 +56,28 @@ def test_the_command_prints_the_test_coverage_and_refuses_a_bad_split(
     assert "conformal, mean +-" in printed and "coverage" in printed
     with pytest.raises(ConfigError, match="test_share"):
         recalibrate(checkpoint, [data], tmp_path / "x.pt", test_share=1.0)
+
+
+def test_an_adaptive_interval_needs_a_calibrated_checkpoint(tiny_checkpoint, tmp_path: Path):
+    import gymnasium as gym
+
+    from saferace.eval.filters import FilterConfig, apply_filter
+    from saferace.safety.adaptive import AdaptiveConformalStateSource
+
+    checkpoint, data = tiny_checkpoint()
+    calibrated = tmp_path / "calibrated.pt"
+    recalibrate(checkpoint, [data], calibrated, alpha=0.1, mc_samples=3)
+    env = gym.make("saferace/CenterLine-v0", track="lab", max_laps=1)
+    for path, works in ((calibrated, True), (checkpoint, False)):
+        config = FilterConfig(
+            kind="cbf", state_source=f"learned:{path}", samples=3, adaptive="odometry"
+        )
+        if works:
+            filtered = apply_filter(env, config, seed=0)
+            assert isinstance(filtered.state_source, AdaptiveConformalStateSource)
+        else:
+            with pytest.raises(ConfigError, match="calibrat"):
+                apply_filter(env, config, seed=0)
+    with pytest.raises(ConfigError, match="adaptive"):
+        FilterConfig(kind="cbf", adaptive="oracle")  # the truth needs no adapting
+    env.close()

@@ -26,7 +26,7 @@ class RobustnessConfig:
     agent: str = setting("expert", AGENT_HELP)
     task: str = setting("RacingLine", "the reference line to follow", choices=TASKS)
     tracks: tuple[str, ...] = setting(
-        ("technical",), "built-in track names or track CSV paths", flag="--track"
+        ("technical",), "built-in track names or track CSV paths", flag="--track", metavar="TRACK"
     )
     presets: tuple[str, ...] = setting(
         ("none", "mild", "strong"),
