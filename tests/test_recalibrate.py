@@ -22,7 +22,7 @@ def test_a_calibration_survives_the_checkpoint_round_trip(tiny_checkpoint, tmp_p
     checkpoint, data = tiny_checkpoint()
     out = tmp_path / "calibrated.pt"
     rows = recalibrate(checkpoint, [data], out, alpha=0.1, mc_samples=4, test_share=0.5)
-    assert [row["interval"].split(",")[0] for row in rows] == ["MC dropout", "conformal"]
+    assert [row["interval"].split(",")[0] for row in rows] == ["its own spread", "conformal"]
     assert all(0.0 <= row["coverage"] <= 1.0 for row in rows)
 
     original, calibrated = load_checkpoint(checkpoint), load_checkpoint(out)

@@ -76,7 +76,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         description="Half the rounds' frames (at random) fit the state network's conformal "
         "calibration (normalised split conformal prediction: mean +- q std covers every output "
         "on at least 1 - alpha of exchangeable frames) and its out-of-distribution monitor; "
-        "the other half measure its coverage beside the raw MC-dropout interval's. The "
+        "the other half measure its coverage beside the network's own interval's. The "
         "calibration is written into the checkpoint, where every learned state source uses it.",
         epilog=example("saferace calibrate lab_mono.pt oval_data --alpha 0.05 --out lab_cal.pt"),
     )

@@ -3,8 +3,9 @@ check it on frames it did not use.
 
 The rounds' frames are split at random (seeded): ``1 - test_share`` of them fit the
 interval scale and the monitor, the rest measure what a consumer will get. On those test
-frames the table compares the state network's raw MC-dropout interval (``mean +- z std``
-at the calibration's level, what the chance constraints assume) with the calibrated one:
+frames the table compares the state network's own interval (``mean +- z std`` of its
+MC-dropout or ensemble spread at the calibration's level, what the chance constraints
+assume) with the calibrated one:
 coverage of ``e_y`` and ``e_psi`` together (what the calibration covers: the robust filter
 takes the curvature from the map) with its Clopper-Pearson 95% band, the mean half width of
 ``e_y``, and the share of frames the monitor raised on. The frames should be ones the
@@ -54,7 +55,7 @@ def recalibrate(
     prediction = predict_frames(loaded.state, data, mc_samples, seed=seed + 1)
     z = float(norm.ppf(1.0 - 0.5 * alpha))
     intervals = {
-        f"MC dropout, mean +- {z:.2f} std": (z, None),
+        f"its own spread, mean +- {z:.2f} std": (z, None),
         f"conformal, mean +- {calibration.scale:.2f} std": (calibration.scale, calibration),
     }
     rows = []
