@@ -95,11 +95,11 @@ class SafetyFilter(gym.Wrapper):
     control satisfies them, or the source's out-of-distribution monitor
     raises, the filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a
     speed at which the interval fits inside the lane (a creep speed, or a stop where even
-    the interval's offsets do not fit) and keeps the steering inside the tyres' grip. An
-    interval too wide to satisfy is steered by the deterministic filter on its centre (a
-    compromise over the whole interval steers for none of its states); after an alarm the
-    state is in doubt, and the agent's own steering is kept, slowed to a creep. Each such
-    step is counted in ``fallbacks``.
+    the interval's offsets do not fit; no faster than a creep after an alarm) and keeps the
+    steering inside the tyres' grip, steered by the deterministic filter on the interval's
+    centre (a compromise over the whole interval steers for none of its states; the agent's
+    own steering, tried after alarms, let a drifting agent out). Each such step is counted
+    in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -278,8 +278,8 @@ class SafetyFilter(gym.Wrapper):
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
             fallback = "infeasible"
         interval = (state_lower, state_upper)
-        if fallback == "infeasible":  # a trusted interval too wide: steer by its centre
-            centre = 0.5 * (state_lower + state_upper)[None, :]
+        if fallback in ("alarm", "infeasible"):  # slowed, steered by the interval's centre
+            centre = lane.mean(axis=0, keepdims=True)
             problem, statistics, h, solution, more_time = self._solve(
                 self._model_states(centre, observation["velocity"]),
                 centre[:, 2],
@@ -292,9 +292,7 @@ class SafetyFilter(gym.Wrapper):
             solve_time += more_time
             fallback = fallback if solution.solved else "solver"
         self.last_problem = problem
-        if fallback == "alarm":  # the state is in doubt: the agent's steering, slowed
-            filtered = np.clip(u0, *self._fallback_box(v_x, float(u0[1]), interval, context, True))
-        elif fallback == "solver":  # brakes whatever the creep rule asks
+        if fallback == "solver":  # brakes whatever the creep rule asks
             filtered = steer_to_centre(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
         else:
             filtered = solution.u
