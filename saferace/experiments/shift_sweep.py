@@ -101,7 +101,7 @@ def plot_sweep(methods: dict[str, list[dict]], path: str | Path) -> None:
     import matplotlib.pyplot as plt
 
     looks = looks_of(methods)
-    figure, (coverage_axis, outside_axis) = plt.subplots(1, 2, figsize=(11, 4.2))
+    figure, (coverage_axis, outside_axis) = plt.subplots(1, 2, figsize=(11, 4.8))
     for label, runs in methods.items():
         coverage, outside = [], []
         for look in looks:
@@ -121,8 +121,9 @@ def plot_sweep(methods: dict[str, list[dict]], path: str | Path) -> None:
         axis.set_xticks(range(len(looks)), looks, rotation=20)
         axis.set_xlabel("look (shift severity)")
         axis.grid(alpha=0.3)
-    coverage_axis.legend(fontsize=8, loc="lower left")
-    figure.tight_layout()
+    handles, labels = coverage_axis.get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    figure.tight_layout(rect=(0.0, 0.12, 1.0, 1.0))  # room for the legend, off the lines
     figure.savefig(path, dpi=120)
     plt.close(figure)
 
