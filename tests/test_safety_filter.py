@@ -241,7 +241,7 @@ def test_a_failed_solve_brakes_below_the_creep_speed(monkeypatch):
     observation, info = env.reset(seed=0, options={"start_speed_mps": 0.3})
     decision = env.certify(observation, info, np.array([0.0, 4.0]))
     assert decision.fallback
-    assert decision.filtered_action[1] == pytest.approx(-filter_module.FALLBACK_BRAKE_MPS2)
+    assert decision.filtered_action[1] == pytest.approx(-FALLBACK_BRAKE_MPS2)
     env.close()
 
 
