@@ -227,39 +227,40 @@ def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -
         if not mine:
             continue
 
-        def mean(name: str, scale: float = 1.0, runs: list[dict] = mine) -> float | str:
-            values = [run[name] for run in runs if run.get(name) is not None]
-            return scale * float(np.mean(values)) if values else "-"
-
         rows.append(
             [
                 preset,
                 len(mine),
-                mean("completion", 100.0),
+                mean_of(mine, "completion", 100.0),
                 f"{sum(run['laps_completed'] for run in mine)} of {laps * len(mine)}",
-                mean("lap_time_s"),
-                mean("time_outside_lane_s"),
-                mean("intervention_rate", 100.0),
-                mean("e_y_error_m"),
-                mean("e_y_spread_m"),
-                mean("e_psi_error_rad"),
-                mean("e_psi_spread_rad"),
-                mean("truth_within_2_spreads", 100.0),
+                mean_of(mine, "lap_time_s"),
+                mean_of(mine, "time_outside_lane_s"),
+                mean_of(mine, "intervention_rate", 100.0),
+                mean_of(mine, "e_y_error_m"),
+                mean_of(mine, "e_y_spread_m"),
+                mean_of(mine, "e_psi_error_rad"),
+                mean_of(mine, "e_psi_spread_rad"),
+                mean_of(mine, "truth_within_2_spreads", 100.0),
                 pooled_coverage(mine),
-                mean("e_y_half_width_m"),
-                mean("gaussian_nll"),
-                mean("alarm_rate", 100.0),
-                min(
-                    (
-                        r["min_lane_barrier_m"]
-                        for r in mine
-                        if r.get("min_lane_barrier_m") is not None
-                    ),
-                    default="-",
-                ),
+                mean_of(mine, "e_y_half_width_m"),
+                mean_of(mine, "gaussian_nll"),
+                mean_of(mine, "alarm_rate", 100.0),
+                lowest_of(mine, "min_lane_barrier_m"),
             ]
         )
     return rows
+
+
+def mean_of(runs: list[dict], name: str, scale: float = 1.0) -> float | str:
+    """``scale`` times the mean of ``name`` over the runs that measured it; ``-`` if none."""
+    values = [run[name] for run in runs if run.get(name) is not None]
+    return scale * float(np.mean(values)) if values else "-"
+
+
+def lowest_of(runs: list[dict], name: str) -> float | str:
+    """The lowest ``name`` over the runs that measured it; ``-`` if none."""
+    values = [run[name] for run in runs if run.get(name) is not None]
+    return min(values) if values else "-"
 
 
 def pooled_coverage(runs: list[dict]) -> str:

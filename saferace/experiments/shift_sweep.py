@@ -19,7 +19,7 @@ import numpy as np
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
-from saferace.experiments.robustness import RUNS_FILE, pooled_coverage
+from saferace.experiments.robustness import RUNS_FILE, lowest_of, mean_of, pooled_coverage
 
 SWEEP_COLUMNS = (
     "method",
@@ -68,25 +68,20 @@ def sweep_rows(methods: dict[str, list[dict]]) -> list[list]:
             if not mine:
                 continue
 
-            def mean(name: str, scale: float = 1.0, runs: list[dict] = mine) -> float | str:
-                values = [run[name] for run in runs if run.get(name) is not None]
-                return scale * float(np.mean(values)) if values else "-"
-
-            barriers = [r["min_lane_barrier_m"] for r in mine if r.get("min_lane_barrier_m")]
             rows.append(
                 [
                     label,
                     look,
                     len(mine),
                     pooled_coverage(mine),
-                    mean("e_y_half_width_m"),
-                    mean("gaussian_nll"),
-                    mean("alarm_rate", 100.0),
+                    mean_of(mine, "e_y_half_width_m"),
+                    mean_of(mine, "gaussian_nll"),
+                    mean_of(mine, "alarm_rate", 100.0),
                     float(sum(run["time_outside_lane_s"] for run in mine)),
                     sum(run["time_outside_lane_s"] > 0 for run in mine),
-                    min(barriers) if barriers else "-",
-                    mean("completion", 100.0),
-                    mean("lap_time_s"),
+                    lowest_of(mine, "min_lane_barrier_m"),
+                    mean_of(mine, "completion", 100.0),
+                    mean_of(mine, "lap_time_s"),
                 ]
             )
     return rows
