@@ -33,6 +33,10 @@ ADAPTIVE_FEEDBACK = ("oracle", "odometry")
 #: The miss rate a conformal calibration of the state network allows (its interval covers
 #: the truth on at least 1 - alpha of exchangeable frames, its monitor raises on at most alpha).
 CONFORMAL_ALPHA = 0.05
+#: What a calibration's out-of-distribution monitor looks at: the state network's backbone
+#: features (they move with a new look), its spread (which hardly did), or nothing.
+OOD_MONITORS = ("features", "spread", "none")
+DEFAULT_MONITOR = "features"
 DEFAULT_GAINS = "grip"
 
 #: What feeds the filter the lane state: the truth, the truth with noise, a state network.
@@ -47,6 +51,8 @@ MC_SAMPLES = 10
 
 #: Visual and physical domain-randomisation presets (``saferace.envs.randomization``).
 RANDOMIZATION_PRESETS = ("none", "mild", "strong")
+#: The looks of the shift severities 0 (the training look) .. 5 (Ovadia et al. 2019).
+SHIFT_LOOKS = tuple(f"severity-{level}" for level in range(6))
 #: What a smoothed lane keeps (``saferace.track.smoothing``).
 SMOOTHING_KEEPS = ("widths", "boundaries")
 

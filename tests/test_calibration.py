@@ -30,7 +30,8 @@ class OffByKnownAmounts:
         size = np.where(index % 4 < 2, 1.0, 2.0)
         mean = TRUTH[index] + (sign * size)[:, None] * self.error
         std = np.broadcast_to(self.spread, mean.shape)
-        return Prediction(mean, std, mean[:, None, :] + np.zeros((1, n_samples, 1)))
+        samples = mean[:, None, :] + np.zeros((1, n_samples, 1))
+        return Prediction(mean, std, samples, mean.copy())
 
 
 def frames(count: int = FRAMES) -> FrameSet:

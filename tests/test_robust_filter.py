@@ -4,6 +4,7 @@ fits at."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
@@ -84,11 +85,26 @@ def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
     assert chance.fallback == "" and chance.filtered_action[1] == pytest.approx(1.0)
 
 
-def test_an_alarm_slows_the_car_to_a_speed_its_interval_fits_at():
+@pytest.mark.parametrize("start_s_m", [0.5, 9.0])  # a straight, a turn
+def test_an_alarm_stops_the_car_steering_the_lanes_curvature(start_s_m: float):
     narrow = IntervalSource([0.0, 0.0, 0.0], [0.02, 0.02, 0.0], alarm=True)
-    _, decision = filtered_on_lab(narrow, "robust", [0.0, 2.0], speed=3.0)
-    assert decision.alarm and decision.fallback == "alarm"
-    assert decision.filtered_action[1] < 0.0  # brakes although the agent accelerates
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track="lab", max_laps=1),
+        state_source=narrow,
+        uncertainty="robust",
+        speed_limit_factor=None,
+    )
+    observation, info = env.reset(seed=0, options={"start_s_m": start_s_m, "start_speed_mps": 2.0})
+    speeds = []
+    for _ in range(20):  # the agent steers hard left and accelerates all along
+        steer = math.atan(env.wheelbase_m * env.track.centerline.curvature_scalar(info["s_m"]))
+        observation, _, _, _, info = env.step(np.array([0.3, 2.0]))
+        decision = info["safety"]
+        assert decision["alarm"] and decision["fallback"] == "alarm"
+        assert decision["filtered_action"][0] == pytest.approx(steer, abs=1e-9)
+        speeds.append(float(observation["velocity"][0]))
+    assert speeds[-1] < 0.05 and np.all(np.diff(speeds) <= 1e-4)  # braked to a stop
+    assert abs(info["e_y_m"]) < 0.05  # the agent's steering would have left the centre
     trusted = IntervalSource([0.0, 0.0, 0.0], [0.02, 0.02, 0.0])
     _, calm = filtered_on_lab(trusted, "robust", [0.0, 2.0], speed=3.0)
     assert not calm.alarm and calm.filtered_action[1] == pytest.approx(2.0)

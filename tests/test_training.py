@@ -12,6 +12,8 @@ import torch
 from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
+from saferace.learning import training
+from saferace.learning.augmentation import photometric
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
 from saferace.learning.networks import DrivingNetwork, state_config
 from saferace.learning.rounds import load_rounds
@@ -89,6 +91,38 @@ def test_a_training_resumed_before_its_cut_epoch_ends_with_the_same_weights(fram
         runs.append(network)
     for name, weights in runs[0].state_dict().items():
         assert torch.equal(weights, runs[1].state_dict()[name]), name
+
+
+def test_early_stopping_keeps_the_best_epochs_weights_and_stops_after_patience(frames, monkeypatch):
+    data = network_data(frames.subset(np.arange(20)))["state"]
+    held_out = network_data(frames.subset(np.arange(20, 28)))["state"]
+    losses = iter([3.0, 1.0, 2.0, 2.5, 0.5, 0.1])  # best at epoch 2, then two worse ones
+    monkeypatch.setattr(training, "validation_loss", lambda *args: next(losses))
+    states = []
+    network = state_network_for(data)
+    config = TrainConfig(epochs=6, batch_size=8, patience=2)
+    history = fit(network, data, held_out, config, "state", False, None,
+                  lambda state: states.append(copy.deepcopy(state)))  # fmt: skip
+    assert history["val_loss"] == [3.0, 1.0, 2.0, 2.5]  # stopped 2 epochs after the best
+    assert history["best_epoch"] == [2] and states[-1]["epochs_done"] == 6  # nothing to resume
+    for name, weights in network.state_dict().items():
+        assert torch.equal(weights, states[1]["weights"][name]), name
+    assert not torch.equal(states[1]["weights"]["output_layer.weight"],
+                           states[3]["weights"]["output_layer.weight"])  # fmt: skip
+    with pytest.raises(SafeRaceError, match="patience"):
+        TrainConfig(patience=2, val_stretch=None)
+
+
+def test_augmentation_redraws_each_image_from_its_generator(frames):
+    images = torch.from_numpy(frames["image"][:16])
+    first = photometric(images, torch.Generator().manual_seed(0))
+    again = photometric(images, torch.Generator().manual_seed(0))
+    other = photometric(images, torch.Generator().manual_seed(1))
+    assert first.dtype == torch.uint8 and first.shape == images.shape
+    assert torch.equal(first, again) and not torch.equal(first, other)
+    brightness = first.float().mean(dim=(1, 2, 3)) - images.float().mean(dim=(1, 2, 3))
+    assert brightness.std() > 5.0  # each image its own draw, not one shift for the batch
+    assert torch.equal(images, torch.from_numpy(frames["image"][:16]))  # the frames untouched
 
 
 def test_a_network_left_out_is_taken_unchanged_from_init(frames, tmp_path: Path):

@@ -9,7 +9,7 @@ from pathlib import Path
 from saferace.cli import example
 from saferace.cli.arguments import TRACK_HELP, add_filter_arguments, check_count, filter_config
 from saferace.cli.options import add_config_options, config_from_args
-from saferace.names import CONFORMAL_ALPHA, MC_SAMPLES, TASKS
+from saferace.names import CONFORMAL_ALPHA, DEFAULT_MONITOR, MC_SAMPLES, OOD_MONITORS, TASKS
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -89,9 +89,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     calibrate.add_argument("--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
     calibrate.add_argument("--seed", type=int, default=0, help="seeds the split and the dropout")
     calibrate.add_argument(
-        "--no-monitor",
-        action="store_true",
-        help="fit no out-of-distribution monitor (the interval alone, to compare)",
+        "--monitor",
+        choices=OOD_MONITORS,
+        default=DEFAULT_MONITOR,
+        help="what the out-of-distribution monitor looks at: the state network's backbone "
+        "features, its spread, or none (the interval alone, to compare)",
     )
     calibrate.add_argument(
         "--out", type=Path, required=True, help="checkpoint to write (may be the same)"
@@ -205,7 +207,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     check_count("--samples", args.samples)
     rows = recalibrate(
         args.checkpoint, args.data, args.out, args.alpha, args.samples, args.test_share,
-        args.seed, monitor=not args.no_monitor,
+        args.seed, monitor=args.monitor,
     )  # fmt: skip
     print(markdown_table(list(rows[0]), [list(row.values()) for row in rows]))
     print(f"written: {args.out}")

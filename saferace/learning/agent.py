@@ -91,7 +91,8 @@ class LearnedStateSource:
 
     Implements :class:`~saferace.safety.state_sources.StateSource` from the image alone;
     ``info`` is never read. Dropout masks come from a generator seeded at each reset, so
-    the same episode seed gives the same samples.
+    the same episode seed gives the same samples. ``last_features``: the backbone features
+    of the last frame, for a feature monitor (:class:`~saferace.safety.intervals.FeatureSource`).
     """
 
     def __init__(
@@ -106,6 +107,7 @@ class LearnedStateSource:
         self.network = network
         self.n_samples = n_samples
         self.checkpoint = checkpoint or {}
+        self.last_features: np.ndarray | None = None
         self._seed = seed
         self._generator = torch.Generator()
         self.reset(seed)
@@ -118,6 +120,7 @@ class LearnedStateSource:
         prediction = self.network.predict(
             observation["image"], None, self.n_samples, self._generator
         )
+        self.last_features = prediction.features[0]
         return prediction.samples[0]
 
     def describe(self) -> dict:

@@ -24,7 +24,7 @@ import json
 
 import numpy as np
 
-from saferace.errors import SafeRaceError
+from saferace.errors import ConfigError, SafeRaceError
 from saferace.learning.checkpoint import (
     CONFORMAL_KEY,
     load_checkpoint,
@@ -36,6 +36,7 @@ from saferace.learning.rounds import HELD_OUT_FILE, FrameSet, load_rounds
 from saferace.learning.run_layout import RunLayout
 from saferace.learning.training import network_data
 from saferace.learning.validation import predict_frames
+from saferace.names import DEFAULT_MONITOR, OOD_MONITORS
 from saferace.safety.conformal import ConformalCalibration, calibrate
 from saferace.track import Track, VehicleEnvelope
 
@@ -113,12 +114,14 @@ def fit_conformal(
     alpha: float = 0.05,
     n_samples: int = 10,
     seed: int = 0,
-    monitor: bool = True,
+    monitor: str = DEFAULT_MONITOR,
 ) -> ConformalCalibration:
-    """The network's conformal calibration of :data:`CALIBRATED_OUTPUTS` (interval scale and,
-    with ``monitor``, the spread monitor, both at ``alpha``) on ``frames`` it never trained
-    on, with
-    ``n_samples`` MC-dropout samples (as many as the state source that will use it draws)."""
+    """The network's conformal calibration of :data:`CALIBRATED_OUTPUTS` (interval scale and
+    the ``monitor``, on the network's ``features`` or on its ``spread`` or ``none``, both at
+    ``alpha``) on ``frames`` it never trained on, with ``n_samples`` MC-dropout samples (as
+    many as the state source that will use it draws)."""
+    if monitor not in OOD_MONITORS:
+        raise ConfigError("monitor", f"must be one of {OOD_MONITORS}, got {monitor!r}")
     if len(frames) < MIN_CALIBRATION_FRAMES:
         raise SafeRaceError(
             f"a conformal calibration needs at least {MIN_CALIBRATION_FRAMES} frames the "
@@ -132,7 +135,8 @@ def fit_conformal(
         prediction.std[:, lane],
         data.targets[:, lane],
         alpha,
-        alpha if monitor else None,
+        None if monitor == "none" else alpha,
+        prediction.features if monitor == "features" else None,
     )
 
 

@@ -18,6 +18,7 @@ from saferace.names import (
     DEFAULT_EXPERT_MODEL,
     MC_SAMPLES,
     RANDOMIZATION_PRESETS,
+    SHIFT_LOOKS,
     STATE_UNCERTAINTY_METHODS,
     TASKS,
     VEHICLE_MODELS,
@@ -73,6 +74,18 @@ class TrainConfig:
         choices=STATE_UNCERTAINTY_METHODS,
     )
     ensemble_members: int = setting(5, "state networks in an ensemble", metavar="K")
+    augment: bool = setting(
+        False,
+        "photometric augmentation: each training image redrawn with its own brightness, "
+        "contrast, gamma, colour, noise and blur (saferace.learning.augmentation)",
+    )
+    patience: int = setting(
+        0,
+        "stop a network's training once its held-out loss has not improved for N epochs, "
+        "and keep its best epoch's weights (0: train every epoch, keep the last)",
+        flag="--early-stop",
+        metavar="N",
+    )
     networks: tuple[str, ...] = NETWORKS
 
     def __post_init__(self) -> None:
@@ -95,11 +108,13 @@ class TrainConfig:
         for name in ("epochs", "batch_size", "learning_rate"):
             if getattr(self, name) <= 0:
                 raise ConfigError(name, f"must be positive, got {getattr(self, name)}")
-        for name in ("min_steps", "max_steps"):
+        for name in ("min_steps", "max_steps", "patience"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must not be negative, got {getattr(self, name)}")
         if self.max_steps and self.min_steps > self.max_steps:
             raise ConfigError("min_steps", f"{self.min_steps} is above max_steps {self.max_steps}")
+        if self.patience and self.val_stretch is None:
+            raise ConfigError("patience", "needs held-out frames to stop on (a --val-stretch)")
         if not 0.0 <= self.dropout < 1.0:
             raise ConfigError("dropout", f"must be in [0, 1), got {self.dropout}")
         if not set(self.networks) <= set(NETWORKS) or not self.networks:
@@ -181,8 +196,9 @@ class EpisodeSettings:
     )
     randomize: str = setting(
         "none",
-        "visual domain randomisation: a look per episode seed",
-        choices=RANDOMIZATION_PRESETS,
+        "visual domain randomisation: a look per episode seed (a preset, or a shift "
+        "severity's looks)",
+        choices=RANDOMIZATION_PRESETS + SHIFT_LOOKS,
         metavar="PRESET",
     )
 
@@ -403,6 +419,8 @@ class DaggerConfig:
                 training.ensemble_members if training.state_uncertainty == "ensemble" else 5,
                 5,
             ),
+            "augment": (training.augment, False),
+            "patience": (training.patience, 0),
         }
         for name, (value, default) in newer.items():
             if value != default:

@@ -62,14 +62,16 @@ class StateEnsemble(nn.Module):
         n_samples: int = 10,
         generator: torch.Generator | None = None,
     ) -> Prediction:
-        """The mixture's mean and std, with ``2 K`` samples (``n_samples`` and ``generator``
-        are a dropout network's: an ensemble is deterministic)."""
+        """The mixture's mean and std, with ``2 K`` samples and the members' features side by
+        side (``n_samples`` and ``generator`` are a dropout network's: an ensemble is
+        deterministic)."""
         predictions = [member.predict(image, velocity) for member in self.members]
         means = np.stack([p.mean for p in predictions])
         stds = np.stack([p.std for p in predictions])
         mean, std = mixture(means, stds)
         samples = np.concatenate([p.samples for p in predictions], axis=1)
-        return Prediction(mean, std, samples)
+        features = np.concatenate([p.features for p in predictions], axis=1)
+        return Prediction(mean, std, samples, features)
 
 
 #: What a state source predicts with: one network (MC dropout) or an ensemble.

@@ -89,11 +89,13 @@ def state_config(
 @dataclass(frozen=True)
 class Prediction:
     """MC-dropout prediction in physical units: ``mean`` and ``std`` ``(N, outputs)``,
-    ``samples`` ``(N, n, outputs)``."""
+    ``samples`` ``(N, n, outputs)``; ``features`` ``(N, F)``: the backbone's (what an
+    out-of-distribution monitor looks at)."""
 
     mean: np.ndarray
     std: np.ndarray
     samples: np.ndarray
+    features: np.ndarray
 
 
 def resnet18_features(in_channels: int) -> nn.Module:
@@ -206,7 +208,7 @@ class DrivingNetwork(nn.Module):
             velocity = torch.as_tensor(velocity, dtype=torch.float32).reshape(len(image), -1)
         features = self.features(image)
         if self.config.log_variance:
-            return self._gaussian_prediction(self.head(features, velocity, sample=False))
+            return self._gaussian_prediction(self.head(features, velocity, False), features)
         if n_samples == 1 or self.config.dropout == 0.0:
             samples = self.head(features, velocity, sample=False)[:, None, :]
         else:
@@ -220,16 +222,16 @@ class DrivingNetwork(nn.Module):
         samples = self.denormalise_outputs(samples)
         mean = samples.mean(dim=1)
         std = torch.zeros_like(mean) if samples.shape[1] == 1 else samples.std(dim=1, correction=0)
-        return Prediction(mean.numpy(), std.numpy(), samples.numpy())
+        return Prediction(mean.numpy(), std.numpy(), samples.numpy(), features.numpy())
 
-    def _gaussian_prediction(self, outputs: torch.Tensor) -> Prediction:
+    def _gaussian_prediction(self, outputs: torch.Tensor, features: torch.Tensor) -> Prediction:
         """A heteroscedastic head's mean and std in physical units; its samples are the two
         points ``mean +- std`` (their mean and population spread are exactly those)."""
         count = len(self.config.outputs)
         mean = self.denormalise_outputs(outputs[:, :count])
         std = torch.exp(0.5 * outputs[:, count:].clamp(*LOG_VARIANCE_RANGE)) * self.output_std
         samples = torch.stack([mean - std, mean + std], dim=1)
-        return Prediction(mean.numpy(), std.numpy(), samples.numpy())
+        return Prediction(mean.numpy(), std.numpy(), samples.numpy(), features.numpy())
 
     def _dropout(
         self, x: torch.Tensor, sample: bool, generator: torch.Generator | None

@@ -23,10 +23,12 @@ from saferace.errors import ConfigError
 from saferace.learning.agent import check_image_shape
 from saferace.learning.calibration import CALIBRATED_OUTPUTS, fit_conformal
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint, save_with_metadata
+from saferace.learning.networks import Prediction
 from saferace.learning.rounds import load_rounds
 from saferace.learning.training import network_data
 from saferace.learning.validation import predict_frames
-from saferace.safety.conformal import coverage
+from saferace.names import DEFAULT_MONITOR
+from saferace.safety.conformal import Monitor, SpreadMonitor, coverage
 
 
 def recalibrate(
@@ -37,11 +39,11 @@ def recalibrate(
     mc_samples: int = 10,
     test_share: float = 0.5,
     seed: int = 0,
-    monitor: bool = True,
+    monitor: str = DEFAULT_MONITOR,
 ) -> list[dict]:
-    """Write ``checkpoint`` with a conformal calibration fitted on ``data_paths`` (and, unless
-    ``monitor`` is False, its out-of-distribution monitor) to ``out``; the rows of the test
-    frames' table (see the module)."""
+    """Write ``checkpoint`` with a conformal calibration fitted on ``data_paths`` (and its
+    out-of-distribution ``monitor``, see :data:`saferace.names.OOD_MONITORS`) to ``out``; the
+    rows of the test frames' table (see the module)."""
     if not 0.0 < test_share < 1.0:
         raise ConfigError("test_share", f"must be in (0, 1), got {test_share}")
     loaded = load_checkpoint(checkpoint)
@@ -66,11 +68,7 @@ def recalibrate(
         )
         lane = slice(0, len(CALIBRATED_OUTPUTS))
         covered, (low, high) = coverage(lower[:, lane], upper[:, lane], data.targets[:, lane])
-        alarms = (
-            None
-            if calibrated is None or calibrated.monitor is None
-            else float(np.mean([calibrated.monitor.raises(s[lane])[1] for s in prediction.std]))
-        )
+        alarms = None if calibrated is None else alarm_rate(calibrated.monitor, prediction)
         rows.append(
             {
                 "interval": method,
@@ -89,3 +87,13 @@ def recalibrate(
     }
     save_with_metadata(checkpoint, {CONFORMAL_KEY: record}, out)
     return rows
+
+
+def alarm_rate(monitor: Monitor | None, prediction: Prediction) -> float | None:
+    """The share of ``prediction``'s frames ``monitor`` raises on (None: no monitor)."""
+    if monitor is None:
+        return None
+    if isinstance(monitor, SpreadMonitor):
+        lane = slice(0, len(monitor.reference))
+        return float(np.mean([monitor.raises(spread[lane])[1] for spread in prediction.std]))
+    return float(np.mean(monitor.scores(prediction.features) > monitor.threshold))

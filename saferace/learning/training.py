@@ -18,6 +18,7 @@ an uninterrupted run would have.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -32,6 +33,7 @@ from tqdm import tqdm
 
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
+from saferace.learning.augmentation import photometric
 from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint, save_atomically
 from saferace.learning.configs import NETWORKS, TrainConfig
 from saferace.learning.ensemble import StateEnsemble
@@ -51,6 +53,8 @@ LOG = logging.getLogger(__name__)
 IMAGE_STATISTICS_FRAMES = 2000
 #: Apart in seed between the weights of two ensemble members.
 ENSEMBLE_SEED_STRIDE = 7919
+#: Apart in seed between a network's batch order and its photometric draws.
+AUGMENTATION_SEED_OFFSET = 104729
 #: Floor of an output's or input's standard deviation (a constant curvature on an oval).
 MIN_STD = 1e-3
 
@@ -113,29 +117,37 @@ def fit(
     shuffle_seed: int | None = None,
 ) -> dict[str, list[float]]:
     """Adam on the MSE of normalised targets (the Gaussian negative log-likelihood for a
-    heteroscedastic head); returns per-batch and per-epoch losses, and the step each epoch
-    ended at (the last one may be cut short, see ``TrainConfig.max_steps``).
+    heteroscedastic head); returns per-batch and per-epoch losses, the step each epoch
+    ended at (the last one may be cut short, see ``TrainConfig.max_steps``) and, with a
+    ``patience``, the epoch whose weights were kept (``best_epoch``, counted from 1).
 
-    Batches are drawn with ``shuffle_seed`` (default: the config's seed; an ensemble's
-    members each draw their own). After each epoch ``on_epoch`` gets the state to continue
-    from (weights, optimiser, generators, losses, epochs done); ``resume`` is such a state.
+    Batches (and with ``config.augment`` their photometric draws) are drawn with
+    ``shuffle_seed`` (default: the config's seed; an ensemble's members each draw their own).
+    With ``config.patience`` the training stops once the held-out loss has not improved for
+    that many epochs and the network ends with its best epoch's weights. After each epoch
+    ``on_epoch`` gets the state to continue from (weights, optimiser, generators, losses,
+    epochs done, the best weights); ``resume`` is such a state.
     """
     network.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
-    generator = torch.Generator().manual_seed(config.seed if shuffle_seed is None else shuffle_seed)
+    seed = config.seed if shuffle_seed is None else shuffle_seed
+    generator = torch.Generator().manual_seed(seed)
+    augmenter = torch.Generator().manual_seed(seed + AUGMENTATION_SEED_OFFSET)
     history: dict[str, list[float]] = {
         "batch_loss": [],
         "train_loss": [],
         "val_loss": [],
         "epoch_end_step": [],
+        "best_epoch": [],
     }
-    first_epoch = 0
+    first_epoch, best = 0, None
     if resume is not None:
         network.load_state_dict(resume["weights"])
         optimizer.load_state_dict(resume["optimizer"])
         generator.set_state(resume["generator"])
+        augmenter.set_state(resume["augmenter"])
         torch.set_rng_state(resume["torch_rng"])  # dropout's masks
-        history, first_epoch = resume["history"], resume["epochs_done"]
+        history, first_epoch, best = resume["history"], resume["epochs_done"], resume["best"]
     targets = network.normalise_outputs(torch.as_tensor(train.targets, dtype=torch.float32))
     batches = math.ceil(len(train) / config.batch_size)
     steps = config.steps_for(len(train))
@@ -155,7 +167,8 @@ def fit(
             total = 0.0
             for start in range(0, len(order), config.batch_size):
                 index = order[start : start + config.batch_size]
-                loss = training_loss(network, _forward(network, train, index), targets[index])
+                outputs = _forward(network, train, index, augmenter if config.augment else None)
+                loss = training_loss(network, outputs, targets[index])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -169,17 +182,28 @@ def fit(
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
                 bar.set_postfix(epoch=epoch + 1, val=f"{history['val_loss'][-1]:.4f}")
+                if config.patience and (best is None or history["val_loss"][-1] < best["loss"]):
+                    best = {"epoch": epoch + 1, "loss": history["val_loss"][-1],
+                            "weights": copy.deepcopy(network.state_dict())}  # fmt: skip
+            stop = best is not None and epoch + 1 - best["epoch"] >= config.patience
             if on_epoch is not None:
                 on_epoch(
                     {
-                        "epochs_done": epoch + 1,
+                        "epochs_done": epochs if stop else epoch + 1,
                         "weights": network.state_dict(),
                         "optimizer": optimizer.state_dict(),
                         "generator": generator.get_state(),
+                        "augmenter": augmenter.get_state(),
                         "torch_rng": torch.get_rng_state(),
                         "history": history,
+                        "best": best,
                     }
                 )
+            if stop:
+                break
+    if best is not None:
+        network.load_state_dict(best["weights"])
+        history["best_epoch"] = [best["epoch"]]
     network.eval()
     return history
 
@@ -210,9 +234,19 @@ def validation_loss(network: DrivingNetwork, data: NetworkData, batch_size: int)
     return total / len(data)
 
 
-def _forward(network: DrivingNetwork, data: NetworkData, index: np.ndarray) -> torch.Tensor:
+def _forward(
+    network: DrivingNetwork,
+    data: NetworkData,
+    index: np.ndarray,
+    augmenter: torch.Generator | None = None,
+) -> torch.Tensor:
+    """The network's outputs for frames ``index``, their images augmented with draws from
+    ``augmenter`` where one is given."""
     velocity = None if data.velocity is None else torch.from_numpy(data.velocity[index])
-    return network(torch.from_numpy(data.images[index]), velocity)
+    images = torch.from_numpy(data.images[index])
+    if augmenter is not None:
+        images = photometric(images, augmenter)
+    return network(images, velocity)
 
 
 def train_networks(

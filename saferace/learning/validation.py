@@ -50,7 +50,10 @@ def predict_frames(
         velocity = None if data.velocity is None else data.velocity[start:stop]
         parts.append(network.predict(data.images[start:stop], velocity, n_samples, generator))
     return Prediction(
-        *(np.concatenate([getattr(p, name) for p in parts]) for name in ("mean", "std", "samples"))
+        *(
+            np.concatenate([getattr(p, name) for p in parts])
+            for name in ("mean", "std", "samples", "features")
+        )
     )
 
 
@@ -126,7 +129,10 @@ def validation_rows(
 
 
 def _rows_of(prediction: Prediction, mask: np.ndarray) -> Prediction:
-    return Prediction(prediction.mean[mask], prediction.std[mask], prediction.samples[mask])
+    return Prediction(
+        prediction.mean[mask], prediction.std[mask], prediction.samples[mask],
+        prediction.features[mask],
+    )  # fmt: skip
 
 
 def scored_training_frames(frames: FrameSet, seed: int = 0) -> FrameSet:

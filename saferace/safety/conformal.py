@@ -8,7 +8,9 @@ output of a new exchangeable frame with probability at least ``1 - alpha``. Unde
 distribution shift no such guarantee holds (Ovadia et al. 2019): :class:`AdaptiveConformal`
 (Gibbs and Candes 2021) adapts the level online from the misses it is told of. The same
 quantile rule fits an out-of-distribution score's threshold: on exchangeable frames it
-raises on at most ``alpha`` of them.
+raises on at most ``alpha`` of them: on the state network's spread
+(:class:`SpreadMonitor`) or on its backbone features
+(:class:`~saferace.safety.feature_monitor.FeatureMonitor`, which sees a new look).
 
 Numpy only (no learning code), so that the filter's layer can hold and apply a calibration.
 """
@@ -16,12 +18,13 @@ Numpy only (no learning code), so that the filter's layer can hold and apply a c
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from scipy.stats import beta
 
 from saferace.errors import ConfigError, SafeRaceError
+from saferace.safety.feature_monitor import FeatureMonitor, feature_monitor
 
 #: Floor of a frame's sigma in a score (an output that never varies has none).
 MIN_SIGMA = 1e-9
@@ -57,6 +60,7 @@ class SpreadMonitor:
     reference: tuple[float, ...]
     threshold: float
     alpha: float
+    kind: str = "spread"
 
     def score(self, sigma: np.ndarray) -> float:
         ratio = np.asarray(sigma, float) / np.maximum(self.reference, MIN_SIGMA)
@@ -67,6 +71,17 @@ class SpreadMonitor:
         score = self.score(sigma)
         return score, score > self.threshold
 
+    def summary(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> SpreadMonitor:
+        return cls(
+            tuple(float(x) for x in values["reference"]),
+            float(values["threshold"]),
+            float(values["alpha"]),
+        )
+
 
 def fit_spread_monitor(sigma: np.ndarray, alpha: float = 0.05) -> SpreadMonitor:
     """The :class:`SpreadMonitor` of held-out frames' ``(n, outputs)`` spreads."""
@@ -74,6 +89,25 @@ def fit_spread_monitor(sigma: np.ndarray, alpha: float = 0.05) -> SpreadMonitor:
     reference = tuple(float(x) for x in np.maximum(np.median(sigma, axis=0), MIN_SIGMA))
     scores = np.max(sigma / np.asarray(reference), axis=-1)
     return SpreadMonitor(reference, conformal_quantile(scores, alpha), alpha)
+
+
+def fit_feature_monitor(features: np.ndarray, alpha: float = 0.05, seed: int = 0) -> FeatureMonitor:
+    """The :class:`~saferace.safety.feature_monitor.FeatureMonitor` of held-out frames'
+    ``(n, F)`` backbone features: its Gaussian fitted on a random half of them, its
+    threshold the conformal quantile of the other half's scores."""
+    features = np.asarray(features, float)
+    half = np.random.default_rng(seed).permutation(len(features)) < len(features) // 2
+    monitor = feature_monitor(features[half], alpha)
+    return replace(monitor, threshold=conformal_quantile(monitor.scores(features[~half]), alpha))
+
+
+#: An out-of-distribution monitor a calibration can hold.
+Monitor = SpreadMonitor | FeatureMonitor
+#: The monitors by their ``kind``.
+MONITOR_KINDS: dict[str, type[SpreadMonitor] | type[FeatureMonitor]] = {
+    "spread": SpreadMonitor,
+    "features": FeatureMonitor,
+}
 
 
 @dataclass(frozen=True)
@@ -87,7 +121,7 @@ class ConformalCalibration:
     alpha: float
     scale: float
     frames: int
-    monitor: SpreadMonitor | None = None
+    monitor: Monitor | None = None
     scores: tuple[float, ...] = ()
 
     def interval(self, mean: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -98,8 +132,9 @@ class ConformalCalibration:
         return asdict(self)
 
     def summary(self) -> dict:
-        """What a result row records: all but the scores."""
-        return {k: v for k, v in self.as_dict().items() if k != "scores"}
+        """What a result row records: all but the scores and the monitor's arrays."""
+        summary = {k: v for k, v in self.as_dict().items() if k not in ("scores", "monitor")}
+        return {**summary, "monitor": None if self.monitor is None else self.monitor.summary()}
 
     @classmethod
     def from_dict(cls, values: dict) -> ConformalCalibration:
@@ -110,11 +145,7 @@ class ConformalCalibration:
             int(values["frames"]),
             None
             if monitor is None
-            else SpreadMonitor(
-                tuple(float(x) for x in monitor["reference"]),
-                float(monitor["threshold"]),
-                float(monitor["alpha"]),
-            ),
+            else MONITOR_KINDS[monitor.get("kind", "spread")].from_dict(monitor),
             tuple(float(x) for x in values.get("scores", ())),
         )
 
@@ -125,11 +156,19 @@ def calibrate(
     truth: np.ndarray,
     alpha: float = 0.05,
     monitor_alpha: float | None = 0.05,
+    features: np.ndarray | None = None,
 ) -> ConformalCalibration:
-    """Fit the interval scale (and, with a ``monitor_alpha``, the monitor) on held-out
-    ``(n, outputs)`` predictions and truths."""
+    """Fit the interval scale (and, with a ``monitor_alpha``, the monitor: on the frames'
+    ``features`` where given, else on their spread) on held-out ``(n, outputs)`` predictions
+    and truths."""
     scores = normalised_scores(mean, sigma, truth)
-    monitor = None if monitor_alpha is None else fit_spread_monitor(sigma, monitor_alpha)
+    monitor: Monitor | None = None
+    if monitor_alpha is not None:
+        monitor = (
+            fit_spread_monitor(sigma, monitor_alpha)
+            if features is None
+            else fit_feature_monitor(features, monitor_alpha)
+        )
     ranks = np.linspace(0, len(scores) - 1, min(len(scores), MAX_STORED_SCORES))
     kept = tuple(float(x) for x in np.sort(scores)[np.round(ranks).astype(int)])
     return ConformalCalibration(

@@ -7,7 +7,8 @@ within a lateral margin ``m`` if ``(v sin e_psi)^2 <= 2 a m`` at a lateral accel
 ``a`` its tyres can give. The fallback takes the worst of the interval (the smallest margin
 to either edge, the largest heading error) and brakes towards the speed that satisfies this,
 no lower than a creep speed (below which the steering barely acts); where even the interval's
-offsets do not fit inside the lane, towards a controlled stop.
+offsets do not fit inside the lane, or the monitor says the interval itself is in doubt,
+towards a controlled stop.
 """
 
 from __future__ import annotations

@@ -92,14 +92,12 @@ class SafetyFilter(gym.Wrapper):
     et al. 2020 and Cosner et al. 2021: the margin grows with the interval's width). The
     interval is the source's own (a conformal calibration) or ``mean +- z std`` of its
     samples; the curvature comes from the map (a network's is its worst output). Where no
-    control satisfies them, or the source's out-of-distribution monitor
-    raises, the filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a
-    speed at which the interval fits inside the lane (a creep speed, or a stop where even
-    the interval's offsets do not fit; no faster than a creep after an alarm) and keeps the
-    steering inside the tyres' grip, steered by the deterministic filter on the interval's
-    centre (a compromise over the whole interval steers for none of its states; the agent's
-    own steering, tried after alarms, let a drifting agent out). Each such step is counted
-    in ``fallbacks``.
+    control satisfies them, the filter falls back (:mod:`saferace.safety.fallback`): it
+    brakes towards a speed at which the interval fits inside the lane (a creep speed, or a
+    stop where even its offsets do not fit), steered by the deterministic filter on the
+    interval's centre within the tyres' grip. While the source's out-of-distribution
+    monitor raises it stops, steering the map's curvature: a creeping car, or one steered
+    from an interval in doubt, still drifted out. Each such step counts in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -287,7 +285,7 @@ class SafetyFilter(gym.Wrapper):
                 self.map.speed_constraint(s_m, v_x, centre[:, 0]),
                 *solve[5:7],
                 False,
-                *self._fallback_box(v_x, float(u0[1]), interval, context, alarm),
+                *self._fallback_box(v_x, float(u0[1]), interval, context, alarm, s_m),
             )
             solve_time += more_time
             fallback = fallback if solution.solved else "solver"
@@ -428,25 +426,24 @@ class SafetyFilter(gym.Wrapper):
         interval: tuple[np.ndarray, np.ndarray],
         context: BarrierContext,
         alarm: bool,
+        s_m: float,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The action box of a fallback step: the acceleration towards the speed at which
-        the interval fits inside the lane (no faster than creeping when the monitor raised:
-        then the interval itself is in doubt), the steering inside the tyres' grip."""
-        target = fitting_speed_mps(
-            *interval,
-            context.w_left_m,
-            context.w_right_m,
-            self.half_width_m,
-            self.creep_speed_mps,
-        )
-        if alarm:
-            target = min(target, self.creep_speed_mps)
+        the interval fits inside the lane, the steering inside the tyres' grip. When the
+        monitor raised the interval itself is in doubt, and so is any steering chosen from
+        it: the car stops, steering the lane's curvature at ``s_m`` (from the map), which
+        keeps the heading it had relative to the lane while it slows."""
+        lane = (context.w_left_m, context.w_right_m, self.half_width_m, self.creep_speed_mps)
+        target = 0.0 if alarm else fitting_speed_mps(*interval, *lane)
         lower, upper = self._action_box(v_x, agent_accel if target > 0.0 else -math.inf)
         accel_low, accel_high = fallback_accel_bounds(v_x, target, self.control_dt_s)
         upper[1] = min(upper[1], accel_high)
         lower[1] = min(max(lower[1], accel_low), upper[1])
         steer_max = self._grip_steer_rad(v_x, self.max_lateral_accel_mps2 or FALLBACK_LATERAL_MPS2)
         lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
+        if alarm:
+            steer = math.atan(self.wheelbase_m * self.track.centerline.curvature_scalar(s_m))
+            lower[0] = upper[0] = min(max(steer, lower[0]), upper[0])
         return lower, upper
 
     def _grip_steer_rad(self, v_x: float, lateral_mps2: float) -> float:

@@ -15,7 +15,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from saferace.safety.conformal import ConformalCalibration
+from saferace.errors import SafeRaceError
+from saferace.safety.conformal import ConformalCalibration, SpreadMonitor
 from saferace.safety.state_sources import StateSource
 
 
@@ -35,6 +36,13 @@ class MonitoredStateSource(StateSource, Protocol):
     def monitor(self, samples: np.ndarray) -> tuple[float | None, bool]:
         """``(score, alarm)`` of this step's ``samples`` (``None``: no monitor)."""
         ...
+
+
+@runtime_checkable
+class FeatureSource(StateSource, Protocol):
+    """A state source that keeps what its network saw in the last frame it predicted."""
+
+    last_features: np.ndarray | None
 
 
 def state_interval(
@@ -64,7 +72,9 @@ class ConformalStateSource:
     """Another source's samples, with the interval of a conformal calibration of its spread:
     ``mean +- scale * std`` of the samples (a
     :class:`~saferace.safety.conformal.ConformalCalibration` fitted on frames the source
-    never trained on), and the calibration's out-of-distribution monitor on their spread."""
+    never trained on), and the calibration's out-of-distribution monitor: on the samples'
+    spread, or on the features the source's network saw (a
+    :class:`~saferace.safety.feature_monitor.FeatureMonitor`, for a :class:`FeatureSource`)."""
 
     def __init__(self, source: StateSource, calibration: ConformalCalibration) -> None:
         self.source = source
@@ -80,10 +90,18 @@ class ConformalStateSource:
         return self.calibration.interval(samples.mean(axis=0), samples.std(axis=0))
 
     def monitor(self, samples: np.ndarray) -> tuple[float | None, bool]:
-        if self.calibration.monitor is None:
+        monitor = self.calibration.monitor
+        if monitor is None:
             return None, False
-        spread = samples.std(axis=0)[: len(self.calibration.monitor.reference)]
-        return self.calibration.monitor.raises(spread)
+        if isinstance(monitor, SpreadMonitor):
+            return monitor.raises(samples.std(axis=0)[: len(monitor.reference)])
+        features = self.source.last_features if isinstance(self.source, FeatureSource) else None
+        if features is None:
+            raise SafeRaceError(
+                "this calibration's monitor looks at a network's features, and the state "
+                f"source {type(self.source).__name__} has none: recalibrate with --monitor spread"
+            )
+        return monitor.raises(features)
 
     def describe(self) -> dict:
         inner: dict[str, Any] = getattr(self.source, "describe", dict)()
