@@ -11,10 +11,13 @@ import pytest
 from cli_helpers import run_cli
 from rerun.chunk import RrdReader
 
+from saferace.cli import main
 from saferace.experiments.paper import Preset, run_paper_tables
-from saferace.experiments.paper.presets import RUN_KINDS, TABLE_2
+from saferace.experiments.paper.presets import RUN_KINDS, TABLE_2, dagger_config, run_config
 from saferace.experiments.paper.report import CELL_NAMES
 from saferace.experiments.paper.runs import FROM_1, run_dir
+from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
+from saferace.learning.run_layout import RunLayout
 from saferace.names import TASKS
 
 #: Two iterations of 3 s drives on 32x32 images, the fork filtered in iteration 2; frames
@@ -70,6 +73,7 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
         ["1", "none"],
         ["2", "none"],
         ["2", "perceived"],
+        ["2", "perceived, conformal"],
         ["2", "true state"],
     ]
     columns = {
@@ -86,8 +90,9 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
     text = (out / "table2.md").read_text()
     claims = [line for line in text.splitlines() if line.startswith("- ")]
     assert len(claims) == len(TASKS) * (len(RUN_KINDS) + 1)
-    assert sum("lane exits in filtered iterations" in claim for claim in claims) == 4
-    assert sum("laps completed in iterations 2-2: " in claim for claim in claims) == 4
+    filtered_runs = len(TASKS) * (len(RUN_KINDS) - 1)
+    assert sum("lane exits in filtered iterations" in claim for claim in claims) == filtered_runs
+    assert sum("laps completed in iterations 2-2: " in claim for claim in claims) == filtered_runs
     for task in TASKS:  # iteration 1 again, behind the filter: a fork with k = 0
         first, unfiltered = metrics(out, task, FROM_1)[1], metrics(out, task, "none")[1]
         assert first["filtered"] and first["intervention_rate"] is not None
@@ -101,10 +106,19 @@ def test_the_forks_share_the_unfiltered_iterations(tables):
     out, _ = tables
     for task in TASKS:
         unfiltered = metrics(out, task, "none")
-        for kind in ("cbf", "oracle"):
+        for kind in ("cbf", "robust", "oracle"):
             forked = metrics(out, task, kind)
             assert forked[:2] == unfiltered[:2]
             assert forked[2]["filtered"] and not unfiltered[2]["filtered"]
+        # only the robust fork's networks carry a conformal calibration, fitted for its drive
+        calibrated = {
+            kind: CONFORMAL_KEY
+            in load_checkpoint(
+                RunLayout(run_dir(out, SETTING, task, 0, kind)).checkpoint(2)
+            ).metadata
+            for kind in ("none", "cbf", "robust")
+        }
+        assert calibrated == {"none": False, "cbf": False, "robust": True}
 
 
 def test_unseen_tracks_timings_and_the_recording(tables):
@@ -114,10 +128,12 @@ def test_unseen_tracks_timings_and_the_recording(tables):
         for line in (out / "unseen_tracks.md").read_text().splitlines()
         if line.startswith("| table2")
     ]
-    # The fork drives iteration 2 with the unfiltered run's networks: one policy per line,
-    # scored once, without and with the filter.
-    assert len(unseen) == len(TASKS) * 2
+    # The forks drive iteration 2 with the unfiltered run's networks: one policy per line,
+    # scored without the filter, behind the paper's and behind the robust conformal one.
+    assert len(unseen) == len(TASKS) * 3
     assert all(line.split("|")[4].strip() == "final of none run" for line in unseen)
+    filters = [line.split("|")[6].strip() for line in unseen]
+    assert sorted(filters) == sorted(["none", "perceived state", "perceived, conformal"] * 2)
     assert all(line.split("|")[5].strip() == "oval" for line in unseen)
     seconds = {
         line.split("|")[1].strip(): float(line.split("|")[2])
@@ -150,3 +166,20 @@ def test_quick_preset_end_to_end(tmp_path: Path):
     rows = metrics(tmp_path, "CenterLine", "none")
     assert rows[0]["completed"] and rows[0]["time_outside_lane_s"] == 0.0  # the expert
     assert (tmp_path / "table2_trajectories.png").stat().st_size > 50_000
+
+
+def test_the_state_uncertainty_reaches_every_runs_training(monkeypatch, tmp_path: Path):
+    import saferace.experiments.paper as paper
+
+    called = {}
+    monkeypatch.setattr(
+        paper, "run_paper_tables", lambda preset, seeds, out: called.update(preset=preset) or []
+    )
+    assert main(["paper-tables", "--state-uncertainty", "ensemble", "--out", str(tmp_path)]) == 0
+    preset = called["preset"]
+    assert preset.name == "quick" and preset.state_uncertainty == "ensemble"
+    for kind, _, _ in RUN_KINDS:
+        config = run_config(dagger_config(preset, preset.settings[0], "CenterLine", 0), kind)
+        assert config.training.state_uncertainty == "ensemble"
+        assert config.filter.uncertainty == ("robust" if kind == "robust" else "chance")
+        assert config.calibrate_spread == (kind != "robust")

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from saferace.cli import example
 from saferace.cli.arguments import add_parallel_arguments, check_count
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
-from saferace.names import DAGGER_STATE_SOURCES, PAPER_PRESETS
+from saferace.names import DAGGER_STATE_SOURCES, PAPER_PRESETS, STATE_UNCERTAINTY_METHODS
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -76,6 +77,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         choices=PAPER_PRESETS,
         help="quick: lab only, 3 iterations (minutes); full: both tables, 10 iterations (hours)",
     )
+    tables.add_argument(
+        "--state-uncertainty",
+        default="mc-dropout",
+        choices=STATE_UNCERTAINTY_METHODS,
+        help="the state networks' uncertainty in every run: MC dropout (the paper's) or a deep "
+        "ensemble (see saferace train)",
+    )
     tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     tables.set_defaults(command=_paper_tables)
@@ -128,8 +136,10 @@ def _dagger(args: argparse.Namespace) -> int:
 
 def _paper_tables(args: argparse.Namespace) -> int:
     from saferace.experiments.paper import run_paper_tables
+    from saferace.experiments.paper.presets import PRESETS
 
-    for path in run_paper_tables(args.preset, list(args.seeds), args.out):
+    preset = replace(PRESETS[args.preset], state_uncertainty=args.state_uncertainty)
+    for path in run_paper_tables(preset, list(args.seeds), args.out):
         if path.suffix == ".md":
             print(path.read_text())
         print(f"written: {path}")

@@ -16,7 +16,8 @@ def plot_iterations(
     setting: TableSetting, rows: dict[tuple[str, int, str], list[dict]], seed: int, path: Path
 ) -> None:
     """Every iteration's path over the track (paper Figs. 5-9): a row per reference line,
-    without the filter, with it fed the perceived state, and fed the true state."""
+    a column per run (:data:`RUN_KINDS`): without the filter, with it fed the perceived
+    state (chance constraints, then the conformal interval), and fed the true state."""
     track = Track.load(setting.track)
     kinds = [kind for kind, _, _ in RUN_KINDS]
     figure, axes = plt.subplots(len(TASKS), len(kinds), figsize=(5 * len(kinds), 4.2 * len(TASKS)))

@@ -7,10 +7,23 @@ from dataclasses import dataclass, replace
 from saferace.eval.filter_config import FilterConfig
 from saferace.learning.configs import DaggerConfig, EpisodeSettings, TrainConfig
 
-#: The three runs of a line: name, filter, what feeds the filter the lane state.
-RUN_KINDS = (("none", "none", "learned"), ("cbf", "cbf", "learned"), ("oracle", "cbf", "oracle"))
+#: The runs of a line: name, filter, what feeds the filter the lane state. ``cbf`` is the
+#: paper's filter (chance constraints on the state network's spread, here widened by variance
+#: scaling); ``robust`` the honest one (barriers over the state network's conformal interval,
+#: with its monitor and fallback, see ``saferace.safety.filter``).
+RUN_KINDS = (
+    ("none", "none", "learned"),
+    ("cbf", "cbf", "learned"),
+    ("robust", "cbf", "learned"),
+    ("oracle", "cbf", "oracle"),
+)
 #: How tables and figures name the runs: the filter and its state source.
-RUN_LABELS = {"none": "none", "cbf": "perceived", "oracle": "true state"}
+RUN_LABELS = {
+    "none": "none",
+    "cbf": "perceived",
+    "robust": "perceived, conformal",
+    "oracle": "true state",
+}
 
 
 @dataclass(frozen=True)
@@ -76,6 +89,7 @@ class Preset:
     fuse_odometry: bool = False
     unseen_tracks: tuple[str, ...] = ()
     random_tracks: tuple[int, ...] = ()
+    state_uncertainty: str = "mc-dropout"
 
 
 #: Both filters use the kinematic model: with the linear-tyre model's HOCBF (the paper's
@@ -136,6 +150,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
             max_steps=preset.max_train_steps,
             seed=seed,
             val_stretch=None,
+            state_uncertainty=preset.state_uncertainty,
         ),
         collection=EpisodeSettings(
             laps=preset.laps,
@@ -158,15 +173,19 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
 
 
 def run_config(base: DaggerConfig, kind: str) -> DaggerConfig:
-    """One of :data:`RUN_KINDS`' runs of a line: ``base`` with its filter and state source."""
+    """One of :data:`RUN_KINDS`' runs of a line: ``base`` with its filter and state source
+    (the ``robust`` run calibrates conformally, instead of scaling the spread)."""
     filter_kind, source = next((f, s) for name, f, s in RUN_KINDS if name == kind)
     perceived = source == "learned"
+    robust = kind == "robust"
     return replace(
         base,
+        calibrate_spread=base.calibrate_spread and not robust,
         filter=replace(
             base.filter,
             kind=filter_kind,
             state_source="learned" if perceived else None,
             fuse_odometry=base.filter.fuse_odometry and perceived,
+            uncertainty="robust" if robust else base.filter.uncertainty,
         ),
     )

@@ -2,21 +2,24 @@
 
 For each setting (Table 1: the paper's CARLA setting on ``technical``, dynamic model, mono;
 Table 2: its RC-car setting on ``lab``, kinematic model, stereo) and each reference line,
-three DAgger runs per seed: without the filter, the filtered fork (iterations after k fed
-the state network's perceived state), and the same fork fed the true state (what
-perception costs). Written to ``OUT``: ``{setting}.md``/``.csv`` in the layout of the
-paper's tables with the claims measured below them, ``{setting}_trajectories.png`` (every
-iteration's path, without and with the filter, one row per line), ``unseen_tracks.md`` (the
-final policies on tracks they never saw, without and with the filter) and ``timings.md``
-(wall-clock seconds per stage). Every run resumes where it stopped.
+four DAgger runs per seed: without the filter, the filtered fork (iterations after k fed
+the state network's perceived state, the paper's chance constraints), the same fork behind
+the robust filter fed the state network's conformal interval (what honest uncertainty
+costs), and the same fork fed the true state (what perception costs). Written to ``OUT``:
+``{setting}.md``/``.csv`` in the layout of the paper's tables with the claims measured
+below them, ``{setting}_trajectories.png`` (every iteration's path, without and with the
+filter, one row per line), ``unseen_tracks.md`` (the final policies on tracks they never
+saw, without and with the filter) and ``timings.md`` (wall-clock seconds per stage). Every
+run resumes where it stopped.
 """
 
 from __future__ import annotations
 
-import filecmp
 import time
 from dataclasses import replace
 from pathlib import Path
+
+import torch
 
 from saferace.eval.drive import drive
 from saferace.eval.filters import FilterConfig
@@ -31,10 +34,11 @@ from saferace.experiments.paper.presets import (
     run_config,
 )
 from saferace.experiments.paper.report import write_summaries, write_table
-from saferace.learning.calibration import spread_scale_of
+from saferace.learning.calibration import conformal_of, spread_scale_of
+from saferace.learning.checkpoint import load_checkpoint
 from saferace.learning.dagger import DaggerRun
 from saferace.learning.run_layout import RunLayout
-from saferace.names import TASKS
+from saferace.names import CONFORMAL_ALPHA, TASKS
 from saferace.track.random_track import write_random_tracks
 
 
@@ -97,17 +101,21 @@ def filtered_from_1(
 
 
 def final_policy(
-    preset: Preset, setting: TableSetting, run: Path, seed: int
+    preset: Preset, setting: TableSetting, run: Path, seed: int, kind: str = "cbf"
 ) -> tuple[str, FilterConfig]:
     """The agent spec of a run's final networks, and the setting's filter fed their
-    perceived state (with the spread calibrated as in the run's filtered iterations)."""
+    perceived state as the run of ``kind`` feeds it (the spread calibrated as in its
+    filtered iterations; for ``robust``, the conformal interval stored in the checkpoint)."""
     layout = RunLayout(run)
     checkpoint = layout.final_checkpoint()
     spec = f"learned:{checkpoint}"
     iteration = int(checkpoint.stem.removeprefix("iteration_"))
+    robust = kind == "robust"
+    if robust:
+        conformal_of(layout, iteration, CONFORMAL_ALPHA, preset.mc_samples, seed)
     scale = (
         spread_scale_of(layout, iteration, preset.mc_samples, seed)
-        if preset.calibrate_spread
+        if preset.calibrate_spread and not robust
         else None
     )
     safety = FilterConfig(
@@ -119,6 +127,7 @@ def final_policy(
         map_curvature=preset.map_curvature,
         spread_scale=scale,
         fuse_odometry=preset.fuse_odometry,
+        uncertainty="robust" if robust else "chance",
     )
     return spec, safety
 
@@ -132,26 +141,49 @@ def env_settings(preset: Preset, setting: TableSetting) -> dict:
     }
 
 
+#: How the unseen tracks' table names a filter, by its kind and uncertainty mode.
+UNSEEN_FILTER_LABELS = {
+    ("none", "chance"): "none",
+    ("cbf", "chance"): "perceived state",
+    ("cbf", "robust"): "perceived, conformal",
+}
+
+
+def same_networks(first: Path, second: Path) -> bool:
+    """Whether two checkpoints hold the same weights (whatever else their metadata says)."""
+    a, b = load_checkpoint(first), load_checkpoint(second)
+    return all(
+        left.keys() == right.keys() and all(torch.equal(left[k], right[k]) for k in left)
+        for left, right in (
+            (a.control.state_dict(), b.control.state_dict()),
+            (a.state.state_dict(), b.state.state_dict()),
+        )
+    )
+
+
 def unseen_track_rows(
     preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, tracks: list[str]
 ) -> list[list]:
-    """The final policies of the unfiltered run and of the perceived-state fork on tracks
-    they never saw, one lap, without and with the filter fed their own state network. A
-    fork whose final networks are the unfiltered run's (it trained nothing of its own) is
-    not scored twice."""
+    """The final policies of the unfiltered run and of the perceived-state forks on tracks
+    they never saw, one lap, without and with the filter fed their own state network as
+    their run fed it. A fork whose final networks are the unfiltered run's (it trained
+    nothing of its own) is not scored twice: only behind a filter of its own (the robust
+    fork's conformal one)."""
     lines = []
     for task in TASKS:
         for seed in seeds:
             unfiltered = RunLayout(run_dir(out_dir, setting, task, seed, "none")).final_checkpoint()
-            for kind in ("none", "cbf"):
+            for kind in ("none", "cbf", "robust"):
                 run = run_dir(out_dir, setting, task, seed, kind)
-                if kind != "none" and filecmp.cmp(
-                    RunLayout(run).final_checkpoint(), unfiltered, False
-                ):
+                inherited = kind != "none" and same_networks(
+                    RunLayout(run).final_checkpoint(), unfiltered
+                )
+                if inherited and kind == "cbf":
                     continue
-                spec, perceived = final_policy(preset, setting, run, seed)
+                spec, perceived = final_policy(preset, setting, run, seed, kind)
+                owner = "none" if inherited else kind
                 for track in tracks:
-                    for safety in (FilterConfig(), perceived):
+                    for safety in [perceived] if inherited else [FilterConfig(), perceived]:
                         (row,) = evaluate(
                             spec,
                             task,
@@ -168,9 +200,9 @@ def unseen_track_rows(
                                 setting.name,
                                 task,
                                 seed,
-                                f"final of {RUN_LABELS[kind]} run",
+                                f"final of {RUN_LABELS[owner]} run",
                                 Path(track).stem,
-                                "none" if safety.kind == "none" else "perceived state",
+                                UNSEEN_FILTER_LABELS[safety.kind, safety.uncertainty],
                                 summary["laps_completed"],
                                 summary["mean_lap_time_s"] or "-",
                                 summary["time_outside_lane_s"],
