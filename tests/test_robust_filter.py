@@ -76,12 +76,16 @@ def test_a_control_that_breaks_the_barrier_at_one_corner_is_corrected():
 
 def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
     # lab's half widths are 0.4 m and the car's 0.15 m (+0.05 margin): +-0.25 m cannot fit.
-    source = IntervalSource([0.0, 0.0, 0.0], [0.25, 0.01, 0.0])
-    _, decision = filtered_on_lab(source, "robust", [0.0, 1.0])
+    source = IntervalSource([0.1, 0.05, 0.0], [0.25, 0.01, 0.0])
+    env, decision = filtered_on_lab(source, "robust", [0.3, 1.0])
     assert decision.fallback == "infeasible"
     assert decision.filtered_action[1] == pytest.approx(-DISTRUST_BRAKE_MPS2)
+    # its own steering, not the agent's: the lane's curvature, back towards the centre
+    curvature = env.track.centerline.curvature_scalar(0.5)
+    steer = math.atan(env.wheelbase_m * curvature) - 0.1 - 0.05  # 1 rad per m and per rad
+    assert decision.filtered_action[0] == pytest.approx(steer, abs=1e-3)
     # The same interval in the chance mode is only its samples' mean: no fallback, no brake.
-    _, chance = filtered_on_lab(source, "chance", [0.0, 1.0])
+    _, chance = filtered_on_lab(source, "chance", [-0.1, 1.0])
     assert chance.fallback == "" and chance.filtered_action[1] == pytest.approx(1.0)
 
 

@@ -8,7 +8,8 @@ within a lateral margin ``m`` if ``(v sin e_psi)^2 <= 2 a m`` at a lateral accel
 to either edge, the largest heading error) and brakes towards the speed that satisfies this,
 no lower than a creep speed (below which the steering barely acts); where even the interval's
 offsets do not fit inside the lane, or the monitor says the interval itself is in doubt,
-towards a controlled stop.
+towards a controlled stop. Its steering is its own (:func:`fallback_steer_rad`), not the
+agent's.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ FALLBACK_BRAKE_MPS2 = 2.0
 #: before an error it cannot see takes it out; the car brakes at up to 4, and the rest of
 #: the tyres' grip is left for steering.
 DISTRUST_BRAKE_MPS2 = 3.0
-#: When a solve fails: steer toward the centerline (with the fallback's braking).
+#: Steering of a fallback towards the centre line, besides the lane's curvature.
 FALLBACK_STEER_PER_M = 1.0  # rad of steering per m of lateral offset
 FALLBACK_STEER_PER_RAD = 1.0  # rad of steering per rad of heading error
 #: Lateral acceleration the fallback counts on to turn away from an edge (m/s^2).
@@ -73,8 +74,14 @@ def fallback_accel_bounds(
     return -DISTRUST_BRAKE_MPS2, gap
 
 
-def steer_to_centre(lane_mean: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Where the filter's QP failed: brake at ``FALLBACK_BRAKE_MPS2`` and steer toward the
-    centre line from the believed ``[e_y, e_psi]``, within the box ``lower..upper``."""
-    steer = -FALLBACK_STEER_PER_M * lane_mean[0] - FALLBACK_STEER_PER_RAD * lane_mean[1]
-    return np.clip(np.array([steer, -FALLBACK_BRAKE_MPS2]), lower, upper)
+def fallback_steer_rad(feedforward_rad: float, believed: np.ndarray | None) -> float:
+    """The fallback's steering, whatever the agent asks: the lane's curvature from the map
+    (``feedforward_rad``, which keeps the car's heading relative to the lane) and, where the
+    ``believed`` ``[e_y, e_psi]`` can still be trusted (None: it cannot, after an alarm), a
+    pull towards the centre line. The agent's own steering, kept within the barriers of the
+    interval's centre, let a drifting agent out while the interval lagged its heading."""
+    if believed is None:
+        return feedforward_rad
+    return (
+        feedforward_rad - FALLBACK_STEER_PER_M * believed[0] - FALLBACK_STEER_PER_RAD * believed[1]
+    )

@@ -26,10 +26,11 @@ from saferace.safety.chance import (
 )
 from saferace.safety.decision import SafetyDecision, nominal_parts
 from saferace.safety.fallback import (
+    FALLBACK_BRAKE_MPS2,
     FALLBACK_LATERAL_MPS2,
     fallback_accel_bounds,
+    fallback_steer_rad,
     fitting_speed_mps,
-    steer_to_centre,
 )
 from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
 from saferace.safety.intervals import MonitoredStateSource, interval_points, state_interval
@@ -83,8 +84,8 @@ class SafetyFilter(gym.Wrapper):
     With one sample, or ``probabilistic=False``, it is the deterministic HOCBF filter on the
     samples' mean. ``info["safety"]`` holds a
     :class:`~saferace.safety.decision.SafetyDecision` every step; a failed solve brakes at
-    ``FALLBACK_BRAKE_MPS2`` while steering toward the centre line, and is counted in
-    ``failures``.
+    ``FALLBACK_BRAKE_MPS2`` while steering the lane's curvature and toward the centre line,
+    and is counted in ``failures``.
 
     ``uncertainty="robust"`` replaces the chance constraints by barrier conditions that must
     hold at every point of the state's interval (its corners and centre, see
@@ -94,10 +95,11 @@ class SafetyFilter(gym.Wrapper):
     samples; the curvature comes from the map (a network's is its worst output). Where no
     control satisfies them, the filter falls back (:mod:`saferace.safety.fallback`): it
     brakes towards a speed at which the interval fits inside the lane (a creep speed, or a
-    stop where even its offsets do not fit), steered by the deterministic filter on the
-    interval's centre within the tyres' grip. While the source's out-of-distribution
-    monitor raises it stops, steering the map's curvature: a creeping car, or one steered
-    from an interval in doubt, still drifted out. Each such step counts in ``fallbacks``.
+    stop where even its offsets do not fit), steering the lane's curvature and towards the
+    centre line from the interval's centre, within the tyres' grip. While the source's
+    out-of-distribution monitor raises it stops, steering the lane's curvature alone: a
+    creeping car, or one steered from an interval in doubt, still drifted out. Each such
+    step counts in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -275,25 +277,19 @@ class SafetyFilter(gym.Wrapper):
         barrier_rows = len(problem.b) - (speed is not None)
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
             fallback = "infeasible"
-        interval = (state_lower, state_upper)
-        if fallback in ("alarm", "infeasible"):  # slowed, steered by the interval's centre
-            centre = lane.mean(axis=0, keepdims=True)
-            problem, statistics, h, solution, more_time = self._solve(
-                self._model_states(centre, observation["velocity"]),
-                centre[:, 2],
-                *solve[2:4],
-                self.map.speed_constraint(s_m, v_x, centre[:, 0]),
-                *solve[5:7],
-                False,
-                *self._fallback_box(v_x, float(u0[1]), interval, context, alarm, s_m),
-            )
-            solve_time += more_time
-            fallback = fallback if solution.solved else "solver"
         self.last_problem = problem
-        if fallback == "solver":  # brakes whatever the creep rule asks
-            filtered = steer_to_centre(lane.mean(axis=0), *self._action_box(v_x, -math.inf))
-        else:
-            filtered = solution.u
+        filtered = solution.u
+        if fallback:  # the lane's curvature, and back to the centre where the belief holds
+            feedforward = math.atan(self.wheelbase_m * self.track.centerline.curvature_scalar(s_m))
+            steer = fallback_steer_rad(feedforward, None if alarm else lane.mean(axis=0))
+            if fallback == "solver":  # brakes whatever the creep rule asks
+                box, accel = self._action_box(v_x, -math.inf), -FALLBACK_BRAKE_MPS2
+            else:
+                doubted = (np.full(3, -math.inf), np.full(3, math.inf))  # stops the car
+                interval = doubted if alarm else (state_lower, state_upper)
+                box = self._fallback_box(v_x, float(u0[1]), interval, context)
+                accel = float(u0[1])
+            filtered = np.clip(np.array([steer, accel]), *box)
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         count = len(self.constraint_names)
         spread_at_u = np.zeros(count)
@@ -425,25 +421,18 @@ class SafetyFilter(gym.Wrapper):
         agent_accel: float,
         interval: tuple[np.ndarray, np.ndarray],
         context: BarrierContext,
-        alarm: bool,
-        s_m: float,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The action box of a fallback step: the acceleration towards the speed at which
-        the interval fits inside the lane, the steering inside the tyres' grip. When the
-        monitor raised the interval itself is in doubt, and so is any steering chosen from
-        it: the car stops, steering the lane's curvature at ``s_m`` (from the map), which
-        keeps the heading it had relative to the lane while it slows."""
+        the interval fits inside the lane (a stop where it is unbounded: after an alarm),
+        the steering inside the tyres' grip."""
         lane = (context.w_left_m, context.w_right_m, self.half_width_m, self.creep_speed_mps)
-        target = 0.0 if alarm else fitting_speed_mps(*interval, *lane)
+        target = fitting_speed_mps(*interval, *lane)
         lower, upper = self._action_box(v_x, agent_accel if target > 0.0 else -math.inf)
         accel_low, accel_high = fallback_accel_bounds(v_x, target, self.control_dt_s)
         upper[1] = min(upper[1], accel_high)
         lower[1] = min(max(lower[1], accel_low), upper[1])
         steer_max = self._grip_steer_rad(v_x, self.max_lateral_accel_mps2 or FALLBACK_LATERAL_MPS2)
         lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
-        if alarm:
-            steer = math.atan(self.wheelbase_m * self.track.centerline.curvature_scalar(s_m))
-            lower[0] = upper[0] = min(max(steer, lower[0]), upper[0])
         return lower, upper
 
     def _grip_steer_rad(self, v_x: float, lateral_mps2: float) -> float:
