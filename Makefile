@@ -48,7 +48,8 @@ demo: setup
 		--seeds 0 1 2 3 4 5 --perturb 0.05 --out results/learned/data && \
 		$(BIN)/saferace collect --agent expert --task CenterLine --track lab --laps 3 \
 		--seeds 100 --out results/learned/data)
-	$(call stage,train,$(BIN)/saferace train results/learned/data --out results/learned/lab_mono.pt)
+	$(call stage,train,$(BIN)/saferace train results/learned/data --augment --early-stop 3 \
+		--out results/learned/lab_mono.pt)
 	$(call stage,eval-learned,$(BIN)/saferace eval --agent learned:results/learned/lab_mono.pt \
 		--task CenterLine --track lab --laps 3 --out results/learned/eval.jsonl)
 	$(call stage,gradcam,$(BIN)/saferace gradcam results/learned/lab_mono.pt --track lab \

@@ -19,23 +19,36 @@ STATE_LABELS = {
 
 def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) -> None:
     """Per network: the loss of every batch, and each epoch's training and validation loss
-    at the step it ended; one legend below the plots."""
+    at the step it ended, with the epoch an early stop kept; one legend below the plots.
+    A heteroscedastic network trains on the Gaussian negative log-likelihood, which goes
+    below 0: its training losses get a linear axis, its held-out MSE one of its own."""
     fig, axes = plt.subplots(
         1, len(history), figsize=(6 * len(history), 4.4), squeeze=False, layout="constrained"
     )
+    owners = []
     for ax, (name, losses) in zip(axes[0], history.items(), strict=True):
         batches = np.asarray(losses["batch_loss"])
+        likelihood = bool(len(batches)) and float(batches.min()) <= 0.0
         ax.plot(np.arange(1, len(batches) + 1), batches, color="0.75", lw=0.6, label="batch")
         epoch_ends = losses["epoch_end_step"]
-        ax.plot(epoch_ends, losses["train_loss"], "o-", label="training epoch (dropout on)")
+        ax.plot(epoch_ends, losses["train_loss"], "o-", label="training epoch")
+        held_out = ax.twinx() if likelihood else ax
         if losses["val_loss"]:
-            ax.plot(epoch_ends, losses["val_loss"], "s-", label="held-out stretch")
-        ax.set_yscale("log")
+            held_out.plot(
+                epoch_ends, losses["val_loss"], "s-", color="C1", label="held-out stretch"
+            )
+        for best in losses.get("best_epoch", []):
+            ax.axvline(epoch_ends[best - 1], color="k", ls=":", label="epoch kept (early stop)")
+        held_out.set_yscale("log")
+        ax.set_yscale("linear" if likelihood else "log")
         ax.set_xlabel("gradient step")
-        ax.set_ylabel("MSE of normalised targets")
+        ax.set_ylabel("Gaussian NLL" if likelihood else "MSE of normalised targets")
+        if likelihood:
+            held_out.set_ylabel("held-out MSE of normalised means")
         ax.set_title(f"{name} network")
         ax.grid(alpha=0.3, which="both")
-    legend_outside(fig, axes[0], ncol=3, fontsize=9)  # below the plots, off the curves
+        owners += [ax, held_out] if likelihood else [ax]
+    legend_outside(fig, owners, ncol=4, fontsize=9)  # below the plots, off the curves
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
