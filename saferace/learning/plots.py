@@ -38,7 +38,8 @@ def plot_losses(history: dict[str, dict[str, list[float]]], path: str | Path) ->
                 epoch_ends, losses["val_loss"], "s-", color="C1", label="held-out stretch"
             )
         for best in losses.get("best_epoch", []):
-            ax.axvline(epoch_ends[best - 1], color="k", ls=":", label="epoch kept (early stop)")
+            kept = epoch_ends[int(best) - 1]
+            ax.axvline(kept, color="k", ls=":", label="epoch kept (early stop)")
         held_out.set_yscale("log")
         ax.set_yscale("linear" if likelihood else "log")
         ax.set_xlabel("gradient step")
