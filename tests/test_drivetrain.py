@@ -37,10 +37,14 @@ def test_drive_torque_is_rear_only_and_falls_with_wheel_speed():
     slow = wheel_torques(4.0, 0.5, 10.0, PARAMS)
     fast = wheel_torques(4.0, 7.0, 140.0, PARAMS)
     assert slow.front_nm == 0.0 and fast.front_nm == 0.0
-    assert slow.rear_nm == pytest.approx(
-        (PARAMS.effective_mass_kg * 4.0 + 4e-4 * 0.5 / 0.0025) * 0.05 / 2
-    )
-    assert fast.rear_nm == pytest.approx(PARAMS.motor_stall_torque_nm * (1 - 140.0 / 150.0))
+    # F = m a + the four wheels' damping at v (torque d v / r each, as a force / r), shared
+    # by the two rear wheels, times the wheel radius
+    damping_force = 4 * PARAMS.wheel_damping_nms * 0.5 / PARAMS.wheel_radius_m**2
+    force = PARAMS.effective_mass_kg * 4.0 + damping_force
+    assert slow.rear_nm == pytest.approx(force * PARAMS.wheel_radius_m / 2)
+    # at 140 rad/s the motor has lost 140/150 of its stall torque
+    free_share = 1 - 140.0 / PARAMS.motor_free_speed_radps
+    assert fast.rear_nm == pytest.approx(PARAMS.motor_stall_torque_nm * free_share)
 
 
 def test_braking_uses_all_wheels_with_front_bias():
