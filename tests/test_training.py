@@ -76,10 +76,25 @@ def test_max_steps_cuts_the_last_epoch_short(frames):
         TrainConfig(min_steps=6, max_steps=5)
 
 
-def test_a_training_resumed_before_its_cut_epoch_ends_with_the_same_weights(frames):
+def counting_losses(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Count the gradient steps trained from here on (one loss per step)."""
+    steps: list[int] = []
+    loss = training.training_loss
+
+    def counted(*args, **kwargs):
+        steps.append(1)
+        return loss(*args, **kwargs)
+
+    monkeypatch.setattr(training, "training_loss", counted)
+    return steps
+
+
+def test_a_training_resumed_before_its_cut_epoch_ends_with_the_same_weights(
+    frames, monkeypatch: pytest.MonkeyPatch
+):
     data = network_data(frames.subset(np.arange(20)))["state"]
     config = TrainConfig(epochs=4, batch_size=8, max_steps=5)
-    runs, states = [], []
+    runs, states, steps = [], [], counting_losses(monkeypatch)
 
     def keep(state: dict) -> None:  # as a resume file would, not the live tensors
         states.append(copy.deepcopy(state))
@@ -87,8 +102,10 @@ def test_a_training_resumed_before_its_cut_epoch_ends_with_the_same_weights(fram
     for resume in (None, "after the first epoch"):
         torch.manual_seed(0)
         network = state_network_for(data)
+        steps.clear()
         fit(network, data, None, config, "state", False, states[0] if resume else None, keep)
         runs.append(network)
+    assert len(steps) == 5 - 3  # the resumed run trained only what the first epoch had not
     for name, weights in runs[0].state_dict().items():
         assert torch.equal(weights, runs[1].state_dict()[name]), name
 
@@ -231,7 +248,9 @@ def test_an_interrupted_run_resumes_to_the_same_weights(
 ):
     few = frames.subset(np.arange(24))
     config = replace(FEW, epochs=2)
+    steps = counting_losses(monkeypatch)
     expected = train_networks(few, config, progress=False)
+    from_scratch = len(steps)  # 2 networks x 2 epochs
     calls = []
 
     def interrupted(*args, **kwargs):
@@ -246,7 +265,9 @@ def test_an_interrupted_run_resumes_to_the_same_weights(
         with pytest.raises(KeyboardInterrupt):
             train_networks(few, config, progress=False, resume_file=resume_file)
     assert resume_file.exists()
+    steps.clear()
     resumed = train_networks(few, config, progress=False, resume_file=resume_file)
+    assert len(steps) == from_scratch // 4  # only the state network's second epoch again
     for before, after in zip(expected[:2], resumed[:2], strict=True):
         for name, weights in before.state_dict().items():
             assert torch.equal(weights, after.state_dict()[name]), name
