@@ -64,9 +64,16 @@ def test_an_interrupted_benchmark_continues_to_the_same_submission(tmp_path: Pat
     with pytest.raises(KeyboardInterrupt):
         run_benchmark("pure-pursuit", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
     assert not (tmp_path / "cut.json").exists()
-    monkeypatch.setattr(benchmark, "drive_run", real_drive)
+    driven = []
+
+    def counted(agent, spec, suite, mc_samples=10):
+        driven.append(spec)
+        return real_drive(agent, spec, suite, mc_samples)
+
+    monkeypatch.setattr(benchmark, "drive_run", counted)
     resumed = run_benchmark("pure-pursuit", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
     assert without_timestamps(resumed) == without_timestamps(whole)
+    assert driven == [calls[1]]  # only the run the interrupt cut: the first one was kept
     with pytest.raises(SafeRaceError, match="use another --out"):
         run_benchmark("expert", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
 
