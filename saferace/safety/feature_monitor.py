@@ -21,6 +21,7 @@ Numpy only, so that the filter's layer can hold and apply it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -55,13 +56,19 @@ class FeatureMonitor:
                 f"the feature monitor was fitted on {len(self.mean)} features, got "
                 f"{features.shape[1]} (a checkpoint's monitor belongs to its own network)"
             )
-        centred = features - np.asarray(self.mean)
-        components = np.asarray(self.components)
+        mean, components, variances = self._arrays
+        centred = features - mean
         projected = centred @ components.T
         residual = centred - projected @ components
-        return np.sum(projected**2 / np.asarray(self.variances), axis=1) + np.sum(
-            residual**2, axis=1
-        ) / max(self.residual_variance, MIN_VARIANCE)
+        return np.sum(projected**2 / variances, axis=1) + np.sum(residual**2, axis=1) / max(
+            self.residual_variance, MIN_VARIANCE
+        )
+
+    @cached_property
+    def _arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The mean, components and variances as arrays, made once (they are scored every
+        step; the fields stay tuples, for the checkpoint's metadata)."""
+        return np.asarray(self.mean), np.asarray(self.components), np.asarray(self.variances)
 
     def raises(self, features: np.ndarray) -> tuple[float, bool]:
         """``(score, alarm)`` of one frame's features."""

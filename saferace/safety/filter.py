@@ -269,10 +269,10 @@ class SafetyFilter(gym.Wrapper):
         )
         speed = self.map.speed_constraint(s_m, v_x, lane[:, 0])
         states = self._model_states(lane, observation["velocity"])
-        solve = (states, lane[:, 2], u0, context, speed, nominal, spread, chance)
         problem, statistics, h, solution, solve_time = self._solve(
-            *solve, *self._action_box(v_x, float(u0[1]))
-        )
+            states, lane[:, 2], u0, context, speed, nominal, spread, chance,
+            *self._action_box(v_x, float(u0[1])),
+        )  # fmt: skip
         fallback = "alarm" if alarm and self.robust else "" if solution.solved else "solver"
         barrier_rows = len(problem.b) - (speed is not None)
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
