@@ -1,7 +1,8 @@
 """One control step of the learned driver beside the expert's, and what each speed lever buys.
 
 A learned step: render, the control network and the state network with ``n = 10`` MC-dropout
-samples each (or a 5-member ensemble of state networks behind the robust filter), the PID
+samples each (or a 5-member deep or MIMO ensemble of state networks behind the robust
+filter), the PID
 speed loop, and the filter's QP on the perceived state
 (:class:`~saferace.safety.filter.SafetyFilter` fed by
 :class:`~saferace.learning.agent.LearnedStateSource`), then physics. The baseline, measured
@@ -70,16 +71,24 @@ def ensemble(stereo: bool, members: int = DEFAULT_MEMBERS) -> StateEnsemble:
     return StateEnsemble(made)
 
 
+def mimo(stereo: bool, members: int = DEFAULT_MEMBERS) -> DrivingNetwork:
+    """A MIMO ensemble: ``members`` heteroscedastic subnetworks in one ResNet-18."""
+    torch.manual_seed(100)
+    config = state_config(stereo, dropout=0.0, log_variance=True, subnetworks=members)
+    return DrivingNetwork(config).eval().to(memory_format=torch.channels_last)
+
+
 def learned_env(
     track: str, stereo: bool, state_uncertainty: str = "mc-dropout"
 ) -> tuple[gym.Env, LearnedAgent]:
-    """The learned step: MC dropout behind the chance-constrained filter, or an ensemble
-    behind the robust one (its interval ``mean +- 2 std``: the conformal scale's cost is
-    the same)."""
+    """The learned step: MC dropout behind the chance-constrained filter, or a deep or MIMO
+    ensemble behind the robust one (its interval ``mean +- 2 std``: the conformal scale's
+    cost is the same)."""
     control, state = networks(stereo)
     env = gym.make("saferace/CenterLine-v0", track=track, stereo=stereo, max_laps=100)
-    if state_uncertainty == "ensemble":
-        source = LearnedStateSource(ensemble(stereo), MC_SAMPLES, seed=0)
+    if state_uncertainty != "mc-dropout":
+        made = ensemble(stereo) if state_uncertainty == "ensemble" else mimo(stereo)
+        source = LearnedStateSource(made, MC_SAMPLES, seed=0)
         env = SafetyFilter(env, state_source=source, uncertainty="robust")
     else:
         env = SafetyFilter(env, state_source=LearnedStateSource(state, MC_SAMPLES, seed=0))
@@ -140,13 +149,15 @@ def main() -> None:
     expert = MPCExpert.for_env(expert_env)
     rows = [["expert MPC, ground truth (baseline)", step_times_ms(expert_env, expert, args.steps)]]
     expert_env.close()
-    for stereo, uncertainty in ((False, "mc-dropout"), (True, "mc-dropout"), (False, "ensemble")):
+    kinds = {"ensemble": "deep ensemble", "mimo": "MIMO ensemble"}
+    runs = ((False, "mc-dropout"), (True, "mc-dropout"), (False, "ensemble"), (False, "mimo"))
+    for stereo, uncertainty in runs:
         env, agent = learned_env(args.track, stereo, uncertainty)
         camera = "stereo 64x64x6" if stereo else "mono 64x64x3"
         label = (
             f"learned, {camera}, perceived-state filter"
             if uncertainty == "mc-dropout"
-            else f"learned, {camera}, {DEFAULT_MEMBERS}-member ensemble, robust filter"
+            else f"learned, {camera}, {DEFAULT_MEMBERS}-member {kinds[uncertainty]}, robust filter"
         )
         rows.append([label, step_times_ms(env, agent, args.steps)])
         env.close()
@@ -156,7 +167,12 @@ def main() -> None:
         median = np.median(times)
         table.append([label, median, np.percentile(times, 95), 1e3 / median, median / baseline])
     print(markdown_table(["step", "median [ms]", "p95 [ms]", "steps/s", "x expert's time"], table))
-    for name, row in (("mono", table[1]), ("mono with the ensemble", table[3])):
+    verdicts = (
+        ("mono", table[1]),
+        ("mono with the deep ensemble", table[3]),
+        ("mono with the MIMO ensemble", table[4]),
+    )
+    for name, row in verdicts:
         verdict = "meets" if row[3] >= TARGET_STEPS_PER_S else "misses"
         print(f"\n{name}: {row[3]:.0f} steps/s, {verdict} the target of {TARGET_STEPS_PER_S:.0f}")
     print()

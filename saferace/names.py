@@ -24,9 +24,10 @@ GAIN_NAMES = ("paper", "grip", "tuned")
 #: (the paper's), or barrier conditions that hold for every state of the source's interval,
 #: with a fallback where they cannot (``saferace.safety.filter.SafetyFilter``).
 UNCERTAINTY_MODES = ("chance", "robust")
-#: How the state network gives its uncertainty: MC dropout (the paper's) or a deep ensemble
-#: of heteroscedastic networks (``saferace.learning.ensemble``).
-STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble")
+#: How the state network gives its uncertainty: MC dropout (the paper's), a deep ensemble
+#: of heteroscedastic networks (``saferace.learning.ensemble``), or a MIMO ensemble of
+#: heteroscedastic subnetworks sharing one ResNet-18 (``NetworkConfig.subnetworks``).
+STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble", "mimo")
 #: Feedback an adaptive conformal interval learns from: the truth a step late (oracle
 #: feedback) or the odometry's prediction (``saferace.safety.adaptive``).
 ADAPTIVE_FEEDBACK = ("oracle", "odometry")

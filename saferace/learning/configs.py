@@ -69,11 +69,14 @@ class TrainConfig:
     )
     state_uncertainty: str = setting(
         "mc-dropout",
-        "the state network's uncertainty: MC dropout (the paper's) or a deep ensemble of "
-        "heteroscedastic networks, each from its own seed",
+        "the state network's uncertainty: MC dropout (the paper's), a deep ensemble of "
+        "heteroscedastic networks, each from its own seed, or a MIMO ensemble: heteroscedastic "
+        "subnetworks in one ResNet-18, each trained on its own batches (one forward pass)",
         choices=STATE_UNCERTAINTY_METHODS,
     )
-    ensemble_members: int = setting(5, "state networks in an ensemble", metavar="K")
+    ensemble_members: int = setting(
+        5, "state networks in an ensemble (subnetworks in a MIMO one)", metavar="K"
+    )
     augment: bool = setting(
         False,
         "photometric augmentation: each training image redrawn with its own brightness, "
@@ -416,7 +419,7 @@ class DaggerConfig:
             "adaptive": (safety.adaptive, None),
             "state_uncertainty": (training.state_uncertainty, "mc-dropout"),
             "ensemble_members": (
-                training.ensemble_members if training.state_uncertainty == "ensemble" else 5,
+                training.ensemble_members if training.state_uncertainty != "mc-dropout" else 5,
                 5,
             ),
             "augment": (training.augment, False),

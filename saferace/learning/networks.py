@@ -40,7 +40,10 @@ LOG_VARIANCE_RANGE = (-12.0, 6.0)
 class NetworkConfig:
     """Shape of one network: its outputs, input channels and head; ``log_variance``: a
     heteroscedastic head that also outputs each output's log-variance (an ensemble member,
-    trained on the Gaussian negative log-likelihood)."""
+    trained on the Gaussian negative log-likelihood); ``subnetworks`` K > 1: a MIMO ensemble
+    (Havasi et al., ICLR 2021) of K heteroscedastic subnetworks in one ResNet-18, each with
+    its own input channels and outputs, trained on independently drawn frames; predicting,
+    every subnetwork sees the same frame, so one forward pass gives the whole ensemble."""
 
     outputs: tuple[str, ...]
     in_channels: int = 3
@@ -49,6 +52,7 @@ class NetworkConfig:
     hidden: int = 128
     velocity_hidden: int = 64
     log_variance: bool = False
+    subnetworks: int = 1
 
     def __post_init__(self) -> None:
         if self.in_channels not in (3, 6):
@@ -59,6 +63,10 @@ class NetworkConfig:
             raise SafeRaceError(f"dropout must be in [0, 1), got {self.dropout}")
         if not self.outputs:
             raise SafeRaceError("a network needs at least one output")
+        if self.subnetworks < 1:
+            raise SafeRaceError(f"subnetworks must be at least 1, got {self.subnetworks}")
+        if self.subnetworks > 1 and not self.log_variance:
+            raise SafeRaceError("MIMO subnetworks need heteroscedastic heads (log_variance)")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -74,15 +82,17 @@ def control_config(stereo: bool = False, dropout: float = 0.2) -> NetworkConfig:
 
 
 def state_config(
-    stereo: bool = False, dropout: float = 0.2, log_variance: bool = False
+    stereo: bool = False, dropout: float = 0.2, log_variance: bool = False, subnetworks: int = 1
 ) -> NetworkConfig:
-    """``M_st``: image to ``[e_y_m, e_psi_rad, kappa_radpm]`` (and their log-variances)."""
+    """``M_st``: image to ``[e_y_m, e_psi_rad, kappa_radpm]`` (and their log-variances, per
+    MIMO subnetwork)."""
     return NetworkConfig(
         STATE_OUTPUTS,
         6 if stereo else 3,
         uses_velocity=False,
         dropout=dropout,
         log_variance=log_variance,
+        subnetworks=subnetworks,
     )
 
 
@@ -126,13 +136,14 @@ class DrivingNetwork(nn.Module):
         super().__init__()
         self.config = config
         channels, outputs = config.in_channels, len(config.outputs)
-        self.backbone = resnet18_features(channels)
+        self.backbone = resnet18_features(channels * config.subnetworks)
         self.image_branch = nn.Linear(FEATURES, config.hidden)
         width = config.hidden
         if config.uses_velocity:
             self.velocity_branch = nn.Linear(len(VELOCITY_INPUTS), config.velocity_hidden)
             width += config.velocity_hidden
-        self.output_layer = nn.Linear(width, 2 * outputs if config.log_variance else outputs)
+        per_subnetwork = 2 * outputs if config.log_variance else outputs
+        self.output_layer = nn.Linear(width, per_subnetwork * config.subnetworks)
         self.register_buffer("image_mean", torch.full((channels,), 0.5))
         self.register_buffer("image_std", torch.full((channels,), 0.25))
         self.register_buffer("velocity_mean", torch.zeros(len(VELOCITY_INPUTS)))
@@ -147,15 +158,20 @@ class DrivingNetwork(nn.Module):
             buffer.copy_(torch.as_tensor(np.asarray(values), dtype=buffer.dtype))
 
     def features(self, image: torch.Tensor) -> torch.Tensor:
-        """``(N, 512)`` backbone features of uint8 images ``(N, H, W, C)``."""
-        if image.ndim != 4 or image.shape[-1] != self.config.in_channels:
+        """``(N, 512)`` backbone features of uint8 images ``(N, H, W, C)``; a MIMO network
+        takes each subnetwork's image side by side ``(N, H, W, K C)``, or one image that
+        every subnetwork sees."""
+        channels, subnetworks = self.config.in_channels, self.config.subnetworks
+        if image.ndim == 4 and subnetworks > 1 and image.shape[-1] == channels:
+            image = image.repeat(1, 1, 1, subnetworks)
+        if image.ndim != 4 or image.shape[-1] != channels * subnetworks:
             raise SafeRaceError(
-                f"expected images (N, H, W, {self.config.in_channels}), got {tuple(image.shape)}"
+                f"expected images (N, H, W, {channels * subnetworks}), got {tuple(image.shape)}"
             )
         # NHWC -> NCHW as a view: channels-last memory, the fast layout for CPU convolutions.
         x = image.permute(0, 3, 1, 2).float() / 255.0
-        x = (x - self.image_mean[:, None, None]) / self.image_std[:, None, None]
-        return self.backbone(x)
+        mean, std = self.image_mean.repeat(subnetworks), self.image_std.repeat(subnetworks)
+        return self.backbone((x - mean[:, None, None]) / std[:, None, None])
 
     def head(
         self,
@@ -225,13 +241,20 @@ class DrivingNetwork(nn.Module):
         return Prediction(mean.numpy(), std.numpy(), samples.numpy(), features.numpy())
 
     def _gaussian_prediction(self, outputs: torch.Tensor, features: torch.Tensor) -> Prediction:
-        """A heteroscedastic head's mean and std in physical units; its samples are the two
-        points ``mean +- std`` (their mean and population spread are exactly those)."""
+        """Heteroscedastic heads' mean and std in physical units: the mixture of the
+        subnetworks' Gaussians (mean of means; variance ``mean(var_k) + var(mean_k)``). Its
+        samples are each subnetwork's two points ``mean_k +- std_k``, whose mean and
+        population spread are exactly the mixture's."""
         count = len(self.config.outputs)
-        mean = self.denormalise_outputs(outputs[:, :count])
-        std = torch.exp(0.5 * outputs[:, count:].clamp(*LOG_VARIANCE_RANGE)) * self.output_std
-        samples = torch.stack([mean - std, mean + std], dim=1)
-        return Prediction(mean.numpy(), std.numpy(), samples.numpy(), features.numpy())
+        per_subnetwork = outputs.reshape(len(outputs), self.config.subnetworks, 2 * count)
+        means = self.denormalise_outputs(per_subnetwork[..., :count])
+        log_variance = per_subnetwork[..., count:].clamp(*LOG_VARIANCE_RANGE)
+        stds = torch.exp(0.5 * log_variance) * self.output_std
+        samples = torch.cat([means - stds, means + stds], dim=1)
+        variance = (stds**2).mean(dim=1) + means.var(dim=1, correction=0)
+        return Prediction(
+            means.mean(dim=1).numpy(), variance.sqrt().numpy(), samples.numpy(), features.numpy()
+        )
 
     def _dropout(
         self, x: torch.Tensor, sample: bool, generator: torch.Generator | None

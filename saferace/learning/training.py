@@ -55,6 +55,10 @@ IMAGE_STATISTICS_FRAMES = 2000
 ENSEMBLE_SEED_STRIDE = 7919
 #: Apart in seed between a network's batch order and its photometric draws.
 AUGMENTATION_SEED_OFFSET = 104729
+#: Share of a MIMO network's training inputs on which every subnetwork sees the same frame
+#: (Havasi et al.'s input repetition: without it, 5 subnetworks trained on augmented frames
+#: learned nothing, their held-out loss that of predicting the mean).
+MIMO_INPUT_REPETITION = 0.5
 #: Floor of an output's or input's standard deviation (a constant curvature on an oval).
 MIN_STD = 1e-3
 
@@ -162,22 +166,24 @@ def fit(
     with bar:
         for epoch in range(first_epoch, epochs):
             network.train()
-            order = torch.randperm(len(train), generator=generator).numpy()
-            order = order[: (steps - epoch * batches) * config.batch_size]  # the last epoch's cut
+            order = epoch_order(len(train), network.config.subnetworks, generator)
+            order = order[..., : (steps - epoch * batches) * config.batch_size]  # the last cut
             total = 0.0
-            for start in range(0, len(order), config.batch_size):
-                index = order[start : start + config.batch_size]
-                outputs = _forward(network, train, index, augmenter if config.augment else None)
-                loss = training_loss(network, outputs, targets[index])
+            for start in range(0, order.shape[-1], config.batch_size):
+                index = order[..., start : start + config.batch_size]
+                outputs = network_outputs(
+                    network, train, index, augmenter if config.augment else None
+                )
+                loss = training_loss(network, outputs, targets[index.T])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
                 value = loss.item()
                 history["batch_loss"].append(value)
-                total += value * len(index)
+                total += value * index.shape[-1]
                 bar.update()
                 bar.set_postfix(epoch=epoch + 1, loss=f"{value:.4f}")
-            history["train_loss"].append(total / len(order))
+            history["train_loss"].append(total / order.shape[-1])
             history["epoch_end_step"].append(len(history["batch_loss"]))
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
@@ -208,44 +214,70 @@ def fit(
     return history
 
 
+def epoch_order(count: int, subnetworks: int, generator: torch.Generator) -> np.ndarray:
+    """One epoch's order of ``count`` frames: ``(count,)``, or for a MIMO network one
+    independent order per subnetwork ``(K, count)``, so each trains on its own batches,
+    except that a share :data:`MIMO_INPUT_REPETITION` of the places give every subnetwork
+    the first one's frame."""
+    first = torch.randperm(count, generator=generator)
+    if subnetworks == 1:
+        return first.numpy()
+    others = torch.stack(
+        [torch.randperm(count, generator=generator) for _ in range(1, subnetworks)]
+    )
+    repeated = torch.rand(count, generator=generator) < MIMO_INPUT_REPETITION
+    return torch.cat([first[None], torch.where(repeated, first, others)]).numpy()
+
+
 def training_loss(
     network: DrivingNetwork, outputs: torch.Tensor, targets: torch.Tensor
 ) -> torch.Tensor:
-    """The MSE of normalised targets, or for a heteroscedastic head the Gaussian negative
-    log-likelihood of its means and variances."""
+    """The MSE of normalised targets, or for heteroscedastic heads the Gaussian negative
+    log-likelihood of their means and variances (``targets`` ``(B, K, outputs)`` for K MIMO
+    subnetworks, each its own frame's)."""
     if not network.config.log_variance:
         return functional.mse_loss(outputs, targets)
-    count = targets.shape[1]
-    log_variance = outputs[:, count:].clamp(*LOG_VARIANCE_RANGE)
-    return functional.gaussian_nll_loss(outputs[:, :count], targets, log_variance.exp())
+    count = targets.shape[-1]
+    per_subnetwork = outputs.reshape(len(outputs), network.config.subnetworks, 2 * count)
+    log_variance = per_subnetwork[..., count:].clamp(*LOG_VARIANCE_RANGE)
+    means = per_subnetwork[..., :count]
+    return functional.gaussian_nll_loss(means, targets.reshape(means.shape), log_variance.exp())
 
 
 @torch.inference_mode()
 def validation_loss(network: DrivingNetwork, data: NetworkData, batch_size: int) -> float:
-    """MSE of normalised targets with dropout off (of the means, for a heteroscedastic
-    head: comparable with a dropout network's)."""
+    """MSE of normalised targets with dropout off (of the means, and of a MIMO network's
+    subnetworks' mean, for heteroscedastic heads: comparable with a dropout network's)."""
     network.eval()
     targets = network.normalise_outputs(torch.as_tensor(data.targets, dtype=torch.float32))
+    count = targets.shape[1]
+    width = 2 * count if network.config.log_variance else count
     total = 0.0
     for start in range(0, len(data), batch_size):
         index = np.arange(start, min(start + batch_size, len(data)))
-        error = _forward(network, data, index)[:, : targets.shape[1]] - targets[index]
+        outputs = network_outputs(network, data, index).reshape(len(index), -1, width)
+        error = outputs[..., :count].mean(dim=1) - targets[index]
         total += float((error**2).mean(dim=1).sum())
     return total / len(data)
 
 
-def _forward(
+def network_outputs(
     network: DrivingNetwork,
     data: NetworkData,
     index: np.ndarray,
     augmenter: torch.Generator | None = None,
 ) -> torch.Tensor:
     """The network's outputs for frames ``index``, their images augmented with draws from
-    ``augmenter`` where one is given."""
+    ``augmenter`` where one is given. A ``(K, B)`` index gives a MIMO network's K
+    subnetworks each its own frames, side by side in the channels."""
     velocity = None if data.velocity is None else torch.from_numpy(data.velocity[index])
-    images = torch.from_numpy(data.images[index])
+    images = torch.from_numpy(data.images[index.reshape(-1)])
     if augmenter is not None:
         images = photometric(images, augmenter)
+    if index.ndim == 2:  # (K B, H, W, C) -> (B, H, W, K C)
+        subnetworks, batch = index.shape
+        images = images.reshape(subnetworks, batch, *images.shape[1:]).permute(1, 2, 3, 0, 4)
+        images = images.reshape(*images.shape[:3], -1)
     return network(images, velocity)
 
 
@@ -363,6 +395,9 @@ def training_units(config: TrainConfig, stereo: bool) -> list[TrainingUnit]:
     if config.state_uncertainty == "mc-dropout":
         state = state_config(stereo, config.dropout)
         return [*units, TrainingUnit("state", "state", 0, state, config.seed + 1, config.seed)]
+    if config.state_uncertainty == "mimo":
+        mimo = state_config(stereo, 0.0, log_variance=True, subnetworks=config.ensemble_members)
+        return [*units, TrainingUnit("state", "state", 0, mimo, config.seed + 1, config.seed)]
     member_config = state_config(stereo, dropout=0.0, log_variance=True)
     for member in range(config.ensemble_members):
         name = "state" if member == 0 else f"state_member_{member}"
