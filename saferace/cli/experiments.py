@@ -81,8 +81,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--state-uncertainty",
         default="mc-dropout",
         choices=STATE_UNCERTAINTY_METHODS,
-        help="the state networks' uncertainty in every run: MC dropout (the paper's) or a deep "
-        "ensemble (see saferace train)",
+        help="the state networks' uncertainty in every run: MC dropout (the paper's), a deep "
+        "ensemble or a MIMO ensemble (see saferace train)",
     )
     tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
