@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -16,6 +17,7 @@ import pytest
 import torch
 
 from saferace.errors import SafeRaceError
+from saferace.learning import training
 from saferace.learning.calibration import inside_lane
 from saferace.learning.checkpoint import load_checkpoint
 from saferace.learning.configs import DaggerConfig, EpisodeSettings, TrainConfig
@@ -202,44 +204,72 @@ def held_out_inside(run: DaggerRun, iteration: int) -> FrameSet | list:
 RUNNER = """
 import sys
 sys.path.insert(0, {tests!r})
-from test_dagger import TINY
+from test_dagger import TINY, stop_at
 from saferace.learning.dagger import DaggerRun
+stop_at({point!r}, {out!r})
 DaggerRun({out!r}, TINY, progress=False).run()
 """
+#: Printed by a run stopped at its point, where it waits to be killed.
+STOPPED = "stopped"
 
 
-def start_run(out: Path) -> subprocess.Popen:
-    script = RUNNER.format(tests=str(Path(__file__).parent), out=str(out))
-    return subprocess.Popen([sys.executable, "-c", script])
+def stop_at(point: str, out: str) -> None:
+    """Make this process's DAgger run in ``out`` print :data:`STOPPED` and wait at ``point``:
+    ``round 1`` (iteration 1 driven, its round not yet written) or ``resume 2`` (the first
+    epoch of iteration 2's training saved to its resume file), so a kill lands there."""
+    from saferace.learning import collect, training
+    from saferace.learning.rounds import next_round_index
+
+    layout = RunLayout(out)
+
+    def wait() -> None:
+        print(STOPPED, flush=True)
+        time.sleep(3600)
+
+    write_round, save_atomically = collect.write_round, training.save_atomically
+
+    def write_round_then(dataset_dir, *args, **kwargs):
+        if point == "round 1" and next_round_index(dataset_dir) == 1:
+            wait()
+        return write_round(dataset_dir, *args, **kwargs)
+
+    def save_then(state, path):
+        save_atomically(state, path)
+        if point == "resume 2" and Path(path) == layout.resume(2):
+            wait()
+
+    collect.write_round, training.save_atomically = write_round_then, save_then
 
 
-def kill_when(process: subprocess.Popen, ready, timeout_s: float = 300.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not ready():
-        assert process.poll() is None, "the run ended before the moment to kill it"
-        assert time.monotonic() < deadline, "the moment to kill the run never came"
-        time.sleep(0.01)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait()
+def kill_at(point: str, out: Path) -> None:
+    """Run TINY in ``out`` in another process and kill it at ``point`` (see :func:`stop_at`)."""
+    script = RUNNER.format(tests=str(Path(__file__).parent), point=point, out=str(out))
+    process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert process.stdout.readline().strip() == STOPPED, f"the run never reached {point}"
+    finally:
+        os.kill(process.pid, signal.SIGKILL)
+        process.wait()
 
 
 def test_killed_while_driving_and_while_training_it_ends_with_the_same_rounds(
-    unfiltered: DaggerRun, tmp_path: Path
+    unfiltered: DaggerRun, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
     out = tmp_path / "killed"
     run = DaggerRun(out, TINY, progress=False)
-
-    def driving_iteration_1() -> bool:
-        return run.layout.checkpoint(1).exists()
-
-    def training_iteration_2() -> bool:  # an epoch done, the networks not yet saved
-        return run.layout.resume(2).exists()
-
-    kill_when(start_run(out), driving_iteration_1)
-    assert not run.layout.round(1).exists()
-    kill_when(start_run(out), training_iteration_2)
-    assert not run.layout.checkpoint(2).exists()
+    kill_at("round 1", out)
+    assert run.layout.checkpoint(1).exists() and not run.layout.round(1).exists()
+    kill_at("resume 2", out)
+    assert run.layout.resume(2).exists() and not run.layout.checkpoint(2).exists()
+    losses = []  # one per gradient step the finishing run takes
+    loss = training.training_loss
+    monkeypatch.setattr(training, "training_loss", lambda *a: losses.append(1) or loss(*a))
     rows = run.run()
+    # The control network's first epoch was done: its second and the state network's two.
+    frames = len(load_rounds([run.layout.round(0), run.layout.round(1)]))
+    batches = math.ceil(frames / TINY.training.batch_size)
+    assert TINY.training.steps_for(frames) == 2 * batches  # two epochs per network
+    assert len(losses) == 3 * batches
     assert [row["iteration"] for row in rows] == [0, 1, 2]
     for iteration in range(3):
         assert rounds_equal(unfiltered.layout.round(iteration), run.layout.round(iteration))

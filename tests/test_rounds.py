@@ -6,7 +6,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -107,34 +106,40 @@ def test_interrupted_write_leaves_no_round(tmp_path: Path, monkeypatch: pytest.M
 
 WRITER = """
 import sys
+import time
 import numpy as np
-from saferace.learning.rounds import write_round
+from saferace.learning.rounds import next_round_index, write_round
 sys.path.insert(0, {tests!r})
 from test_rounds import config, fake_frames
-frames = fake_frames(6000, seed=2)  # large enough to take a while to compress
-print("ready", flush=True)
+save = np.savez_compressed
+
+
+def save_then_stop(*args, **kwargs):
+    save(*args, **kwargs)
+    if next_round_index({dataset!r}) == 1:  # the second round half written: stop here
+        print("stopped", flush=True)
+        time.sleep(3600)
+
+
+np.savez_compressed = save_then_stop
+frames = fake_frames(6000, seed=2)
 while True:
     write_round({dataset!r}, frames, config())
 """
 
 
-def test_a_kill_at_any_moment_leaves_only_complete_rounds(tmp_path: Path):
+def test_a_kill_mid_write_leaves_only_complete_rounds(tmp_path: Path):
     dataset = tmp_path / "data"
     script = WRITER.format(tests=str(Path(__file__).parent), dataset=str(dataset))
     writer = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:
-        assert writer.stdout.readline().strip() == "ready"
-        deadline = time.monotonic() + 120
-        while not round_dirs(dataset) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        while not list(dataset.glob(".partial-*")) and time.monotonic() < deadline:
-            time.sleep(0.01)  # kill while the next round is half written
+        assert writer.stdout.readline().strip() == "stopped"
     finally:
         os.kill(writer.pid, signal.SIGKILL)
         writer.wait()
     partials = list(dataset.glob(".partial-*"))
     complete = round_dirs(dataset)
-    assert partials and complete, "the kill should land between a finished and an unfinished round"
+    assert len(partials) == len(complete) == 1  # one finished round, one half written
     frames = load_rounds([dataset])  # every earlier round loads ...
     assert len(frames) == 6000 * len(complete)
     assert next_round_index(dataset) == len(complete)  # ... and the half-written one is no round
