@@ -273,3 +273,17 @@ def test_an_interrupted_run_resumes_to_the_same_weights(
             assert torch.equal(weights, after.state_dict()[name]), name
     with pytest.raises(SafeRaceError, match="other settings"):
         train_networks(few, replace(config, seed=3), progress=False, resume_file=resume_file)
+
+
+def test_a_lone_last_frame_of_small_images_is_left_out_of_the_epochs_batches():
+    """At 32x32 the backbone's last features are 1x1: BatchNorm cannot train on a batch of
+    one frame, which 33 frames in batches of 32 leave at the end of every epoch."""
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 255, (33, 32, 32, 3), dtype=np.uint8)
+    data = training.NetworkData(images, None, rng.normal(size=(33, 3)).astype(np.float32))
+    torch.manual_seed(0)
+    network = DrivingNetwork(state_config())
+    history = fit(network, data, None, TrainConfig(epochs=2), "state", progress=False)
+    assert len(history["batch_loss"]) == 2  # one full batch per epoch, the lone frame left out
+    assert history["epoch_end_step"] == [1, 2]
+    assert history["train_loss"] == pytest.approx(history["batch_loss"])

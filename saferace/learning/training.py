@@ -168,9 +168,12 @@ def fit(
             network.train()
             order = epoch_order(len(train), network.config.subnetworks, generator)
             order = order[..., : (steps - epoch * batches) * config.batch_size]  # the last cut
-            total = 0.0
+            total, trained = 0.0, 0
             for start in range(0, order.shape[-1], config.batch_size):
                 index = order[..., start : start + config.batch_size]
+                bar.update()
+                if index.shape[-1] == 1:  # BatchNorm cannot train on one frame of 1x1 features
+                    continue  # (32x32 images); shuffled, the frame is in the next epoch's batches
                 outputs = network_outputs(
                     network, train, index, augmenter if config.augment else None
                 )
@@ -181,9 +184,9 @@ def fit(
                 value = loss.item()
                 history["batch_loss"].append(value)
                 total += value * index.shape[-1]
-                bar.update()
+                trained += index.shape[-1]
                 bar.set_postfix(epoch=epoch + 1, loss=f"{value:.4f}")
-            history["train_loss"].append(total / order.shape[-1])
+            history["train_loss"].append(total / max(trained, 1))
             history["epoch_end_step"].append(len(history["batch_loss"]))
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
