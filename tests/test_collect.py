@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from cli_helpers import run_cli
 
+from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
 from saferace.learning.collect import SteeringNoise, collect_round
@@ -63,7 +64,7 @@ def test_other_driver_through_the_filter(tmp_path: Path):
 
 
 def test_steering_noise_is_stationary_and_correlated():
-    dt, tau, std = 0.05, 0.5, 0.1
+    dt, tau, std = 1.0 / DEFAULT_CONTROL_HZ, 0.5, 0.1
     noise = SteeringNoise(Perturbation(std, tau), dt, seed=0)
     values = np.array([noise.sample() for _ in range(40_000)])
     assert values.std() == pytest.approx(std, rel=0.05)

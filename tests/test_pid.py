@@ -8,9 +8,10 @@ import pytest
 
 from saferace.agents.mpc import MPCExpert
 from saferace.agents.pid import PIDGains, PIDSpeedController
+from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.eval.runner import run_episode
 
-DT = 0.05
+DT = 1.0 / DEFAULT_CONTROL_HZ  # the tasks' control step
 
 
 def simulate(controller: PIDSpeedController, target: float, drag_per_s: float, seconds: float):

@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from cli_helpers import run_cli
 
+from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.eval.metrics import lap_metrics, summarize, thinned_trajectory
 from saferace.eval.track_plots import plot_path, plt
 
-DT = 0.05
+DT = 1.0 / DEFAULT_CONTROL_HZ  # the tasks' control step
 
 
 def hand_made_steps() -> dict[str, np.ndarray]:
