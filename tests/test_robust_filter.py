@@ -89,6 +89,27 @@ def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
     assert chance.fallback == "" and chance.filtered_action[1] == pytest.approx(1.0)
 
 
+def test_the_fallback_keeps_the_maps_speed_limit():
+    # Infeasible at 6 m/s on lab, yet the interval fits the lane at that speed: without the
+    # speed limit the fallback lets the agent accelerate; with it, it brakes as its row says.
+    source = IntervalSource([0.0, 0.0, 0.0], [0.1, 0.1, 0.0])
+    decisions, bounds = {}, {}
+    for factor in (None, 1.1):
+        env = SafetyFilter(
+            gym.make("saferace/CenterLine-v0", track="lab", max_laps=1),
+            state_source=source,
+            uncertainty="robust",
+            speed_limit_factor=factor,
+        )
+        observation, info = env.reset(seed=0, options={"start_s_m": 0.5, "start_speed_mps": 6.0})
+        decisions[factor] = env.certify(observation, info, np.array([0.0, 2.0]))
+        assert env.last_problem is not None
+        bounds[factor] = env.last_problem.b[-1]  # the speed row's, with a limit
+    assert decisions[None].fallback == decisions[1.1].fallback == "infeasible"
+    assert decisions[None].filtered_action[1] == pytest.approx(2.0)
+    assert bounds[1.1] < 0.0 and decisions[1.1].filtered_action[1] == pytest.approx(bounds[1.1])
+
+
 @pytest.mark.parametrize("start_s_m", [0.5, 9.0])  # a straight, a turn
 def test_an_alarm_stops_the_car_steering_the_lanes_curvature(start_s_m: float):
     narrow = IntervalSource([0.0, 0.0, 0.0], [0.02, 0.02, 0.0], alarm=True)
