@@ -15,7 +15,6 @@ import saferace  # noqa: F401  (registers the tasks)
 from saferace.safety.fallback import (
     DISTRUST_BRAKE_MPS2,
     fallback_accel_bounds,
-    fallback_steer_rad,
     fitting_speed_mps,
 )
 from saferace.safety.filter import SafetyFilter
@@ -81,15 +80,10 @@ def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
     env, decision = filtered_on_lab(source, "robust", [0.3, 1.0])
     assert decision.fallback == "infeasible"
     assert decision.filtered_action[1] == pytest.approx(-DISTRUST_BRAKE_MPS2)
-    # Its own steering, not the agent's: the lane's curvature, and back towards the centre
-    # by what every state of the interval shares: offsets from -0.15 to 0.35 m (no pull),
-    # headings from 0.04 to 0.06 rad (a pull of 0.04, at 1 rad per rad).
-    feedforward = math.atan(env.wheelbase_m * env.track.centerline.curvature_scalar(0.5))
-    assert decision.filtered_action[0] == pytest.approx(feedforward - 0.04, abs=1e-3)
-    assert fallback_steer_rad(0.1, (np.array([0.2, -0.3]), np.array([0.4, 0.1]))) == (
-        pytest.approx(0.1 - 0.2)  # all to the left of the centre; headings either way
-    )
-    assert fallback_steer_rad(0.1, None) == 0.1  # after an alarm: the curvature alone
+    # its own steering, not the agent's: the lane's curvature, back towards the centre
+    curvature = env.track.centerline.curvature_scalar(0.5)
+    steer = math.atan(env.wheelbase_m * curvature) - 0.1 - 0.05  # 1 rad per m and per rad
+    assert decision.filtered_action[0] == pytest.approx(steer, abs=1e-3)
     # The same interval in the chance mode is only its samples' mean: no fallback, no brake.
     _, chance = filtered_on_lab(source, "chance", [-0.1, 1.0])
     assert chance.fallback == "" and chance.filtered_action[1] == pytest.approx(1.0)

@@ -74,19 +74,14 @@ def fallback_accel_bounds(
     return -DISTRUST_BRAKE_MPS2, gap
 
 
-def fallback_steer_rad(
-    feedforward_rad: float, interval: tuple[np.ndarray, np.ndarray] | None
-) -> float:
+def fallback_steer_rad(feedforward_rad: float, believed: np.ndarray | None) -> float:
     """The fallback's steering, whatever the agent asks: the lane's curvature from the map
     (``feedforward_rad``, which keeps the car's heading relative to the lane) and, where the
-    ``interval`` of ``[e_y, e_psi]`` can still be trusted (None: it cannot, after an alarm),
-    a pull towards the centre line from the interval's point nearest to it: only the part
-    of an offset or heading error that every state of the interval has. The agent's own
-    steering let a drifting agent out while the interval lagged its heading; a pull from
-    the interval's centre steered a car whose network misread its heading by 0.15 rad (on
-    a look it never saw, the truth outside the interval) out of the lane."""
-    if interval is None:
+    ``believed`` ``[e_y, e_psi]`` can still be trusted (None: it cannot, after an alarm), a
+    pull towards the centre line. The agent's own steering, kept within the barriers of the
+    interval's centre, let a drifting agent out while the interval lagged its heading."""
+    if believed is None:
         return feedforward_rad
-    lower, upper = (np.asarray(bound, float)[:2] for bound in interval)
-    certain = np.clip(0.0, lower, upper)
-    return feedforward_rad - FALLBACK_STEER_PER_M * certain[0] - FALLBACK_STEER_PER_RAD * certain[1]
+    return (
+        feedforward_rad - FALLBACK_STEER_PER_M * believed[0] - FALLBACK_STEER_PER_RAD * believed[1]
+    )

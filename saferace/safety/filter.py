@@ -95,9 +95,8 @@ class SafetyFilter(gym.Wrapper):
     samples; the curvature comes from the map (a network's is its worst output). Where no
     control satisfies them, the filter falls back (:mod:`saferace.safety.fallback`): it
     brakes towards a speed at which the interval fits inside the lane (a creep speed, or a
-    stop where even its offsets do not fit) and never above the map's speed limit, steering
-    the lane's curvature and towards the centre line by the offset and heading error every
-    state of the interval shares, within the tyres' grip. While the source's
+    stop where even its offsets do not fit), steering the lane's curvature and towards the
+    centre line from the interval's centre, within the tyres' grip. While the source's
     out-of-distribution monitor raises it stops, steering the lane's curvature alone: a
     creeping car, or one steered from an interval in doubt, still drifted out. Each such
     step counts in ``fallbacks``.
@@ -282,7 +281,7 @@ class SafetyFilter(gym.Wrapper):
         filtered = solution.u
         if fallback:  # the lane's curvature, and back to the centre where the belief holds
             feedforward = math.atan(self.wheelbase_m * self.track.centerline.curvature_scalar(s_m))
-            steer = fallback_steer_rad(feedforward, None if alarm else (state_lower, state_upper))
+            steer = fallback_steer_rad(feedforward, None if alarm else lane.mean(axis=0))
             if fallback == "solver":  # brakes whatever the creep rule asks
                 box, accel = self._action_box(v_x, -math.inf), -FALLBACK_BRAKE_MPS2
             else:
