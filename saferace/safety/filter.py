@@ -95,8 +95,9 @@ class SafetyFilter(gym.Wrapper):
     samples; the curvature comes from the map (a network's is its worst output). Where no
     control satisfies them, the filter falls back (:mod:`saferace.safety.fallback`): it
     brakes towards a speed at which the interval fits inside the lane (a creep speed, or a
-    stop where even its offsets do not fit), steering the lane's curvature and towards the
-    centre line from the interval's centre, within the tyres' grip. While the source's
+    stop where even its offsets do not fit) and never above the map's speed limit, steering
+    the lane's curvature and towards the centre line from the interval's centre, within the
+    tyres' grip. While the source's
     out-of-distribution monitor raises it stops, steering the lane's curvature alone: a
     creeping car, or one steered from an interval in doubt, still drifted out. Each such
     step counts in ``fallbacks``.
