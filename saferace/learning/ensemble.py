@@ -20,18 +20,10 @@ import torch
 from torch import nn
 
 from saferace.errors import SafeRaceError
-from saferace.learning.networks import DrivingNetwork, NetworkConfig, Prediction
+from saferace.learning.networks import DrivingNetwork, NetworkConfig, Prediction, mixture
 
 #: Members of an ensemble by default (Lakshminarayanan et al. used 5).
 DEFAULT_MEMBERS = 5
-
-
-def mixture(means: np.ndarray, stds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std of an equal-weight Gaussian mixture from the members' ``(K, N,
-    outputs)`` means and stds: ``mean(mu_k)`` and ``sqrt(mean(sigma_k^2) + var(mu_k))``."""
-    means, stds = np.asarray(means, float), np.asarray(stds, float)
-    variance = np.mean(stds**2, axis=0) + np.var(means, axis=0)
-    return means.mean(axis=0), np.sqrt(variance)
 
 
 class StateEnsemble(nn.Module):

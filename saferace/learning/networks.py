@@ -108,6 +108,14 @@ class Prediction:
     features: np.ndarray
 
 
+def mixture(means: np.ndarray, stds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and std of an equal-weight Gaussian mixture from the members' ``(K, N,
+    outputs)`` means and stds: ``mean(mu_k)`` and ``sqrt(mean(sigma_k^2) + var(mu_k))``."""
+    means, stds = np.asarray(means, float), np.asarray(stds, float)
+    variance = np.mean(stds**2, axis=0) + np.var(means, axis=0)
+    return means.mean(axis=0), np.sqrt(variance)
+
+
 def resnet18_features(in_channels: int) -> nn.Module:
     """torchvision's ResNet-18 (random weights), ``in_channels`` in, 512 features out."""
     backbone = torchvision.models.resnet18(weights=None)
@@ -251,10 +259,8 @@ class DrivingNetwork(nn.Module):
         log_variance = per_subnetwork[..., count:].clamp(*LOG_VARIANCE_RANGE)
         stds = torch.exp(0.5 * log_variance) * self.output_std
         samples = torch.cat([means - stds, means + stds], dim=1)
-        variance = (stds**2).mean(dim=1) + means.var(dim=1, correction=0)
-        return Prediction(
-            means.mean(dim=1).numpy(), variance.sqrt().numpy(), samples.numpy(), features.numpy()
-        )
+        mean, std = mixture(means.transpose(0, 1).numpy(), stds.transpose(0, 1).numpy())
+        return Prediction(mean, std, samples.numpy(), features.numpy())
 
     def _dropout(
         self, x: torch.Tensor, sample: bool, generator: torch.Generator | None

@@ -97,10 +97,9 @@ class SafetyFilter(gym.Wrapper):
     brakes towards a speed at which the interval fits inside the lane (a creep speed, or a
     stop where even its offsets do not fit) and never above the map's speed limit, steering
     the lane's curvature and towards the centre line from the interval's centre, within the
-    tyres' grip. While the source's
-    out-of-distribution monitor raises it stops, steering the lane's curvature alone: a
-    creeping car, or one steered from an interval in doubt, still drifted out. Each such
-    step counts in ``fallbacks``.
+    tyres' grip. While the source's out-of-distribution monitor raises it stops, steering the
+    lane's curvature alone: a creeping car, or one steered from an interval in doubt, still
+    drifted out. Each such step counts in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
