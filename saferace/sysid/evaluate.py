@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from saferace.safety.models import FrenetModel
-from saferace.sysid.fit import derivative
+from saferace.sysid.fit import interval_mean, interval_rate
 
 HORIZON_S = 0.5
 WINDOW_STRIDE_S = 0.1
@@ -17,12 +17,13 @@ def prediction_errors(
     """RMS errors in ``e_y`` (m) and ``e_psi`` (rad) after ``horizon_s`` of open-loop prediction.
 
     Windows start every 0.1 s after the first 0.5 s. Inputs are the measured wheel angle
-    and the measured longitudinal acceleration, so the error is the model's alone.
+    and the measured longitudinal acceleration over each sample interval, so the error is the
+    model's alone.
     """
     t = log["t_s"]
     dt = float(np.median(np.diff(t)))
     steps = round(horizon_s / dt)
-    accel = derivative(t, log["v_x"]) - log["v_y"] * log["r"]
+    accel = interval_rate(t, log["v_x"]) - interval_mean(log["v_y"] * log["r"])
     starts = range(round(0.5 / dt), len(t) - steps, max(1, round(WINDOW_STRIDE_S / dt)))
     e_y_errors, e_psi_errors = [], []
     for i in starts:
