@@ -65,3 +65,6 @@ RANDOM_TRACK_RADIUS_M = 3.0
 
 #: The file that marks a finished collection round.
 MANIFEST_FILE = "manifest.json"
+
+#: Runs of a submission that ``saferace verify`` drives again unless told otherwise.
+VERIFY_RUNS = 4

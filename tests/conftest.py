@@ -50,3 +50,14 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
         return made[stereo]
 
     return make
+
+
+@pytest.fixture(scope="session")
+def honest_submission(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Pure pursuit's submission of the whole benchmark suite, as ``saferace benchmark``
+    writes it (about 30 s)."""
+    from saferace.experiments.benchmark import run_benchmark
+
+    path = tmp_path_factory.mktemp("benchmark") / "pure_pursuit.json"
+    run_benchmark("pure-pursuit", path, progress=False)
+    return path

@@ -1,4 +1,4 @@
-"""Driving commands: ``drive``, ``eval``, ``leaderboard`` and ``benchmark``."""
+"""Driving commands: ``drive``, ``eval``, ``leaderboard``, ``benchmark`` and ``verify``."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from saferace.cli.arguments import (
     filter_config,
 )
 from saferace.errors import SafeRaceError
-from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS
+from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS, VERIFY_RUNS
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -77,6 +77,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     board.add_argument("--csv", type=Path, help="also write the table as CSV")
     board.add_argument("--plot", type=Path, help="driven trajectories and speeds to a PNG")
     board.add_argument("--html", type=Path, help="submissions: one self-contained leaderboard page")
+    board.add_argument(
+        "--verified-only",
+        action="store_true",
+        help="submissions: list only those saferace verify has passed (in their current form)",
+    )
     board.set_defaults(command=_leaderboard)
 
     bench = commands.add_parser(
@@ -94,6 +99,24 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
     )
     bench.set_defaults(command=_benchmark)
+
+    verify = commands.add_parser(
+        "verify",
+        help="drive a submission's runs again and compare every measurement",
+        epilog=example(
+            "saferace verify submissions/pure_pursuit.json",
+            "saferace verify learned.json --all --workers 2",
+        ),
+    )
+    verify.add_argument("submission", type=Path, help="a submission .json of saferace benchmark")
+    how_many = verify.add_mutually_exclusive_group()
+    how_many.add_argument(
+        "--runs", type=int, default=VERIFY_RUNS, help="replay this many runs, drawn at random"
+    )
+    how_many.add_argument("--all", action="store_true", help="replay every run")
+    verify.add_argument("--seed", type=int, default=0, help="draws the runs to replay")
+    verify.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    verify.set_defaults(command=_verify)
 
 
 def _drive(args: argparse.Namespace) -> int:
@@ -159,8 +182,10 @@ def _leaderboard(args: argparse.Namespace) -> int:
         if not all(submissions):
             raise SafeRaceError("give either eval results (.jsonl) or submissions (.json)")
         return _submission_leaderboard(args)
-    if args.html:
-        raise SafeRaceError("--html makes the benchmark's page: give submission .json files")
+    if args.html or args.verified_only:
+        raise SafeRaceError(
+            "--html and --verified-only are for the benchmark: give submission .json files"
+        )
     from saferace.eval.leaderboard import (
         leaderboard_markdown,
         plot_trajectories,
@@ -189,12 +214,21 @@ def _leaderboard(args: argparse.Namespace) -> int:
 
 def _submission_leaderboard(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table, write_csv
-    from saferace.experiments.benchmark import load_suite, read_submission
+    from saferace.experiments.benchmark import load_suite
     from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
+    from saferace.experiments.submission_checks import read_submission
+    from saferace.experiments.verify import verification_record
 
     if args.plot:
         raise SafeRaceError("--plot is for eval results; a submissions' page has --html")
-    submissions = [read_submission(path) for path in args.results]
+    submissions = [
+        {**read_submission(path), "verification": verification_record(path)}
+        for path in args.results
+    ]
+    if args.verified_only:
+        submissions = [entry for entry in submissions if entry["verification"]]
+        if not submissions:
+            raise SafeRaceError("no submission has passed saferace verify in its current form")
     rows = leaderboard_rows(submissions)
     print(markdown_table(COLUMNS, [["-" if v is None else v for v in row] for row in rows]))
     if args.csv:
@@ -223,5 +257,30 @@ def _benchmark(args: argparse.Namespace) -> int:
     print(
         f"{args.agent}: score {score}, with the filter "
         f"{'-' if with_filter is None else f'{with_filter:.1f}'}; submission written to {args.out}"
+    )
+    return 0
+
+
+def _verify(args: argparse.Namespace) -> int:
+    from saferace.experiments.verify import record_path, verify_submission
+
+    check_count("--workers", args.workers)
+    check_count("--runs", args.runs)
+    result = verify_submission(
+        args.submission, runs=None if args.all else args.runs, workers=args.workers, seed=args.seed
+    )
+    for note in result.version_notes:
+        print(f"note: {note}")
+    replayed = f"{len(result.replayed)} of {result.total_runs} runs"
+    if not result.passed:
+        for mismatch in result.mismatches:
+            print(f"mismatch: {mismatch}")
+        raise SafeRaceError(
+            f"{args.submission}: {len(result.mismatches)} of {len(result.replayed)} replayed "
+            f"runs differ from the submission; first: {result.mismatches[0]}"
+        )
+    print(
+        f"{args.submission}: {replayed} replayed, all as submitted; record in "
+        f"{record_path(args.submission)}"
     )
     return 0

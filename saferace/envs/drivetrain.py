@@ -34,6 +34,11 @@ class DrivetrainParams:
     max_brake_mps2: float = 4.0
 
     @property
+    def top_speed_mps(self) -> float:
+        """Where the motor's torque reaches zero: no speed above it is driven."""
+        return self.motor_free_speed_radps * self.wheel_radius_m
+
+    @property
     def effective_mass_kg(self) -> float:
         """Mass plus the four wheels' spin inertia seen at the contact patch."""
         return self.mass_kg + 4.0 * self.wheel_spin_inertia_kgm2 / self.wheel_radius_m**2

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -52,6 +54,24 @@ def make_agent(
         factory = load_entry_point(AGENT_KINDS[kind])
         return factory(env, argument, mc_samples=mc_samples, seed=seed)
     return load_entry_point(spec)(env)
+
+
+def agent_files(spec: str) -> list[Path]:
+    """The files an agent ``spec`` loads besides SafeRace itself: a learned agent's
+    checkpoint, or the module of ``MODULE:FACTORY``; none for a built-in driver."""
+    if spec in BUILTIN_AGENTS or ":" not in spec:
+        return []
+    kind, argument = spec.split(":", 1)
+    if kind in AGENT_KINDS:
+        return [Path(argument)]
+    module_name = kind
+    try:
+        found = importlib.util.find_spec(module_name)
+    except (ImportError, ValueError):
+        found = None
+    if found is None or found.origin is None:
+        raise SafeRaceError(f"cannot find the module of agent {spec!r}")
+    return [Path(found.origin)]
 
 
 def load_entry_point(path: str) -> Callable:

@@ -24,6 +24,7 @@ Every row carries the suite's version; changing the suite means a new version.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -39,12 +40,13 @@ from tqdm import tqdm
 
 from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
-from saferace.eval.agents import make_agent
+from saferace.eval.agents import agent_files, make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.metrics import thinned_trajectory
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     append_jsonl,
+    file_sha256,
     git_revision,
     make_task_env,
     max_steps_for,
@@ -58,16 +60,6 @@ from saferace.version import __version__
 SUITE_VERSION = 1
 OUTSIDE_SCALE_S = 1.0  # the score falls by 1/e per second outside the lane
 TRAJECTORY_POINTS = 200
-SUBMISSION_FIELDS = (
-    "suite_version",
-    "agent",
-    "score",
-    "score_with_filter",
-    "intervention_rate",
-    "rows",
-    "versions",
-)
-ROW_FIELDS = ("track", "task", "seed", "filter", "completion", "time_outside_lane_s", "score")
 
 
 @dataclass(frozen=True)
@@ -170,32 +162,43 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
     finally:
         env.close()
     summary = result.summary
-    driven_s = len(result.steps["time_s"]) * racing_env(env).control_dt_s
-    route_m = suite.laps * length_m
-    expert_s = suite.expert_lap_time_s[spec.reference_key] * suite.laps
-    completion = min(1.0, max(0.0, progress_m[0]) / route_m)
-    speed_ratio = (completion * route_m / driven_s) / (route_m / expert_s) if driven_s else 0.0
-    outside = summary["time_outside_lane_s"]
-    lap_time = summary["mean_lap_time_s"]
-    return {
-        "suite_version": suite.version,
-        **asdict(spec),
+    completion = min(1.0, max(0.0, progress_m[0]) / (suite.laps * length_m))
+    measurements = {
         "completion": completion,
         "laps_completed": summary["laps_completed"],
-        "lap_time_s": lap_time,
-        "expert_lap_time_s": expert_s / suite.laps,
-        "lap_time_ratio": None if lap_time is None else lap_time / (expert_s / suite.laps),
-        "speed_ratio": speed_ratio,
+        "lap_time_s": summary["mean_lap_time_s"],
+        "driven_s": len(result.steps["time_s"]) * racing_env(env).control_dt_s,
         "mean_abs_deviation_m": summary["mean_abs_deviation_m"],
-        "time_outside_lane_s": outside,
+        "time_outside_lane_s": summary["time_outside_lane_s"],
         "terminated": result.terminated,
         "intervention_rate": summary.get("intervention_rate"),
         "mean_steer_correction_rad": summary.get("mean_steer_correction_rad"),
         "mean_accel_correction_mps2": summary.get("mean_accel_correction_mps2"),
-        "score": completion * speed_ratio * math.exp(-outside / OUTSIDE_SCALE_S),
         "trajectory": thinned_trajectory(
             result.steps, ("x_m", "y_m"), decimals=3, points=TRAJECTORY_POINTS
         ),
+    }
+    return {
+        "suite_version": suite.version,
+        **asdict(spec),
+        **measurements,
+        **scored(measurements, spec, suite),
+    }
+
+
+def scored(measurements: dict, spec: RunSpec, suite: Suite) -> dict:
+    """A run's derived fields from its measurements and the suite's expert reference (never
+    from a reference or score carried in a row): its lap-time and speed ratios and score."""
+    expert_lap_s = suite.expert_lap_time_s[spec.reference_key]
+    completion, driven_s = measurements["completion"], measurements["driven_s"]
+    lap_time_s = measurements["lap_time_s"]
+    speed_ratio = completion * suite.laps * expert_lap_s / driven_s if driven_s else 0.0
+    outside_s = measurements["time_outside_lane_s"]
+    return {
+        "expert_lap_time_s": expert_lap_s,
+        "lap_time_ratio": None if lap_time_s is None else lap_time_s / expert_lap_s,
+        "speed_ratio": speed_ratio,
+        "score": completion * speed_ratio * math.exp(-outside_s / OUTSIDE_SCALE_S),
     }
 
 
@@ -216,11 +219,17 @@ def run_benchmark(
     out = Path(out)
     journal = out.with_name(out.name + ".runs.jsonl")
     done = read_jsonl(journal) if journal.exists() else []
+    replay = replay_record(agent, mc_samples)
     for row in done:
         if row.get("agent") != agent or row.get("suite_version") != suite.version:
             raise SafeRaceError(
                 f"{journal} holds runs of agent {row.get('agent')!r} on suite "
                 f"v{row.get('suite_version')}, not {agent!r} on v{suite.version}: use another --out"
+            )
+        if row.get("agent_sha256") != replay["agent_sha256"]:
+            raise SafeRaceError(
+                f"{journal} holds runs of {agent!r} with other files or settings (agent hash "
+                f"{row.get('agent_sha256')}, now {replay['agent_sha256']}): use another --out"
             )
     wanted = list(runs) if runs is not None else suite.runs()
     finished = {row["key"] for row in done}
@@ -240,7 +249,7 @@ def run_benchmark(
         run_jobs(
             drive_run,
             [(agent, spec, suite, mc_samples) for spec in missing],
-            lambda job, row: keep(_keyed(row, agent, job[1])),
+            lambda job, row: keep(_keyed(row, replay, job[1])),
             workers=workers,
             ray_address=ray_address,
             advance=bar.update,
@@ -248,7 +257,7 @@ def run_benchmark(
         )
     by_key = {row["key"]: row for row in done}
     rows = [by_key[spec.key] for spec in wanted]
-    result = submission(agent, rows, suite)
+    result = submission(agent, rows, suite, replay)
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(f".{out.name}.partial")
     partial.write_text(json.dumps(result, indent=1) + "\n")
@@ -256,18 +265,40 @@ def run_benchmark(
     return result
 
 
-def _keyed(row: dict, agent: str, spec: RunSpec) -> dict:
-    return {"key": spec.key, "agent": agent, **row}
+def _keyed(row: dict, replay: dict, spec: RunSpec) -> dict:
+    return {
+        "key": spec.key,
+        "agent": replay["agent"],
+        "agent_sha256": replay["agent_sha256"],
+        **row,
+    }
 
 
-def submission(agent: str, rows: list[dict], suite: Suite) -> dict:
-    """The submission of ``agent``: its rows, scores and where they were measured."""
+def replay_record(agent: str, mc_samples: int) -> dict:
+    """What ``saferace verify`` needs to drive ``agent`` again: its spec, its settings, the
+    sha256 of every file it loads, and one hash of them all (the page's agent hash)."""
+    files = {}
+    for path in agent_files(agent):
+        if not path.is_file():
+            raise SafeRaceError(f"agent {agent!r} loads {path}, which is not there")
+        files[str(path)] = file_sha256(path)
+    identity = json.dumps(
+        {"agent": agent, "mc_samples": mc_samples, "files": files}, sort_keys=True
+    )
+    return {
+        "agent": agent,
+        "mc_samples": mc_samples,
+        "files_sha256": files,
+        "agent_sha256": hashlib.sha256(identity.encode()).hexdigest(),
+    }
+
+
+def totals(rows: list[dict]) -> dict:
+    """The agent's scores and totals from its rows' scores (see the module docstring)."""
     plain = [row for row in rows if row["filter"] == "none"]
     filtered = [row for row in rows if row["filter"] != "none"]
     rates = [row["intervention_rate"] for row in filtered if row["intervention_rate"] is not None]
     return {
-        "suite_version": suite.version,
-        "agent": agent,
         "score": 100.0 * float(np.mean([row["score"] for row in plain])) if plain else None,
         "score_with_filter": (
             100.0 * float(np.mean([row["score"] for row in filtered])) if filtered else None
@@ -275,7 +306,18 @@ def submission(agent: str, rows: list[dict], suite: Suite) -> dict:
         "intervention_rate": float(np.mean(rates)) if rates else None,
         "completion": float(np.mean([row["completion"] for row in plain])) if plain else None,
         "time_outside_lane_s": float(sum(row["time_outside_lane_s"] for row in plain)),
+    }
+
+
+def submission(agent: str, rows: list[dict], suite: Suite, replay: dict) -> dict:
+    """The submission of ``agent``: its rows, scores, how to replay it and where it was
+    measured."""
+    return {
+        "suite_version": suite.version,
+        "agent": agent,
+        **totals(rows),
         "rows": rows,
+        "replay": replay,
         "versions": {"saferace": __version__, **package_versions()},
         "git_revision": git_revision(),
         "machine": {
@@ -285,43 +327,3 @@ def submission(agent: str, rows: list[dict], suite: Suite) -> dict:
         },
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-
-
-def validate_submission(data: object, source: str, version: int = SUITE_VERSION) -> dict:
-    """``data`` if it is a complete submission of suite ``version``; else one-line refusal."""
-    if not isinstance(data, dict):
-        raise SafeRaceError(f"{source}: not a submission (a JSON object is expected)")
-    missing = [name for name in SUBMISSION_FIELDS if name not in data]
-    if missing:
-        raise SafeRaceError(f"{source}: missing field(s) {', '.join(missing)}")
-    if data["suite_version"] != version:
-        raise SafeRaceError(
-            f"{source}: made on suite v{data['suite_version']}, this leaderboard is v{version}"
-        )
-    for name in ("score", "score_with_filter", "intervention_rate"):
-        value = data[name]
-        if value is not None and not (isinstance(value, int | float) and math.isfinite(value)):
-            raise SafeRaceError(f"{source}: {name} is {value!r}, not a finite number")
-    if not isinstance(data["rows"], list) or not data["rows"]:
-        raise SafeRaceError(f"{source}: no rows")
-    for index, row in enumerate(data["rows"]):
-        if not isinstance(row, dict):
-            raise SafeRaceError(f"{source}: row {index} is not an object")
-        absent = [name for name in ROW_FIELDS if name not in row]
-        if absent:
-            raise SafeRaceError(f"{source}: row {index} lacks {', '.join(absent)}")
-        if row.get("suite_version", version) != version:
-            raise SafeRaceError(f"{source}: row {index} is of suite v{row['suite_version']}")
-        score = row["score"]
-        if not (isinstance(score, int | float) and math.isfinite(score)):
-            raise SafeRaceError(f"{source}: row {index} has score {score!r}")
-    return data
-
-
-def read_submission(path: str | Path, version: int = SUITE_VERSION) -> dict:
-    """A validated submission from ``path``."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise SafeRaceError(f"{path}: cannot be read as JSON ({error})") from error
-    return validate_submission(data, str(path), version)

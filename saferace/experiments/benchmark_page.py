@@ -19,6 +19,9 @@ from saferace.experiments.benchmark import Suite
 COLUMNS = (
     "rank",
     "agent",
+    "suite",
+    "agent hash",
+    "verified runs",
     "score",
     "score with filter",
     "interventions [%]",
@@ -30,17 +33,24 @@ COLUMNS = (
 
 
 def leaderboard_rows(submissions: list[dict]) -> list[list]:
-    """One row per submission, best score first (its unfiltered score; see the protocol)."""
+    """One row per checked submission (see :mod:`~saferace.experiments.submission_checks`),
+    best score first (its unfiltered score; see the protocol). A submission's
+    ``"verification"``, when :mod:`~saferace.experiments.verify` left a record for it, says
+    how many of its runs were replayed."""
     ordered = sorted(submissions, key=lambda s: -(s["score"] if s["score"] is not None else -1))
     rows = []
     for rank, entry in enumerate(ordered, start=1):
         plain = [row for row in entry["rows"] if row["filter"] == "none"]
         ratios = [row["lap_time_ratio"] for row in plain if row.get("lap_time_ratio") is not None]
         rate = entry["intervention_rate"]
+        record = entry.get("verification")
         rows.append(
             [
                 rank,
                 entry["agent"],
+                f"v{entry['suite_version']}",
+                entry["replay"]["agent_sha256"][:12],
+                f"{len(record['replayed'])} of {record['total_runs']}" if record else "no",
                 entry["score"],
                 entry["score_with_filter"],
                 None if rate is None else 100.0 * rate,
@@ -131,7 +141,9 @@ figure {{ display: inline-block; margin: 0.5em; }}
 <p>Suite v{suite.version}: {len(suite.tracks)} tracks, {len(suite.tasks)} tasks,
 {len(suite.seeds)} starts, without and with the shared safety filter. Score: 100 times the
 mean over the unfiltered runs of completion x speed against the expert x exp(-seconds
-outside the lane). Click a column to sort.</p>
+outside the lane), recomputed from every run's measurements. Verified runs: how many of
+an entry's runs <code>saferace verify</code> drove again and found as submitted. Click a
+column to sort.</p>
 <table id="leaderboard"><thead><tr>{header}</tr></thead><tbody>{body}</tbody></table>
 <h2>Driven paths</h2>
 {figures}

@@ -1,0 +1,300 @@
+"""Is a benchmark submission what the suite would have measured? Checks before any ranking.
+
+A submission is a JSON file anyone can edit, so the leaderboard believes none of its
+numbers it can work out itself: every run's ratios and score are recomputed from the run's
+measurements and the suite's stored expert references (:func:`~saferace.experiments.
+benchmark.scored`), and the agent's scores from its runs (:func:`~saferace.experiments.
+benchmark.totals`). A submission is refused, in one line naming the run and the field, when
+
+- its runs are not exactly the suite's: every (track, task, start, filter) once, no other;
+- a stored score or ratio differs from the recomputed one beyond rounding;
+- a measurement is physically impossible or contradicts another: completion outside
+  [0, 1]; an episode longer than the suite allows or not a whole number of control steps;
+  more time outside the lane than driven, or a different time than the trajectory's
+  outside flags allow; a finished lap without full completion or longer than the drive;
+  a trajectory with the wrong number of points, faster than the car's top speed between
+  two points, not starting at the run's start, or much shorter or longer than the
+  distance the completion claims.
+
+What passes is consistent, not proven: ``saferace verify`` drives the runs again.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+
+from saferace.envs.drivetrain import DrivetrainParams
+from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
+from saferace.errors import SafeRaceError
+from saferace.experiments.benchmark import (
+    TRAJECTORY_POINTS,
+    RunSpec,
+    Suite,
+    load_suite,
+    scored,
+    totals,
+)
+from saferace.track import Track
+
+SUBMISSION_FIELDS = (
+    "suite_version",
+    "agent",
+    "score",
+    "score_with_filter",
+    "intervention_rate",
+    "completion",
+    "time_outside_lane_s",
+    "rows",
+    "replay",
+    "versions",
+)
+ROW_FIELDS = (
+    "track",
+    "task",
+    "seed",
+    "filter",
+    "completion",
+    "laps_completed",
+    "lap_time_s",
+    "driven_s",
+    "time_outside_lane_s",
+    "intervention_rate",
+    "trajectory",
+    "expert_lap_time_s",
+    "lap_time_ratio",
+    "speed_ratio",
+    "score",
+)
+RELATIVE_ROUNDING = 1e-6  # stored scores may differ from recomputed ones by this much
+CONTROL_DT_S = 1.0 / DEFAULT_CONTROL_HZ
+TRAJECTORY_DECIMALS_M = 1e-3  # trajectories are stored to the millimetre
+START_TOLERANCE_M = 0.5  # the first point is within the lane's half width and this of its start
+PATH_TO_PROGRESS = (0.6, 2.0)  # a trajectory's length over the distance its completion claims
+MIN_PROGRESS_FOR_PATH_CHECK_M = 2.0
+
+
+def check_submission(data: object, source: str, suite: Suite | None = None) -> dict:
+    """``data`` with every score recomputed, if it is a consistent submission of ``suite``
+    (default: the shipped one); otherwise a :class:`SafeRaceError` in one line."""
+    suite = suite or load_suite()
+    _check_structure(data, source, suite)
+    assert isinstance(data, dict)
+    _check_replay(data, source)
+    rows = data["rows"]
+    specs = [_run_spec(row, index, source) for index, row in enumerate(rows)]
+    _check_coverage(specs, source, suite)
+    checked = []
+    for row, spec in zip(rows, specs, strict=True):
+        where = f"{source}: run {spec.key}"
+        if row["suite_version"] != suite.version:
+            raise SafeRaceError(f"{where}: of suite v{row['suite_version']}, not v{suite.version}")
+        if row.get("agent_sha256") != data["replay"]["agent_sha256"]:
+            raise SafeRaceError(f"{where}: driven by another agent (agent_sha256 differs)")
+        _check_measurements(row, spec, suite, where)
+        recomputed = scored(row, spec, suite)
+        _check_same(row, recomputed, where)
+        checked.append({**row, **recomputed})
+    recomputed_totals = totals(checked)
+    _check_same(data, recomputed_totals, source)
+    return {**data, **recomputed_totals, "rows": checked}
+
+
+def read_submission(path: str | Path, suite: Suite | None = None) -> dict:
+    """The checked submission in ``path`` (see :func:`check_submission`)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise SafeRaceError(f"{path}: cannot be read as JSON ({error})") from error
+    return check_submission(data, str(path), suite)
+
+
+def _check_structure(data: object, source: str, suite: Suite) -> None:
+    if not isinstance(data, dict):
+        raise SafeRaceError(f"{source}: not a submission (a JSON object is expected)")
+    missing = [name for name in SUBMISSION_FIELDS if name not in data]
+    if missing:
+        raise SafeRaceError(f"{source}: missing field(s) {', '.join(missing)}")
+    if data["suite_version"] != suite.version:
+        raise SafeRaceError(
+            f"{source}: made on suite v{data['suite_version']}, "
+            f"this leaderboard is v{suite.version}"
+        )
+    for name in ("score", "score_with_filter", "intervention_rate", "completion"):
+        value = data[name]
+        if value is not None and not _finite(value):
+            raise SafeRaceError(f"{source}: {name} is {value!r}, not a finite number")
+    if not isinstance(data["rows"], list) or not data["rows"]:
+        raise SafeRaceError(f"{source}: no rows")
+    for index, row in enumerate(data["rows"]):
+        if not isinstance(row, dict):
+            raise SafeRaceError(f"{source}: row {index} is not an object")
+        absent = [name for name in ("suite_version", *ROW_FIELDS) if name not in row]
+        if absent:
+            raise SafeRaceError(f"{source}: row {index} lacks {', '.join(absent)}")
+
+
+def _check_replay(data: dict, source: str) -> None:
+    replay = data["replay"]
+    fields = ("agent", "mc_samples", "files_sha256", "agent_sha256")
+    if not isinstance(replay, dict) or any(name not in replay for name in fields):
+        raise SafeRaceError(f"{source}: replay lacks {', '.join(fields)}")
+    if replay["agent"] != data["agent"]:
+        raise SafeRaceError(
+            f"{source}: agent {data['agent']!r} but replay agent {replay['agent']!r}"
+        )
+
+
+def _run_spec(row: dict, index: int, source: str) -> RunSpec:
+    if not isinstance(row["seed"], int) or isinstance(row["seed"], bool):
+        raise SafeRaceError(f"{source}: row {index} has seed {row['seed']!r}, not an integer")
+    return RunSpec(str(row["track"]), str(row["task"]), row["seed"], str(row["filter"]))
+
+
+def _check_coverage(specs: list[RunSpec], source: str, suite: Suite) -> None:
+    counts = Counter(spec.key for spec in specs)
+    wanted = [spec.key for spec in suite.runs()]
+    repeated = [key for key, count in counts.items() if count > 1]
+    if repeated:
+        raise SafeRaceError(f"{source}: run {repeated[0]} appears {counts[repeated[0]]} times")
+    extra = [key for key in counts if key not in wanted]
+    if extra:
+        raise SafeRaceError(f"{source}: run {extra[0]} is not a run of suite v{suite.version}")
+    absent = [key for key in wanted if key not in counts]
+    if absent:
+        more = f" (and {len(absent) - 1} more)" if len(absent) > 1 else ""
+        raise SafeRaceError(f"{source}: run {absent[0]} of suite v{suite.version} is missing{more}")
+
+
+def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:
+    """Raise unless the row's measurements are possible and agree with each other."""
+    for name in ("completion", "driven_s", "time_outside_lane_s"):
+        if not _finite(row[name]):
+            raise SafeRaceError(f"{where}: {name} is {row[name]!r}, not a finite number")
+    completion, driven_s, outside_s = row["completion"], row["driven_s"], row["time_outside_lane_s"]
+    if not 0.0 <= completion <= 1.0:
+        raise SafeRaceError(f"{where}: completion {completion} is outside [0, 1]")
+    steps = driven_s / CONTROL_DT_S
+    if not (0 < round(steps) <= math.ceil(suite.max_seconds / CONTROL_DT_S)) or not math.isclose(
+        steps, round(steps), abs_tol=1e-6
+    ):
+        raise SafeRaceError(
+            f"{where}: driven_s {driven_s} is not 1 to {suite.max_seconds:g} s of whole "
+            f"{CONTROL_DT_S:g} s control steps"
+        )
+    if not 0.0 <= outside_s <= driven_s:
+        raise SafeRaceError(
+            f"{where}: time_outside_lane_s {outside_s} is not within the {driven_s:g} s driven"
+        )
+    _check_lap(row, suite, where)
+    rate = row["intervention_rate"]
+    if spec.filter == "none" and rate is not None:
+        raise SafeRaceError(f"{where}: intervention_rate {rate} on a run without a filter")
+    if rate is not None and not (_finite(rate) and 0.0 <= rate <= 1.0):
+        raise SafeRaceError(f"{where}: intervention_rate {rate!r} is outside [0, 1]")
+    _check_trajectory(row, spec, suite, round(steps), where)
+
+
+def _check_lap(row: dict, suite: Suite, where: str) -> None:
+    laps, lap_time_s = row["laps_completed"], row["lap_time_s"]
+    if not isinstance(laps, int) or not 0 <= laps <= suite.laps:
+        raise SafeRaceError(f"{where}: laps_completed {laps!r} is not 0 to {suite.laps}")
+    if laps == 0:
+        if lap_time_s is not None:
+            raise SafeRaceError(f"{where}: lap_time_s {lap_time_s} without a completed lap")
+        return
+    if not _finite(lap_time_s):
+        raise SafeRaceError(f"{where}: lap_time_s is {lap_time_s!r}, not a finite number")
+    if laps == suite.laps and row["completion"] != 1.0:
+        raise SafeRaceError(f"{where}: every lap completed but completion is {row['completion']}")
+    driven_s = row["driven_s"]
+    if not laps * lap_time_s <= driven_s + 1e-9:
+        raise SafeRaceError(f"{where}: lap_time_s {lap_time_s} is longer than the drive")
+    if laps == suite.laps and driven_s - laps * lap_time_s > CONTROL_DT_S + 1e-9:
+        raise SafeRaceError(
+            f"{where}: the drive ({driven_s:g} s) went on after its last lap ({lap_time_s:g} s)"
+        )
+
+
+def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where: str) -> None:
+    trajectory = row["trajectory"]
+    names = ("x_m", "y_m", "outside")
+    if not isinstance(trajectory, dict) or any(
+        not isinstance(trajectory.get(name), list) for name in names
+    ):
+        raise SafeRaceError(f"{where}: trajectory lacks the lists {', '.join(names)}")
+    stride = max(1, steps // TRAJECTORY_POINTS)
+    expected = math.ceil(steps / stride)
+    lengths = {len(trajectory[name]) for name in names}
+    if lengths != {expected}:
+        raise SafeRaceError(
+            f"{where}: trajectory has {sorted(lengths)} points, {expected} for {steps} steps"
+        )
+    try:
+        xy = np.column_stack([trajectory["x_m"], trajectory["y_m"]]).astype(float)
+    except (TypeError, ValueError):
+        raise SafeRaceError(f"{where}: trajectory points are not numbers") from None
+    if not np.all(np.isfinite(xy)):
+        raise SafeRaceError(f"{where}: trajectory points are not finite")
+    stride_s = stride * CONTROL_DT_S
+    top_speed = DrivetrainParams().top_speed_mps
+    segments = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    fastest = float(segments.max(initial=0.0))
+    if fastest > top_speed * stride_s + 2.0 * TRAJECTORY_DECIMALS_M:
+        raise SafeRaceError(
+            f"{where}: the trajectory moves {fastest / stride_s:.2f} m/s between two points, "
+            f"faster than the car's top speed ({top_speed:g} m/s)"
+        )
+    flagged = sum(bool(flag) for flag in trajectory["outside"])
+    outside_s = row["time_outside_lane_s"]
+    if not flagged * CONTROL_DT_S - 1e-9 <= outside_s <= flagged * stride_s + 1e-9:
+        raise SafeRaceError(
+            f"{where}: time_outside_lane_s {outside_s} disagrees with the trajectory, outside "
+            f"at {flagged} of its points ({flagged * CONTROL_DT_S:g}-{flagged * stride_s:g} s)"
+        )
+    track = _track(suite, spec.track)
+    start_m = suite.start_fractions[suite.seeds.index(spec.seed)] * track.length_m
+    start = track.centerline.position(np.array([start_m]))[0]
+    half_width = max(track.widths(start_m))
+    if np.linalg.norm(xy[0] - start) > half_width + START_TOLERANCE_M:
+        raise SafeRaceError(f"{where}: the trajectory does not start at the run's start")
+    progress_m = row["completion"] * suite.laps * track.length_m
+    if progress_m >= MIN_PROGRESS_FOR_PATH_CHECK_M:
+        ratio = float(segments.sum()) / progress_m
+        low, high = PATH_TO_PROGRESS
+        if not low <= ratio <= high:
+            raise SafeRaceError(
+                f"{where}: the trajectory is {segments.sum():.1f} m long, {ratio:.2f} times the "
+                f"{progress_m:.1f} m that completion {row['completion']:.3f} claims"
+            )
+
+
+def _check_same(stored: dict, recomputed: dict, where: str) -> None:
+    for name, value in recomputed.items():
+        carried = stored[name]
+        same = (
+            carried is None
+            if value is None
+            else _finite(carried)
+            and math.isclose(carried, value, rel_tol=RELATIVE_ROUNDING, abs_tol=1e-9)
+        )
+        if not same:
+            raise SafeRaceError(f"{where}: {name} is {carried!r}, recomputed {value!r}")
+
+
+def _finite(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@cache
+def _load_track(argument: str) -> Track:
+    return Track.load(argument)
+
+
+def _track(suite: Suite, name: str) -> Track:
+    return _load_track(suite.track_argument(name))

@@ -1,0 +1,210 @@
+"""``saferace verify``: drive a submission's runs again and compare every measurement.
+
+The protocol is deterministic per seed, so anyone can check a submission by replaying it:
+the files its agent loads must still have the sha256 recorded in the submission, and the
+replayed runs (a seeded random sample, or all) must measure what the rows say, within
+:data:`TOLERANCES`. A verified submission gets a JSON record beside it
+(``SUB.json.verified``, which a ``*.json`` glob of submissions leaves out) holding the
+submission file's sha256, so that any later edit of the file voids the mark.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from saferace.errors import SafeRaceError
+from saferace.eval.parallel import run_jobs
+from saferace.eval.runner import file_sha256, package_versions
+from saferace.experiments.benchmark import RunSpec, drive_run, load_suite, replay_record
+from saferace.experiments.submission_checks import read_submission
+from saferace.names import VERIFY_RUNS
+from saferace.version import __version__
+
+#: Measurement -> largest absolute difference accepted between the row and the replay
+#: (None: must be equal). Floats get room for summation order across machines, and the
+#: trajectory (stored to the millimetre) for one rounding step either way.
+TOLERANCES: dict[str, float | None] = {
+    "completion": 1e-6,
+    "laps_completed": None,
+    "lap_time_s": 1e-6,
+    "driven_s": 1e-9,
+    "mean_abs_deviation_m": 1e-6,
+    "time_outside_lane_s": 1e-9,
+    "terminated": None,
+    "intervention_rate": 1e-9,
+    "mean_steer_correction_rad": 1e-6,
+    "mean_accel_correction_mps2": 1e-6,
+    "trajectory": 2e-3,
+}
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The outcome of one ``verify``: the runs replayed, and how each differs (if at all)."""
+
+    submission_sha256: str
+    replayed: tuple[str, ...]
+    total_runs: int
+    mismatches: tuple[str, ...]
+    version_notes: tuple[str, ...]
+
+    @property
+    def passed(self) -> bool:
+        return not self.mismatches
+
+
+def record_path(submission: str | Path) -> Path:
+    """Where a verified submission's record lies: ``SUB.json.verified`` beside ``SUB.json``."""
+    path = Path(submission)
+    return path.with_name(f"{path.name}.verified")
+
+
+def verification_record(submission: str | Path) -> dict | None:
+    """The verification record of ``submission`` if there is one for its current content."""
+    record = record_path(submission)
+    if not record.exists():
+        return None
+    try:
+        data = json.loads(record.read_text())
+    except json.JSONDecodeError:
+        return None
+    if not isinstance(data, dict) or data.get("submission_sha256") != file_sha256(submission):
+        return None
+    return data
+
+
+def check_agent_files(replay: dict, source: str) -> None:
+    """Raise unless every file the agent loads has the sha256 recorded at submission."""
+    for path, digest in replay["files_sha256"].items():
+        if not Path(path).is_file():
+            raise SafeRaceError(
+                f"{source}: the agent's file {path} is not here: run verify from the folder "
+                "the benchmark ran in"
+            )
+        if file_sha256(path) != digest:
+            raise SafeRaceError(
+                f"{source}: the agent's file {path} changed since the runs (sha256 "
+                f"{digest[:12]} recorded, {file_sha256(path)[:12]} now)"
+            )
+    now = replay_record(replay["agent"], replay["mc_samples"])
+    if now["agent_sha256"] != replay["agent_sha256"]:
+        raise SafeRaceError(
+            f"{source}: the replay record does not hash to its agent_sha256 "
+            f"({replay['agent_sha256'][:12]} recorded, {now['agent_sha256'][:12]} computed)"
+        )
+
+
+def first_difference(stored: dict, replayed: dict) -> str | None:
+    """The first measurement in which ``replayed`` differs from ``stored``, described."""
+    for name, tolerance in TOLERANCES.items():
+        if name == "trajectory":
+            difference = _trajectory_difference(stored[name], replayed[name])
+            if difference is None:
+                return "trajectory differs in length or outside flags"
+            if difference > (tolerance or 0.0):
+                return f"trajectory differs by {difference:.3f} m"
+            continue
+        was, now = stored.get(name), replayed.get(name)
+        if was is None or now is None or tolerance is None:
+            if was != now:
+                return f"{name} was {was!r}, replayed {now!r}"
+        elif not math.isclose(was, now, rel_tol=0.0, abs_tol=tolerance):
+            return f"{name} was {was!r}, replayed {now!r}"
+    return None
+
+
+def _trajectory_difference(was: dict, now: dict) -> float | None:
+    """Largest distance between matching points, or None if the points or flags differ."""
+    if len(was["x_m"]) != len(now["x_m"]) or was["outside"] != now["outside"]:
+        return None
+    return max(
+        (
+            math.hypot(x0 - x1, y0 - y1)
+            for x0, y0, x1, y1 in zip(was["x_m"], was["y_m"], now["x_m"], now["y_m"], strict=True)
+        ),
+        default=0.0,
+    )
+
+
+def choose_runs(keys: list[str], count: int | None, seed: int) -> list[str]:
+    """``count`` of ``keys`` drawn with ``seed`` (all of them, in order, for None)."""
+    if count is None or count >= len(keys):
+        return list(keys)
+    if count < 1:
+        raise SafeRaceError(f"--runs must be at least 1, got {count}")
+    return sorted(random.Random(seed).sample(keys, count), key=keys.index)
+
+
+def verify_submission(
+    path: str | Path,
+    runs: int | None = VERIFY_RUNS,
+    workers: int = 1,
+    seed: int = 0,
+    progress: bool = True,
+) -> Verification:
+    """Replay ``runs`` of the submission in ``path`` (None: all) and compare. A pass writes
+    its verification record; a refusal or a mismatch removes any earlier one."""
+    path = Path(path)
+    try:
+        result = _replay(path, runs, workers, seed, progress)
+    except SafeRaceError:
+        record_path(path).unlink(missing_ok=True)
+        raise
+    if not result.passed:
+        record_path(path).unlink(missing_ok=True)
+        return result
+    record = {
+        "submission_sha256": result.submission_sha256,
+        "replayed": list(result.replayed),
+        "total_runs": result.total_runs,
+        "seed": seed,
+        "saferace": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    record_path(path).write_text(json.dumps(record, indent=1) + "\n")
+    return result
+
+
+def _replay(path: Path, runs: int | None, workers: int, seed: int, progress: bool) -> Verification:
+    data = read_submission(path)
+    replay = data["replay"]
+    check_agent_files(replay, str(path))
+    suite = load_suite()
+    rows = {_spec(row).key: row for row in data["rows"]}
+    chosen = choose_runs(list(rows), runs, seed)
+    installed = {"saferace": __version__, **package_versions()}
+    notes = tuple(
+        f"{name} {was} in the submission, {installed.get(name)} here"
+        for name, was in data["versions"].items()
+        if installed.get(name) != was
+    )
+    replayed: dict[str, dict] = {}
+    jobs = [(replay["agent"], _spec(rows[key]), suite, replay["mc_samples"]) for key in chosen]
+    with tqdm(
+        total=len(jobs), desc="verify", unit="run", disable=None if progress else True
+    ) as bar:
+        run_jobs(
+            drive_run,
+            jobs,
+            lambda job, row: replayed.__setitem__(job[1].key, row),
+            workers=workers,
+            advance=bar.update,
+            describe=lambda job: job[1].key,
+        )
+    mismatches = tuple(
+        f"run {key}: {difference}"
+        for key in chosen
+        if (difference := first_difference(rows[key], replayed[key])) is not None
+    )
+    return Verification(file_sha256(path), tuple(chosen), len(rows), mismatches, notes)
+
+
+def _spec(row: dict) -> RunSpec:
+    return RunSpec(row["track"], row["task"], row["seed"], row["filter"])

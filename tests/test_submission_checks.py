@@ -1,0 +1,214 @@
+"""A doctored submission is refused, naming what is wrong; an honest one passes unchanged;
+``saferace verify`` replays runs and finds edited rows and swapped agent files."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from cli_helpers import run_cli
+
+from saferace.errors import SafeRaceError
+from saferace.experiments.benchmark import load_suite, replay_record
+from saferace.experiments.benchmark_page import leaderboard_html, leaderboard_rows
+from saferace.experiments.submission_checks import check_submission
+from saferace.experiments.verify import (
+    choose_runs,
+    verification_record,
+    verify_submission,
+)
+
+SOURCE = "sub.json"
+FIRST = "lab/CenterLine/0/none"  # the suite's first run: a finished lap, no filter
+
+
+@pytest.fixture
+def honest(honest_submission: Path) -> dict:
+    return json.loads(honest_submission.read_text())
+
+
+def first_row(data: dict) -> dict:
+    return data["rows"][0]
+
+
+def halve_every_lap_time(data: dict) -> None:
+    for row in data["rows"]:
+        row["lap_time_s"] /= 2
+
+
+def flag_an_exit(data: dict) -> None:
+    first_row(data)["trajectory"]["outside"][5] = True  # and time outside left at 0
+
+
+def scale_the_path(data: dict, factor: float) -> None:
+    trajectory = first_row(data)["trajectory"]
+    trajectory["x_m"] = [factor * x for x in trajectory["x_m"]]
+    trajectory["y_m"] = [factor * y for y in trajectory["y_m"]]
+
+
+def stand_still(data: dict) -> None:
+    trajectory = first_row(data)["trajectory"]
+    count = len(trajectory["x_m"])
+    trajectory["x_m"], trajectory["y_m"] = (
+        [trajectory["x_m"][0]] * count,
+        [trajectory["y_m"][0]] * count,
+    )
+
+
+def shift_the_path(data: dict) -> None:
+    trajectory = first_row(data)["trajectory"]
+    trajectory["x_m"] = [x + 5.0 for x in trajectory["x_m"]]
+
+
+def drop_half_the_points(data: dict) -> None:
+    trajectory = first_row(data)["trajectory"]
+    for name in ("x_m", "y_m", "outside"):
+        trajectory[name] = trajectory[name][::2]
+
+
+def set_row(**values):
+    return lambda data: first_row(data).update(values)
+
+
+REFUSALS = {
+    "a doctored score": (lambda d: d.update(score=150.0), "sub.json: score is 150.0, recomputed"),
+    "a doctored run score": (set_row(score=1.0), f"run {FIRST}: score is 1.0, recomputed"),
+    "a doctored ratio": (set_row(lap_time_ratio=0.5), "lap_time_ratio is 0.5, recomputed"),
+    "a doctored reference": (
+        set_row(expert_lap_time_s=3.0),
+        "expert_lap_time_s is 3.0, recomputed 7.7769",
+    ),
+    "lap times halved": (halve_every_lap_time, f"run {FIRST}: the drive ("),
+    "completion above 1": (set_row(completion=1.2), "completion 1.2 is outside [0, 1]"),
+    "completion below a finished lap": (
+        set_row(completion=0.9),
+        "every lap completed but completion is 0.9",
+    ),
+    "a lap time without a lap": (set_row(laps_completed=0), "without a completed lap"),
+    "time outside hidden": (flag_an_exit, "disagrees with the trajectory, outside at 1"),
+    "more time outside than driven": (set_row(time_outside_lane_s=99.0), "is not within the"),
+    "a drive longer than the suite's": (set_row(driven_s=61.0), "driven_s 61.0 is not 1 to 60 s"),
+    "a drive between control steps": (set_row(driven_s=7.81), "driven_s 7.81 is not 1 to 60 s"),
+    "a path faster than the car": (lambda d: scale_the_path(d, 3.0), "faster than the car's"),
+    "a path elsewhere": (shift_the_path, "does not start at the run's start"),
+    "a path that stands still": (stand_still, "the trajectory is 0.0 m long"),
+    "a thinned path": (drop_half_the_points, "points, "),
+    "an intervention without a filter": (set_row(intervention_rate=0.5), "without a filter"),
+    "a missing run": (
+        lambda d: d["rows"].pop(),
+        "eval_902/RacingLine/1/cbf of suite v1 is missing",
+    ),
+    "a duplicated run": (lambda d: d["rows"].append(d["rows"][0]), f"run {FIRST} appears 2 times"),
+    "a run of another track": (set_row(track="bean"), "bean/CenterLine/0/none is not a run of"),
+    "a run of another suite version": (set_row(suite_version=2), "of suite v2, not v1"),
+    "a run of another agent": (set_row(agent_sha256="0" * 64), "driven by another agent"),
+    "a replay of another agent": (
+        lambda d: d["replay"].update(agent="expert"),
+        "agent 'pure-pursuit' but replay agent 'expert'",
+    ),
+}
+
+
+def test_an_honest_submission_passes_unchanged(honest: dict):
+    assert check_submission(json.loads(json.dumps(honest)), SOURCE) == honest
+
+
+@pytest.mark.parametrize("case", REFUSALS)
+def test_a_doctored_submission_is_refused_naming_what_is_wrong(honest: dict, case: str):
+    change, reason = REFUSALS[case]
+    change(honest)
+    with pytest.raises(SafeRaceError) as refused:
+        check_submission(honest, SOURCE)
+    message = str(refused.value)
+    assert reason in message and "\n" not in message, message
+
+
+def test_the_leaderboard_refuses_in_one_line_and_ranks_the_honest(
+    honest_submission: Path, tmp_path: Path
+):
+    doctored = json.loads(honest_submission.read_text())
+    halve_every_lap_time(doctored)
+    path = tmp_path / "doctored.json"
+    path.write_text(json.dumps(doctored))
+    refused = run_cli("leaderboard", str(honest_submission), str(path))
+    assert refused.returncode != 0
+    row = doctored["rows"][0]
+    assert refused.stderr.strip().splitlines() == [
+        f"saferace: error: {path}: run {FIRST}: the drive ({row['driven_s']:g} s) went on "
+        f"after its last lap ({row['lap_time_s']:g} s)"
+    ]
+    accepted = run_cli("leaderboard", str(honest_submission))
+    assert accepted.returncode == 0, accepted.stderr
+    [line] = accepted.stdout.strip().splitlines()[2:]
+    cells = [cell.strip() for cell in line.strip("|").split("|")]
+    agent_hash = json.loads(honest_submission.read_text())["replay"]["agent_sha256"]
+    assert cells[:5] == ["1", "pure-pursuit", "v1", agent_hash[:12], "no"]
+
+
+def test_the_page_escapes_every_string_of_a_submission(honest: dict):
+    honest["agent"] = "<script>alert(1)</script>"
+    honest["replay"]["agent_sha256"] = "<b>bold</b>" + "0" * 52
+    page = leaderboard_html([honest], load_suite())
+    assert "<script>alert(1)" not in page and "<b>bold" not in page
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page and "&lt;b&gt;bold" in page
+
+
+def test_verify_replays_an_honest_submission_and_marks_it(honest_submission: Path, tmp_path: Path):
+    path = tmp_path / "pp.json"
+    shutil.copy(honest_submission, path)
+    result = verify_submission(path, runs=2, seed=3, progress=False)
+    assert result.passed and len(result.replayed) == 2 and result.total_runs == 48
+    record = verification_record(path)
+    assert record is not None and record["replayed"] == list(result.replayed)
+    entry = {**check_submission(json.loads(path.read_text()), str(path)), "verification": record}
+    assert leaderboard_rows([entry])[0][4] == "2 of 48"
+    path.write_text(json.dumps(json.loads(path.read_text()), indent=2))  # same rows, new bytes
+    assert verification_record(path) is None
+    listed = run_cli("leaderboard", str(path), "--verified-only")
+    assert listed.returncode != 0 and "no submission has passed" in listed.stderr
+
+
+def test_verify_finds_the_edited_row_it_replays(honest_submission: Path, tmp_path: Path):
+    edited = json.loads(honest_submission.read_text())
+    keys = [row["key"] for row in edited["rows"]]
+    [replayed] = choose_runs(keys, 1, seed=7)
+    row = edited["rows"][keys.index(replayed)]
+    row["mean_abs_deviation_m"] = 0.5 * row["mean_abs_deviation_m"]  # checked only by replay
+    path = tmp_path / "edited.json"
+    path.write_text(json.dumps(edited))
+    check_submission(json.loads(path.read_text()), str(path))  # consistent on its face
+    result = run_cli("verify", str(path), "--runs", "1", "--seed", "7")
+    assert result.returncode != 0
+    assert (
+        f"run {replayed}: mean_abs_deviation_m was {row['mean_abs_deviation_m']!r}"
+        in (result.stderr.strip().splitlines()[-1])
+    ), result.stderr
+
+
+def test_verify_refuses_an_agent_file_swapped_after_the_runs(
+    honest_submission: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    module = tmp_path / "my_agent.py"
+    module.write_text(
+        "from saferace.agents.pure_pursuit import PurePursuit\n\n\n"
+        "def make(env):\n    return PurePursuit.for_env(env)\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    data = json.loads(honest_submission.read_text())
+    data["agent"], data["replay"] = "my_agent:make", replay_record("my_agent:make", 10)
+    for row in data["rows"]:
+        row["agent"], row["agent_sha256"] = data["agent"], data["replay"]["agent_sha256"]
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps(data))
+    assert verify_submission(path, runs=1, progress=False).passed  # pure pursuit's runs
+    module.write_text(module.read_text() + "# a different agent now\n")
+    with pytest.raises(SafeRaceError, match=r"my_agent.py changed since the runs \(sha256 "):
+        verify_submission(path, runs=1, progress=False)
+    assert verification_record(path) is None  # the earlier pass is withdrawn
+
+
+def test_a_benchmark_of_an_agent_whose_file_is_missing_is_refused(tmp_path: Path):
+    with pytest.raises(SafeRaceError, match=r"loads .*missing\.pt, which is not there"):
+        replay_record(f"learned:{tmp_path / 'missing.pt'}", 10)
