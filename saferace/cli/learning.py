@@ -7,7 +7,13 @@ import argparse
 from pathlib import Path
 
 from saferace.cli import example
-from saferace.cli.arguments import TRACK_HELP, add_filter_arguments, check_count, filter_config
+from saferace.cli.arguments import (
+    TRACK_HELP,
+    add_filter_arguments,
+    add_parallel_arguments,
+    check_count,
+    filter_config,
+)
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.names import CONFORMAL_ALPHA, DEFAULT_MONITOR, MC_SAMPLES, OOD_MONITORS, TASKS
 
@@ -30,6 +36,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_config_options(collect, defaults.perturbation, prefix="perturbation.")
     collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
     add_filter_arguments(collect)
+    add_parallel_arguments(collect)
     collect.set_defaults(command=_collect)
 
     train = commands.add_parser(
@@ -166,8 +173,9 @@ def _collect(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.learning.collect import collect_round
 
+    check_count("--workers", args.workers)
     config = collection_config(args)
-    collected = collect_round(args.out, config)
+    collected = collect_round(args.out, config, workers=args.workers, ray_address=args.ray)
     rows = [
         {
             "agent": config.agent,

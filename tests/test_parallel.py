@@ -1,0 +1,32 @@
+"""The runner's worker processes share the cores instead of oversubscribing them."""
+
+from __future__ import annotations
+
+import pytest
+
+from saferace.eval.parallel import available_cores, run_jobs
+
+
+def thread_counts() -> dict[str, int]:
+    """The BLAS and PyTorch thread counts of the calling process, as threadpoolctl sees them."""
+    import numpy  # noqa: F401  (loads BLAS)
+    import torch
+    from threadpoolctl import threadpool_info
+
+    blas = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+    return {"blas": max(blas), "torch": torch.get_num_threads()}
+
+
+def test_workers_on_every_core_see_one_thread_each_and_the_serial_path_keeps_its_own():
+    cores = available_cores()
+    seen: list[dict[str, int]] = []
+    run_jobs(thread_counts, [()] * cores, lambda job, counts: seen.append(counts), workers=cores)
+    assert seen == [{"blas": 1, "torch": 1}] * cores
+    serial: list[dict[str, int]] = []
+    run_jobs(thread_counts, [()], lambda job, counts: serial.append(counts))
+    assert serial == [{"blas": cores, "torch": cores}]  # the serial path is not limited
+
+
+def test_more_workers_than_cores_are_warned_about():
+    with pytest.warns(RuntimeWarning, match=f"workers on {available_cores()} cores"):
+        run_jobs(abs, [(-1,)] * 2, lambda job, value: None, workers=available_cores() + 1)
