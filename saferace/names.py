@@ -68,3 +68,8 @@ MANIFEST_FILE = "manifest.json"
 
 #: Runs of a submission that ``saferace verify`` drives again unless told otherwise.
 VERIFY_RUNS = 4
+
+#: Where networks train and predict (``saferace.learning.device``), and the environment
+#: variable that carries the command line's choice into worker processes and Ray tasks.
+DEVICE_HELP = "auto (a GPU where PyTorch sees one), cpu, cuda or cuda:N"
+DEVICE_VARIABLE = "SAFERACE_DEVICE"

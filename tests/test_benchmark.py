@@ -152,8 +152,8 @@ def test_ray_gives_the_serial_rows_and_reports_failed_runs(tmp_path: Path, local
     assert on_ray["rows"] == serial["rows"]
     with pytest.raises(SafeRaceError, match=r"2 run\(s\) failed on Ray after 2 retries"):
         run_benchmark(
-            "saferace.eval.agents:no_such_factory", tmp_path / "c.json", progress=False, runs=LAB_RUNS,
-            ray_address="local",
+            "saferace.eval.agents:no_such_factory", tmp_path / "c.json", progress=False,
+            runs=LAB_RUNS, ray_address="local",
         )  # fmt: skip
     assert not (tmp_path / "c.json").exists()
 

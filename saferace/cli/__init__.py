@@ -62,6 +62,10 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s"
     )
     try:
+        if getattr(args, "device", None) is not None:
+            from saferace.learning.device import use_device
+
+            use_device(args.device)  # for this process and the workers it starts
         return args.command(args)
     except ConfigError as exc:
         flag = (getattr(args, FLAGS_KEY, None) or {}).get(exc.field, exc.field)

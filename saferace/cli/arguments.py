@@ -9,6 +9,7 @@ from saferace.cli.options import add_config_options
 from saferace.errors import SafeRaceError
 from saferace.names import (
     DEFAULT_STATE_NOISE,
+    DEVICE_HELP,
     MC_SAMPLES,
     NOISY_SAMPLES,
     RANDOMIZATION_PRESETS,
@@ -146,6 +147,10 @@ def add_track_arguments(parser: argparse.ArgumentParser) -> None:
         help="what a smoothed lane keeps: the given widths (default: its boundaries move with the "
         "centre line, as the F1TENTH collection's lanes) or the given boundaries (measured edges)",
     )
+
+
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", help=f"where the networks run: {DEVICE_HELP} (default: auto)")
 
 
 def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 from saferace.cli import example
 from saferace.cli.arguments import (
     AGENT_HELP,
+    add_device_argument,
     add_episode_arguments,
     add_filter_arguments,
     add_parallel_arguments,
@@ -32,6 +33,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
     add_filter_arguments(drive)
+    add_device_argument(drive)
     drive.set_defaults(command=_drive)
 
     evaluate = commands.add_parser(
@@ -57,6 +59,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     evaluate.add_argument(
         "--max-seconds", type=float, help="end an episode after this much simulated time"
     )
+    add_device_argument(evaluate)
     evaluate.set_defaults(command=_eval)
 
     board = commands.add_parser(
@@ -98,6 +101,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     bench.add_argument(
         "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
     )
+    add_device_argument(bench)
     bench.set_defaults(command=_benchmark)
 
     verify = commands.add_parser(
@@ -116,6 +120,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     how_many.add_argument("--all", action="store_true", help="replay every run")
     verify.add_argument("--seed", type=int, default=0, help="draws the runs to replay")
     verify.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    add_device_argument(verify)
     verify.set_defaults(command=_verify)
 
 

@@ -7,7 +7,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from saferace.cli import example
-from saferace.cli.arguments import add_parallel_arguments, check_count
+from saferace.cli.arguments import add_device_argument, add_parallel_arguments, check_count
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
 from saferace.names import DAGGER_STATE_SOURCES, PAPER_PRESETS, STATE_UNCERTAINTY_METHODS
@@ -61,6 +61,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
     add_parallel_arguments(dagger)
+    add_device_argument(dagger)
     dagger.set_defaults(command=_dagger)
 
     tables = commands.add_parser(
@@ -86,6 +87,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
+    add_device_argument(tables)
     tables.set_defaults(command=_paper_tables)
 
 

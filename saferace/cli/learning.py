@@ -9,6 +9,7 @@ from pathlib import Path
 from saferace.cli import example
 from saferace.cli.arguments import (
     TRACK_HELP,
+    add_device_argument,
     add_filter_arguments,
     add_parallel_arguments,
     check_count,
@@ -37,6 +38,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
     add_filter_arguments(collect)
     add_parallel_arguments(collect)
+    add_device_argument(collect)
     collect.set_defaults(command=_collect)
 
     train = commands.add_parser(
@@ -64,6 +66,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     train.add_argument(
         "--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples to score"
     )
+    add_device_argument(train)
     train.set_defaults(command=_train)
 
     validate = commands.add_parser(
@@ -75,6 +78,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     validate.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
     validate.add_argument("--out", type=Path, required=True, help="folder for tables and plots")
     validate.add_argument("--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
+    add_device_argument(validate)
     validate.set_defaults(command=_validate)
 
     calibrate = commands.add_parser(
@@ -105,6 +109,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     calibrate.add_argument(
         "--out", type=Path, required=True, help="checkpoint to write (may be the same)"
     )
+    add_device_argument(calibrate)
     calibrate.set_defaults(command=_calibrate)
 
     gradcam = commands.add_parser(
@@ -127,6 +132,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the ResNet stage whose activations GradCAM weighs (finer: earlier)",
     )
     gradcam.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
+    add_device_argument(gradcam)
     gradcam.set_defaults(command=_gradcam)
 
     export = commands.add_parser(

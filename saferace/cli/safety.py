@@ -8,6 +8,7 @@ from pathlib import Path
 from saferace.cli import example
 from saferace.cli.arguments import (
     TRACK_HELP,
+    add_device_argument,
     add_filter_arguments,
     add_parallel_arguments,
     check_count,
@@ -83,6 +84,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the filter's settings (see saferace.safety.filter.GAIN_PRESETS)",
     )
     add_parallel_arguments(table)
+    add_device_argument(table)
     table.set_defaults(command=_safety_table)
 
     from saferace.experiments.robustness_config import RobustnessConfig
@@ -101,6 +103,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--out", type=Path, required=True, help="folder of runs.jsonl and the tables"
     )
     add_filter_arguments(robust)
+    add_device_argument(robust)
     robust.set_defaults(command=_robustness)
 
     sweep = commands.add_parser(
@@ -119,6 +122,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="a method's label and the saferace robustness folder it drove in",
     )
     sweep.add_argument("--out", type=Path, required=True, help="folder for the table and plot")
+    add_device_argument(sweep)
     sweep.set_defaults(command=_shift_sweep)
 
 

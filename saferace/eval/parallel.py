@@ -26,6 +26,7 @@ from typing import Any
 
 from saferace.errors import SafeRaceError
 from saferace.extras import require
+from saferace.names import DEVICE_VARIABLE
 
 RAY_RETRIES = 2
 #: What BLAS, OpenMP and PyTorch builds read for their thread counts when they load.
@@ -116,6 +117,7 @@ def _run_on_ray(
                 "env_vars": {
                     "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
                     **{name: "1" for name in THREAD_VARIABLES},  # a task has one CPU
+                    **{name: os.environ[name] for name in (DEVICE_VARIABLE,) if name in os.environ},
                 }
             },
         )

@@ -22,6 +22,7 @@ from typing import BinaryIO
 import torch
 
 from saferace.errors import SafeRaceError
+from saferace.learning.device import resolve_device
 from saferace.learning.ensemble import StateEnsemble, StateNetwork
 from saferace.learning.networks import DrivingNetwork, NetworkConfig
 
@@ -65,10 +66,12 @@ def save_checkpoint(
 
 
 def _entry(network: StateNetwork) -> dict:
-    """A network's config and weights (an ensemble's: each member's)."""
+    """A network's config and weights, on the CPU from any device (an ensemble's: each
+    member's)."""
     if isinstance(network, StateEnsemble):
         return {"members": [_entry(member) for member in network.members]}
-    return {"config": network.config.as_dict(), "weights": network.state_dict()}
+    weights = {name: tensor.cpu() for name, tensor in network.state_dict().items()}
+    return {"config": network.config.as_dict(), "weights": weights}
 
 
 def save_with_metadata(source: str | Path, metadata: dict, out: str | Path) -> Path:
@@ -103,8 +106,12 @@ def _write_atomically(path: str | Path, write: Callable[[BinaryIO], object]) -> 
     return path
 
 
-def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
-    """Both networks of a checkpoint written by :func:`save_checkpoint`, ready to predict."""
+def load_checkpoint(
+    path: str | Path, device: str | torch.device | None = None
+) -> LearnedCheckpoint:
+    """Both networks of a checkpoint written by :func:`save_checkpoint`, ready to predict on
+    ``device`` (see :func:`~saferace.learning.device.resolve_device`), whatever device they
+    were saved from."""
     path = Path(path)
     if not path.is_file():
         raise SafeRaceError(f"no checkpoint at {path}: train one with saferace train ... --out")
@@ -126,6 +133,9 @@ def load_checkpoint(path: str | Path) -> LearnedCheckpoint:
     except (KeyError, RuntimeError, TypeError) as exc:
         raise SafeRaceError(f"{path} holds damaged or mismatched networks: {exc}") from None
     sha256 = hashlib.sha256(raw).hexdigest()
+    target = resolve_device(device)
+    control.to(target)
+    state.to(target)
     return LearnedCheckpoint(control, state, payload["metadata"], path, sha256)
 
 

@@ -42,8 +42,12 @@ def gradcam_maps(
     if layer not in LAYERS:
         raise SafeRaceError(f"unknown layer {layer!r}: use one of {', '.join(LAYERS)}")
     network.eval()
-    images = torch.as_tensor(image, dtype=torch.float32)[None]
-    extra = None if velocity is None else torch.as_tensor(velocity, dtype=torch.float32)[None]
+    images = torch.as_tensor(image, dtype=torch.float32, device=network.device)[None]
+    extra = (
+        None
+        if velocity is None
+        else torch.as_tensor(velocity, dtype=torch.float32, device=network.device)[None]
+    )
     with torch.no_grad():
         signs = torch.sign(network.denormalise_outputs(network(images, extra)))[0]
 
@@ -58,7 +62,7 @@ def gradcam_maps(
             images, target=output, additional_forward_args=(extra,), relu_attributions=True
         )
         heat = LayerAttribution.interpolate(attribution, (height, width), "bilinear")[0, 0]
-        heat = heat.detach().numpy()
+        heat = heat.detach().cpu().numpy()
         peak = heat.max()
         maps.append(heat / peak if peak > 0 else heat)
     return np.stack(maps)

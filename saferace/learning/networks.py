@@ -159,6 +159,11 @@ class DrivingNetwork(nn.Module):
         self.register_buffer("output_mean", torch.zeros(outputs))
         self.register_buffer("output_std", torch.ones(outputs))
 
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are: inputs are moved here, predictions come back to the CPU."""
+        return self.image_mean.device
+
     def set_normalisation(self, statistics: dict[str, np.ndarray]) -> None:
         """Set the ``*_mean``/``*_std`` buffers from arrays of the training data."""
         for name, values in statistics.items():
@@ -177,7 +182,7 @@ class DrivingNetwork(nn.Module):
                 f"expected images (N, H, W, {channels * subnetworks}), got {tuple(image.shape)}"
             )
         # NHWC -> NCHW as a view: channels-last memory, the fast layout for CPU convolutions.
-        x = image.permute(0, 3, 1, 2).float() / 255.0
+        x = image.to(self.device).permute(0, 3, 1, 2).float() / 255.0
         mean, std = self.image_mean.repeat(subnetworks), self.image_std.repeat(subnetworks)
         return self.backbone((x - mean[:, None, None]) / std[:, None, None])
 
@@ -193,7 +198,7 @@ class DrivingNetwork(nn.Module):
         if self.config.uses_velocity:
             if velocity is None:
                 raise SafeRaceError("the control network needs the velocities [v_x, v_y, r]")
-            v = (velocity.float() - self.velocity_mean) / self.velocity_std
+            v = (velocity.to(self.device).float() - self.velocity_mean) / self.velocity_std
             x = torch.cat([x, functional.relu(self.velocity_branch(v))], dim=1)
         return self.output_layer(self._dropout(x, sample, generator))
 
@@ -246,7 +251,7 @@ class DrivingNetwork(nn.Module):
         samples = self.denormalise_outputs(samples)
         mean = samples.mean(dim=1)
         std = torch.zeros_like(mean) if samples.shape[1] == 1 else samples.std(dim=1, correction=0)
-        return Prediction(mean.numpy(), std.numpy(), samples.numpy(), features.numpy())
+        return Prediction(*(_numpy(tensor) for tensor in (mean, std, samples, features)))
 
     def _gaussian_prediction(self, outputs: torch.Tensor, features: torch.Tensor) -> Prediction:
         """Heteroscedastic heads' mean and std in physical units: the mixture of the
@@ -259,8 +264,8 @@ class DrivingNetwork(nn.Module):
         log_variance = per_subnetwork[..., count:].clamp(*LOG_VARIANCE_RANGE)
         stds = torch.exp(0.5 * log_variance) * self.output_std
         samples = torch.cat([means - stds, means + stds], dim=1)
-        mean, std = mixture(means.transpose(0, 1).numpy(), stds.transpose(0, 1).numpy())
-        return Prediction(mean, std, samples.numpy(), features.numpy())
+        mean, std = mixture(_numpy(means.transpose(0, 1)), _numpy(stds.transpose(0, 1)))
+        return Prediction(mean, std, _numpy(samples), _numpy(features))
 
     def _dropout(
         self, x: torch.Tensor, sample: bool, generator: torch.Generator | None
@@ -270,8 +275,14 @@ class DrivingNetwork(nn.Module):
             return x
         if generator is None:
             return functional.dropout(x, p, training=True)
-        keep = torch.rand(x.shape, generator=generator) >= p  # seeded masks: repeatable samples
+        # seeded masks, drawn on the CPU: repeatable samples on any device
+        keep = (torch.rand(x.shape, generator=generator) >= p).to(x.device)
         return x * keep / (1.0 - p)
+
+
+def _numpy(tensor: torch.Tensor) -> np.ndarray:
+    """A prediction's tensor as a float32 array on the CPU (from any device or precision)."""
+    return tensor.float().cpu().numpy()
 
 
 def load_torchvision_weights(network: DrivingNetwork, path: str | Path) -> None:

@@ -36,6 +36,7 @@ from saferace.eval.runner import git_revision, package_versions
 from saferace.learning.augmentation import photometric
 from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint, save_atomically
 from saferace.learning.configs import NETWORKS, TrainConfig
+from saferace.learning.device import autocast, resolve_device
 from saferace.learning.ensemble import StateEnsemble
 from saferace.learning.networks import (
     LOG_VARIANCE_RANGE,
@@ -132,6 +133,8 @@ def fit(
     ``on_epoch`` gets the state to continue from (weights, optimiser, generators, losses,
     epochs done, the best weights); ``resume`` is such a state.
     """
+    device = resolve_device()
+    network.to(device)
     network.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
     seed = config.seed if shuffle_seed is None else shuffle_seed
@@ -152,7 +155,9 @@ def fit(
         augmenter.set_state(resume["augmenter"])
         torch.set_rng_state(resume["torch_rng"])  # dropout's masks
         history, first_epoch, best = resume["history"], resume["epochs_done"], resume["best"]
-    targets = network.normalise_outputs(torch.as_tensor(train.targets, dtype=torch.float32))
+    targets = network.normalise_outputs(
+        torch.as_tensor(train.targets, dtype=torch.float32, device=device)
+    )
     batches = math.ceil(len(train) / config.batch_size)
     steps = config.steps_for(len(train))
     epochs = math.ceil(steps / batches)
@@ -174,10 +179,11 @@ def fit(
                 bar.update()
                 if index.shape[-1] == 1:  # BatchNorm cannot train on one frame of 1x1 features
                     continue  # (32x32 images); shuffled, the frame is in the next epoch's batches
-                outputs = network_outputs(
-                    network, train, index, augmenter if config.augment else None
-                )
-                loss = training_loss(network, outputs, targets[index.T])
+                with autocast(device):
+                    outputs = network_outputs(
+                        network, train, index, augmenter if config.augment else None
+                    )
+                    loss = training_loss(network, outputs.float(), targets[index.T])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -252,13 +258,17 @@ def validation_loss(network: DrivingNetwork, data: NetworkData, batch_size: int)
     """MSE of normalised targets with dropout off (of the means, and of a MIMO network's
     subnetworks' mean, for heteroscedastic heads: comparable with a dropout network's)."""
     network.eval()
-    targets = network.normalise_outputs(torch.as_tensor(data.targets, dtype=torch.float32))
+    targets = network.normalise_outputs(
+        torch.as_tensor(data.targets, dtype=torch.float32, device=network.device)
+    )
     count = targets.shape[1]
     width = 2 * count if network.config.log_variance else count
     total = 0.0
     for start in range(0, len(data), batch_size):
         index = np.arange(start, min(start + batch_size, len(data)))
-        outputs = network_outputs(network, data, index).reshape(len(index), -1, width)
+        with autocast(network.device):
+            outputs = network_outputs(network, data, index).float()
+        outputs = outputs.reshape(len(index), -1, width)
         error = outputs[..., :count].mean(dim=1) - targets[index]
         total += float((error**2).mean(dim=1).sum())
     return total / len(data)
