@@ -137,3 +137,29 @@ def test_discretisation_is_the_exact_zero_order_hold(name: str):
         k4 = a @ (y + h * k3) + b @ u + c
         y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     np.testing.assert_allclose(a_d @ x + b_d @ u + c_d, y, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_every_stage_with_the_steering_lag_is_its_own_exact_zero_order_hold(name: str):
+    """The batched discretisation of a horizon gives each stage what the lagged system of
+    that stage alone gives: the model seeing the wheels' angle, which lags the command."""
+    model, rng, dt, tau = FrenetModel(name, PARAMS), np.random.default_rng(5), 0.05, 0.04
+    n = model.n_state
+    xs = np.array([[*random_state(model, rng), rng.uniform(-0.2, 0.2)] for _ in range(4)])
+    us, kappas = rng.uniform(-0.3, 0.3, (4, 2)), rng.uniform(-0.5, 0.5, 4)
+    a_d, b_d, c_d = model.discretize_stages_with_steering_lag(xs, us, kappas, dt, tau)
+    for k in range(4):
+        applied = np.array([xs[k, n], us[k, 1]])
+        a, b = model.jacobians(xs[k, :n], applied, kappas[k])
+        lagged_a = np.zeros((n + 1, n + 1))
+        lagged_a[:n, :n], lagged_a[:n, n], lagged_a[n, n] = a, b[:, 0], -1.0 / tau
+        lagged_b = np.zeros((n + 1, 2))
+        lagged_b[:n, 1], lagged_b[n, 0] = b[:, 1], 1.0 / tau
+        derivative = np.append(model.f(xs[k, :n], applied, kappas[k]), (us[k, 0] - xs[k, n]) / tau)
+        block = np.zeros((n + 4, n + 4))  # [[A, B, c], [0, 0, 0]]: the exact zero-order hold
+        block[: n + 1, : n + 1], block[: n + 1, n + 1 : n + 3] = lagged_a, lagged_b
+        block[: n + 1, -1] = derivative - lagged_a @ xs[k] - lagged_b @ us[k]
+        exact = expm(block * dt)
+        np.testing.assert_allclose(a_d[k], exact[: n + 1, : n + 1], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(b_d[k], exact[: n + 1, n + 1 : n + 3], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(c_d[k], exact[: n + 1, -1], rtol=1e-9, atol=1e-12)

@@ -15,7 +15,7 @@ the sparsity pattern fixed (OSQP cannot take new non-zeros), and it is warm-star
 The expert drives from the ground truth in ``info``. The steering servo's lag (identified
 time constant, about one control step) is part of the model: the state gains the wheels'
 angle (``info["steer_angle_rad"]``), which follows the commanded angle as a first-order lag
-(:meth:`~saferace.safety.models.FrenetModel.discretize_with_steering_lag`). Without it the
+(:meth:`~saferace.safety.models.FrenetModel.discretize_stages_with_steering_lag`). Without it the
 plan is late by the lag, and above about 5 m/s the car weaves and spins on straights. The
 steering-rate limit and penalty start from the steering target the car has
 (``info["steer_rad"]``), whoever chose it: the expert's own last command, or a filter's, a
@@ -188,37 +188,40 @@ class MPCExpert:
         # Constraint rows: dynamics, input bounds, steering rate, lane (upper, lower), slack >= 0.
         self._A_rows: list[int] = []
         self._A_cols: list[int] = []
+        self._A_constants: list[float] = []
+        b_entries = np.empty((N, n, m), dtype=int)  # where each stage's -B_k and -A_k go
+        a_entries = np.empty((max(N - 1, 0), n, n), dtype=int)
         row = 0
         self._dyn_rows = row
         for k in range(N):
             for i in range(n):
-                self._entry(row + i, L.x(k) + i)  # x_{k+1}
+                self._entry(row + i, L.x(k) + i, 1.0)  # x_{k+1}
                 for j in range(m):
-                    self._entry(row + i, L.u(k) + j)  # -B_k u_k
+                    b_entries[k, i, j] = self._entry(row + i, L.u(k) + j)  # -B_k u_k
                 if k > 0:
                     for j in range(n):
-                        self._entry(row + i, L.x(k - 1) + j)  # -A_k x_k
+                        a_entries[k - 1, i, j] = self._entry(row + i, L.x(k - 1) + j)  # -A_k x_k
             row += n
         self._input_rows = row
         for k in range(N):
             for j in range(m):
-                self._entry(row, L.u(k) + j)
+                self._entry(row, L.u(k) + j, 1.0)
                 row += 1
         self._rate_rows = row
         for k in range(N):
-            self._entry(row, L.u(k))
+            self._entry(row, L.u(k), 1.0)
             if k > 0:
-                self._entry(row, L.u(k - 1))
+                self._entry(row, L.u(k - 1), -1.0)
             row += 1
         self._lane_rows = row
         for k in range(N):
-            for _ in ("upper", "lower"):
-                self._entry(row, L.x(k))  # e_y is the first state
-                self._entry(row, L.eps(k))
+            for eps_sign in (-1.0, 1.0):  # e_y - eps <= upper ; e_y + eps >= lower
+                self._entry(row, L.x(k), 1.0)  # e_y is the first state
+                self._entry(row, L.eps(k), eps_sign)
                 row += 1
         self._slack_rows = row
         for k in range(N):
-            self._entry(row, L.eps(k))
+            self._entry(row, L.eps(k), 1.0)
             row += 1
         self._n_rows = row
         nnz = len(self._A_rows)
@@ -226,34 +229,30 @@ class MPCExpert:
             (np.arange(1, nnz + 1, dtype=float), (self._A_rows, self._A_cols)), shape=(row, L.size)
         )
         pattern = order.tocsc()
-        self._csc_order = pattern.data.astype(int) - 1  # CSC slot -> our entry index
+        csc_order = pattern.data.astype(int) - 1  # CSC slot -> our entry index
+        slot_of_entry = np.empty(nnz, dtype=int)
+        slot_of_entry[csc_order] = np.arange(nnz)
+        self._constant_values = np.asarray(self._A_constants)[csc_order]
+        self._b_slots, self._a_slots = slot_of_entry[b_entries], slot_of_entry[a_entries]
         self._A_template = pattern
         self._solver: osqp.OSQP | None = None
 
-    def _entry(self, row: int, col: int) -> None:
+    def _entry(self, row: int, col: int, constant: float = 0.0) -> int:
+        """Add a constraint entry (a ``constant`` one, or one a stage's matrices fill); its
+        index in the order of entries."""
         self._A_rows.append(row)
         self._A_cols.append(col)
+        self._A_constants.append(constant)
+        return len(self._A_rows) - 1
 
-    def _constraint_values(self, A_list, B_list) -> np.ndarray:
-        """Values of every constraint entry, in the order the pattern was built."""
-        L = self._layout
-        n, m, N = L.n, L.m, L.N
-        values = []
-        for k in range(N):
-            for i in range(n):
-                values.append(1.0)
-                values.extend(-B_list[k][i])
-                if k > 0:
-                    values.extend(-A_list[k][i])
-        values.extend([1.0] * (N * m))
-        for k in range(N):
-            values.append(1.0)
-            if k > 0:
-                values.append(-1.0)
-        for _ in range(N):
-            values.extend([1.0, -1.0, 1.0, 1.0])  # e_y - eps <= upper ; e_y + eps >= lower
-        values.extend([1.0] * N)
-        return np.asarray(values)
+    def _constraint_values(self, A_stages: np.ndarray, B_stages: np.ndarray) -> np.ndarray:
+        """Values of every constraint entry, in the CSC order of the constraint matrix: the
+        constants of the pattern with the stages' ``-B_k`` and ``-A_k`` written into their
+        slots."""
+        values = self._constant_values.copy()
+        values[self._b_slots] = -B_stages
+        values[self._a_slots] = -A_stages[1:]
+        return values
 
     def _solve(self, x0: np.ndarray, s0: float) -> np.ndarray:
         st, L, model = self.settings, self._layout, self.model
@@ -261,15 +260,13 @@ class MPCExpert:
         plan_x, plan_u = self._linearisation_trajectory(x0, s0)
         s_stage = np.empty(N + 1)
         s_stage[0] = s0
-        A_list, B_list, c_list = [], [], []
-        lag_s = self.params.steer_time_constant_s
+        kappas = np.empty(N)
         for k in range(N):
-            kappa = self._stage_curvature(plan_x[k, : model.n_state], s_stage[k], dt)
-            A, B, c = model.discretize_with_steering_lag(plan_x[k], plan_u[k], kappa, dt, lag_s)
-            A_list.append(A)
-            B_list.append(B)
-            c_list.append(c)
-            s_stage[k + 1] = s_stage[k] + model.s_dot(plan_x[k, : model.n_state], kappa) * dt
+            kappas[k] = self._stage_curvature(plan_x[k, : model.n_state], s_stage[k], dt)
+            s_stage[k + 1] = s_stage[k] + model.s_dot(plan_x[k, : model.n_state], kappas[k]) * dt
+        A_stages, B_stages, c_stages = model.discretize_stages_with_steering_lag(
+            plan_x[:N], plan_u, kappas, dt, self.params.steer_time_constant_s
+        )
         s_ref = s_stage[1:]
         reference = np.zeros((N, n))
         reference[:, 0] = self.reference.offset_at(s_ref)
@@ -285,8 +282,8 @@ class MPCExpert:
         q[L.eps(0) :] = st.slack_linear
         lo = np.empty(self._n_rows)
         hi = np.empty(self._n_rows)
-        dynamics_rhs = np.array(c_list)
-        dynamics_rhs[0] += A_list[0] @ x0
+        dynamics_rhs = c_stages.copy()
+        dynamics_rhs[0] += A_stages[0] @ x0
         lo[: N * n] = hi[: N * n] = dynamics_rhs.ravel()
         p = self.drivetrain
         u_min = np.tile([-p.max_steer_rad, -p.max_brake_mps2], N)
@@ -310,7 +307,7 @@ class MPCExpert:
             lane_hi,
         )
         lo[self._slack_rows :], hi[self._slack_rows :] = 0.0, np.inf
-        a_values = self._constraint_values(A_list, B_list)[self._csc_order]
+        a_values = self._constraint_values(A_stages, B_stages)
 
         start = time.perf_counter()
         if self._solver is None:
@@ -363,7 +360,7 @@ class MPCExpert:
         length = self.model.s_dot(x, kappa) * dt_s
         if length < _MIN_STAGE_LENGTH_M:
             return kappa
-        turn = centerline.heading(s_m + length) - centerline.heading(s_m)
+        turn = centerline.heading_scalar(s_m + length) - centerline.heading_scalar(s_m)
         return float(np.angle(np.exp(1j * turn))) / length
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:

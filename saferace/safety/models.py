@@ -218,32 +218,41 @@ class FrenetModel:
         a, b = self.jacobians(x, u, kappa)
         return _zero_order_hold(a, b, self.f(x, u, kappa) - a @ x - b @ u, dt_s)
 
-    def discretize_with_steering_lag(
+    def discretize_stages_with_steering_lag(
         self,
-        x: np.ndarray,
-        u: np.ndarray,
-        kappa: float,
+        xs: np.ndarray,
+        us: np.ndarray,
+        kappas: np.ndarray,
         dt_s: float,
         steer_time_constant_s: float,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`discretize` with the steering servo in front of the model.
+        """:meth:`discretize` with the steering servo in front of the model, at every stage
+        ``k`` of a horizon at once: ``(A_d, B_d, c_d)`` stacked ``(N, n + 1, ...)``.
 
-        The state gains the wheels' angle ``delta`` (last entry of ``x``), which follows the
-        commanded angle ``u[0]`` as a first-order lag, ``delta' = (u[0] - delta) / tau``; the
-        model sees ``[delta, u[1]]``. At racing speed the servo's lag (about one control step)
-        is what a controller that ignores it turns into a weave.
+        The state gains the wheels' angle ``delta`` (last entry of each ``xs[k]``), which
+        follows the commanded angle ``u[0]`` as a first-order lag,
+        ``delta' = (u[0] - delta) / tau``; the model sees ``[delta, u[1]]``. At racing speed
+        the servo's lag (about one control step) is what a controller that ignores it
+        turns into a weave. The stages' matrix exponentials are one batched call.
         """
         n, m = self.n_state, self.n_control
-        state, delta = np.asarray(x[:n], dtype=float), float(x[n])
-        applied = np.array([delta, u[1]], dtype=float)
-        a, b = self.jacobians(state, applied, kappa)
+        stages = len(xs)
         rate = 1.0 / steer_time_constant_s
-        a_lag = np.zeros((n + 1, n + 1))
-        a_lag[:n, :n], a_lag[:n, n], a_lag[n, n] = a, b[:, 0], -rate
-        b_lag = np.zeros((n + 1, m))
-        b_lag[:n, 1], b_lag[n, 0] = b[:, 1], rate
-        x_dot = np.append(self.f(state, applied, kappa), rate * (u[0] - delta))
-        c = x_dot - a_lag @ np.asarray(x, dtype=float) - b_lag @ np.asarray(u, dtype=float)
+        a_lag = np.zeros((stages, n + 1, n + 1))
+        b_lag = np.zeros((stages, n + 1, m))
+        x_dot = np.empty((stages, n + 1))
+        for k in range(stages):
+            state, delta = np.asarray(xs[k][:n], dtype=float), float(xs[k][n])
+            applied = np.array([delta, us[k][1]], dtype=float)
+            args = self._args(state, applied, kappas[k])
+            a, b = np.asarray(self._a(*args)), np.asarray(self._b(*args))
+            a_lag[k, :n, :n], a_lag[k, :n, n] = a, b[:, 0]
+            b_lag[k, :n, 1] = b[:, 1]
+            x_dot[k, :n] = np.asarray(self._f(*args)).ravel()
+            x_dot[k, n] = rate * (us[k][0] - delta)
+        a_lag[:, n, n], b_lag[:, n, 0] = -rate, rate
+        xs, us = np.asarray(xs, dtype=float), np.asarray(us, dtype=float)
+        c = x_dot - np.einsum("kij,kj->ki", a_lag, xs) - np.einsum("kij,kj->ki", b_lag, us)
         return _zero_order_hold(a_lag, b_lag, c, dt_s)
 
 
@@ -251,14 +260,15 @@ def _zero_order_hold(
     a: np.ndarray, b: np.ndarray, c: np.ndarray, dt_s: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``x' = a x + b u + c`` with ``u`` held over ``dt_s``, discretised exactly by one
-    matrix exponential: ``(A_d, B_d, c_d)``."""
+    matrix exponential: ``(A_d, B_d, c_d)``; leading axes of ``a``, ``b``, ``c`` are a batch
+    of systems, exponentiated in one call."""
     from scipy.linalg import expm
 
-    n, m = b.shape
-    block = np.zeros((n + m + 1, n + m + 1))
-    block[:n, :n], block[:n, n : n + m], block[:n, -1] = a, b, c
+    n, m = b.shape[-2:]
+    block = np.zeros((*a.shape[:-2], n + m + 1, n + m + 1))
+    block[..., :n, :n], block[..., :n, n : n + m], block[..., :n, -1] = a, b, c
     exp = expm(block * dt_s)
-    return exp[:n, :n], exp[:n, n : n + m], exp[:n, -1]
+    return exp[..., :n, :n], exp[..., :n, n : n + m], exp[..., :n, -1]
 
 
 @cache

@@ -130,6 +130,11 @@ class ClosedPath:
         _, _, dx, dy, ddx, ddy = self.eval_scalar(s)
         return (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5
 
+    def heading_scalar(self, s: float) -> float:
+        """:meth:`heading` at one arc length, without numpy overhead (per-step use)."""
+        _, _, dx, dy, _, _ = self.eval_scalar(s)
+        return math.atan2(dy, dx)
+
 
 def _chord_spline(points: np.ndarray) -> tuple[CubicSpline, np.ndarray]:
     """Periodic spline through ``points`` parameterised by cumulative chord length."""
