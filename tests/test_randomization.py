@@ -210,3 +210,38 @@ def test_presets_grow_from_none_to_strong():
                 value = getattr(presets[name], field.name)
                 widths.append(value if isinstance(value, float) else value[1] - value[0])
             assert widths[0] <= widths[1] <= widths[2], field.name
+
+
+def test_a_look_picks_its_sky_and_asphalt_from_banks_without_uploading_a_texture(
+    monkeypatch: pytest.MonkeyPatch,
+):
+    import mujoco
+
+    from saferace.envs.scene import TEXTURE_BANK_SIZE
+
+    env = gym.make("saferace/CenterLine-v0", track="technical", randomize="strong")
+    onboard(env, 0)  # makes the renderer, which uploads the model with its banks
+
+    def no_texture_upload(*args):
+        raise AssertionError("a look uploaded a texture")
+
+    monkeypatch.setattr(mujoco, "mjr_uploadTexture", no_texture_upload)
+    top_rows: dict[int, np.ndarray] = {}  # the sky, above the horizon
+    for seed in range(1, 25):
+        image, info = onboard(env, seed)
+        entry = info["look"]["sky_bank_entry"]
+        assert 0 <= entry < TEXTURE_BANK_SIZE
+        top_rows.setdefault(entry, image[:3].astype(float).mean(axis=(0, 1)))
+    env.close()
+    assert len(top_rows) >= 8  # the looks spread over the bank
+    colours = np.array(list(top_rows.values()))
+    assert np.ptp(colours, axis=0).max() > 20.0  # and the entries are different skies
+
+
+def test_two_environments_with_the_same_ranges_draw_the_same_look_per_seed():
+    images = []
+    for _ in range(2):
+        env = gym.make("saferace/CenterLine-v0", track="lab", randomize="strong")
+        images.append(onboard(env, 7)[0])
+        env.close()
+    np.testing.assert_array_equal(images[0], images[1])

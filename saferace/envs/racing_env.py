@@ -104,30 +104,28 @@ class RacingEnv(gym.Env):
     ``max_steps`` steps (default: time for ``max_laps`` laps at 0.5 m/s).
 
     ## Info
-    ``s_m, e_y_m, e_psi_rad, kappa_radpm`` (Frenet state on the centerline),
-    ``ref_offset_m, ref_speed_mps, deviation_m`` (the reference at ``s``),
-    ``w_left_m, w_right_m`` (lane half widths at ``s``), ``x_m, y_m, yaw_rad`` (pose),
-    ``v_x_mps, v_y_mps, yaw_rate_radps``, ``steer_rad`` (applied steering target),
-    ``steer_angle_rad`` (the wheels' bicycle angle, which follows the target with the
-    servos' lag),
-    ``accel_mps2`` (command), ``time_s``, ``progress_m`` (since reset), ``lap`` (laps
-    completed), ``lap_time_s`` (last completed lap, None before), ``lap_times_s``,
-    ``lap_completed``, ``outside_lane``, ``cost``, ``reward_progress``, ``reward_deviation``.
+    ``s_m, e_y_m, e_psi_rad, kappa_radpm`` (Frenet state on the centerline), ``ref_offset_m,
+    ref_speed_mps, deviation_m`` (the reference at ``s``), ``w_left_m, w_right_m`` (lane half
+    widths at ``s``), ``x_m, y_m, yaw_rad`` (pose), ``v_x_mps, v_y_mps, yaw_rate_radps``,
+    ``steer_rad`` (applied steering target), ``steer_angle_rad`` (the wheels' bicycle angle,
+    which follows the target with the servos' lag), ``accel_mps2`` (command), ``time_s``,
+    ``progress_m`` (since reset), ``lap`` (laps completed), ``lap_time_s`` (last completed lap,
+    None before), ``lap_times_s``, ``lap_completed``, ``outside_lane``, ``cost``,
+    ``reward_progress``, ``reward_deviation``.
 
     ## Arguments
     ``track``: built-in name or CSV path or :class:`~saferace.track.Track` (default
     ``"technical"``); ``image_size=(64, 64)`` (H, W); ``stereo=False``; ``control_hz=20``;
     ``physics_dt_s=0.005``; ``max_laps=1``; ``max_steps=None``; ``render_mode=None`` or
     ``"rgb_array"`` (chase view of ``render_size=(240, 320)``); ``start_s_m=0.0``;
-    ``random_start=False``; ``deviation_weight=1.0``; ``scene_options``;
-    ``randomize``: visual domain randomisation, a preset (``"none"``, ``"mild"``,
-    ``"strong"``) or a :class:`~saferace.envs.randomization.VisualRandomization` of ranges
-    (light, colours, textures, lane markings, roadside objects, onboard camera mounting,
-    image noise and blur); ``physics_randomize``: the same for the car (mass, tyre friction,
-    motor strength; :class:`~saferace.envs.randomization.PhysicsRandomization`). Both are
-    drawn at each reset from the env's seeded generator (same seed, same look and car) and
-    written into the model in place; the values drawn are in the reset info as ``look`` and
-    ``car``.
+    ``random_start=False``; ``deviation_weight=1.0``; ``scene_options``; ``randomize``: visual
+    domain randomisation, a preset (``"none"``, ``"mild"``, ``"strong"``) or a
+    :class:`~saferace.envs.randomization.VisualRandomization` of ranges (light, colours,
+    textures, lane markings, roadside objects, onboard camera mounting, image noise and blur);
+    ``physics_randomize``: the same for the car (mass, tyre friction, motor strength;
+    :class:`~saferace.envs.randomization.PhysicsRandomization`). Both are drawn at each reset
+    from the env's seeded generator (same seed, same look and car) and written into the model in
+    place; the values drawn are in the reset info as ``look`` and ``car``.
 
     ## Version history
     - v0: first release.
@@ -412,6 +410,8 @@ class RacingEnv(gym.Env):
             except Exception as exc:  # any GL failure gets the same advice
                 raise renderer_error(exc) from exc
             note_gl_process()
+            if self._look is not None:  # its sky is a bank entry, not the model's
+                self._look.upload(renderer)
             self._renderers[purpose] = renderer
             _close_renderers_at_exit()
         return renderer

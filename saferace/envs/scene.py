@@ -36,6 +36,12 @@ _SURFACE_Z_M = {"asphalt": 0.002, "lines": 0.004, "start": 0.005}
 ASPHALT_TEXTURE = "asphalt_texture"
 ASPHALT_TEXTURE_TEXELS = 64
 ASPHALT_TEXTURE_TILE_M = 1.0  # the asphalt's texture repeats every metre in x and y
+SKY_TEXTURE = "sky"
+SKY_TEXELS = 64
+#: A randomizable scene's banks of asphalt and sky textures (``NAME_bank_K``), painted once
+#: per environment and uploaded with the model, so that a new look only picks entries
+#: (``saferace.envs.scene_look``): an upload of the sky alone cost 2 ms.
+TEXTURE_BANK_SIZE = 16
 #: Dashes and gaps of a dashed line (randomizable scene); no piece of line spans two.
 DASH_M = 0.5
 
@@ -66,6 +72,7 @@ def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjS
     z_lines = _SURFACE_Z_M["lines"]
     if options.randomizable:
         _add_white_texture(spec, ASPHALT_TEXTURE, ASPHALT_TEXTURE_TEXELS)
+        _add_texture_banks(spec)
         closed_left, closed_right = np.vstack([left, left[:1]]), np.vstack([right, right[:1]])
         uv = (closed_left / ASPHALT_TEXTURE_TILE_M, closed_right / ASPHALT_TEXTURE_TILE_M)
         _add_ribbon(spec, "asphalt", left, right, ASPHALT_RGBA, _SURFACE_Z_M["asphalt"], 0.0, uv)
@@ -118,6 +125,22 @@ def _add_white_texture(spec: mujoco.MjSpec, name: str, texels: int) -> None:
     texture.data = bytes([255]) * (3 * texels * texels)
 
 
+def bank_texture(name: str, entry: int) -> str:
+    """The name of entry ``entry`` of texture ``name``'s bank."""
+    return f"{name}_bank_{entry}"
+
+
+def _add_texture_banks(spec: mujoco.MjSpec) -> None:
+    """Blank entries of the asphalt's and the sky's banks (painted by the scene's look)."""
+    for entry in range(TEXTURE_BANK_SIZE):
+        _add_white_texture(spec, bank_texture(ASPHALT_TEXTURE, entry), ASPHALT_TEXTURE_TEXELS)
+        sky = spec.add_texture(
+            name=bank_texture(SKY_TEXTURE, entry), type=mujoco.mjtTexture.mjTEXTURE_SKYBOX
+        )
+        sky.width, sky.height, sky.nchannel = SKY_TEXELS, 6 * SKY_TEXELS, 3
+        sky.data = bytes([255]) * (3 * 6 * SKY_TEXELS * SKY_TEXELS)
+
+
 def dash_pieces(track: Track, mesh_s_m: np.ndarray) -> np.ndarray:
     """Start and end arc lengths (m) of the pieces of a dashed line: the lane meshes'
     vertices ``mesh_s_m`` split at every multiple of ``DASH_M``, keeping every other stretch."""
@@ -165,11 +188,11 @@ def _add_ground_and_light(spec: mujoco.MjSpec, track: Track) -> None:
     points = np.vstack([left, right])
     center = 0.5 * (points.min(axis=0) + points.max(axis=0))
     half = 0.5 * np.ptp(points, axis=0) + 6.0
-    sky = spec.add_texture(name="sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX)
+    sky = spec.add_texture(name=SKY_TEXTURE, type=mujoco.mjtTexture.mjTEXTURE_SKYBOX)
     sky.builtin = mujoco.mjtBuiltin.mjBUILTIN_GRADIENT
     sky.rgb1 = [0.55, 0.75, 0.95]
     sky.rgb2 = [0.95, 0.97, 1.0]
-    sky.width = sky.height = 64
+    sky.width = sky.height = SKY_TEXELS
     spec.worldbody.add_geom(
         name="ground",
         type=mujoco.mjtGeom.mjGEOM_PLANE,

@@ -3,9 +3,22 @@
 :class:`SceneLook` draws a look from :class:`~saferace.envs.randomization.VisualRandomization`
 ranges and writes it into the ``MjModel`` (light, colours, the asphalt's and the sky's
 texels, the boundary lines' pieces, roadside objects, the onboard cameras), starting each
-time from the values as built. Renderers made before a draw get the changed textures and
-meshes uploaded (:meth:`SceneLook.upload`); no scene is rebuilt. Image noise and blur are
-applied to each rendered onboard image (:meth:`SceneLook.postprocess`).
+time from the values as built. No scene is rebuilt, and a new look costs about a millisecond:
+
+- The asphalt's noise texture and the sky come from banks of :data:`TEXTURE_BANK_SIZE`
+  textures painted once per environment from the ranges (with :data:`BANK_SEED`, so every
+  environment with the same ranges has the same banks) and uploaded with the model; a look
+  picks an entry: the asphalt's material switches texture, and each renderer's context
+  points the skybox at the entry's GL texture (:meth:`SceneLook.upload`; uploading the sky
+  cost 2 ms a look). A look's sky brightness, sky tint and texture contrast are therefore
+  one of the bank's 16 draws from their ranges, not a fresh one.
+- Image noise is drawn once per environment as :data:`UNIT_NOISE_IMAGES` standard-normal
+  images; a look scales :data:`NOISE_BANK_SIZE` consecutive ones of them, from a drawn
+  start, by its noise level (drawing them anew cost 1.2 ms a look).
+- The boundary lines' meshes, reshaped per look, are uploaded to each renderer.
+
+Image noise and blur are applied to each rendered onboard image
+(:meth:`SceneLook.postprocess`).
 """
 
 from __future__ import annotations
@@ -18,14 +31,23 @@ import mujoco
 import numpy as np
 
 from saferace.envs.randomization import VisualRandomization
-from saferace.envs.scene import ASPHALT_TEXTURE, ROADSIDE_RGBA
+from saferace.envs.scene import (
+    ASPHALT_TEXTURE,
+    ROADSIDE_RGBA,
+    SKY_TEXTURE,
+    TEXTURE_BANK_SIZE,
+    bank_texture,
+)
 
 ONBOARD_CAMERAS = ("front_camera", "stereo_left", "stereo_right")
-SKY_TEXTURE = "sky"
 LINES = ("left_line", "right_line")
 DASHES = ("left_dashes", "right_dashes")
-#: Noise images drawn per episode; successive images get them in turn.
+#: Noise images per episode; successive images get them in turn.
 NOISE_BANK_SIZE = 8
+#: Standard-normal noise images drawn once per environment, which episodes scale.
+UNIT_NOISE_IMAGES = 64
+#: Seeds the texture banks and the unit noise: the same for every environment.
+BANK_SEED = 20261125
 BLUR_KERNEL_SIGMAS = 1.25
 _RGB = int(mujoco.mjtTextureRole.mjTEXROLE_RGB)
 
@@ -45,11 +67,14 @@ class SceneLook:
         self._head_diffuse = model.vis.headlight.diffuse.copy()
         self._asphalt = model.material("asphalt_material").id
         self._asphalt_rgba = model.mat_rgba[self._asphalt].copy()
-        self._asphalt_texid = int(model.mat_texid[self._asphalt, _RGB])
         self._ground = model.geom("ground").id
         self._ground_rgba = model.geom_rgba[self._ground].copy()
-        self._textures = [model.texture(name).id for name in (ASPHALT_TEXTURE, SKY_TEXTURE)]
-        self._sky_texels = self._texels(self._textures[1]).copy()
+        self._sky = model.texture(SKY_TEXTURE).id
+        bank = np.random.default_rng(BANK_SEED)
+        self._asphalt_bank, self._asphalt_contrast = self._paint_asphalt_bank(bank)
+        self._sky_bank, self._sky_values = self._paint_sky_bank(bank)
+        self._sky_entry = 0
+        self._unit_noise: np.ndarray | None = None  # drawn at the first noisy look
         self._line_materials = [model.material(f"{name}_material").id for name in LINES]
         self._solid = [model.geom(name).id for name in LINES]
         self._dashed = [model.geom(name).id for name in DASHES]
@@ -92,12 +117,15 @@ class SceneLook:
         asphalt = np.clip(asphalt, 0.0, 1.0)
         self.model.mat_rgba[self._asphalt, :3] = asphalt
         drawn["asphalt_textured"] = bool(rng.random() < r.asphalt_textured_probability)
-        contrast = uniform("asphalt_texture_contrast") if drawn["asphalt_textured"] else 0.0
-        self._asphalt_texture(contrast, rng)
+        entry = int(rng.integers(TEXTURE_BANK_SIZE))
+        contrast = self._asphalt_contrast[entry] if drawn["asphalt_textured"] else 0.0
+        drawn["asphalt_texture_contrast"] = contrast
+        # plain asphalt untextured: sampling a texture costs a software rasteriser 8%
+        self.model.mat_texid[self._asphalt, _RGB] = self._asphalt_bank[entry] if contrast else -1
         ground = self._ground_rgba[:3] * uniform("ground_brightness") * tint("ground_tint")
         self.model.geom_rgba[self._ground, :3] = np.clip(ground, 0.0, 1.0)
-        sky = self._sky_texels * uniform("sky_brightness") * tint("sky_tint")
-        self._texels(self._textures[1])[:] = np.clip(sky, 0, 255).astype(np.uint8)
+        self._sky_entry = int(rng.integers(TEXTURE_BANK_SIZE))
+        drawn.update(self._sky_values[self._sky_entry])
         fade = uniform("line_fade")
         paint = (1.0 - fade) + fade * asphalt
         for material in self._line_materials:
@@ -114,19 +142,20 @@ class SceneLook:
         self.image_blur_sigma_px = uniform("image_blur_sigma_px")
         self._noise_bank, self.noise_index = None, 0
         if noise_std > 0.0:
-            self._noise_bank = self._draw_noise_bank(noise_std, rng)
+            self._noise_bank = self._scaled_noise(noise_std, int(rng.integers(UNIT_NOISE_IMAGES)))
         return drawn
 
     def upload(self, renderer: mujoco.Renderer) -> None:
-        """Send the repainted textures and reshaped meshes to ``renderer``'s GL context.
+        """Point ``renderer``'s skybox at the look's sky and send it the reshaped meshes.
 
-        ``mujoco.Renderer`` uploads the model once, when it is made, and has no public
-        call to upload again; this uses its context as MuJoCo's own viewer does.
+        ``mujoco.Renderer`` uploads the model (the banks with it) once, when it is made,
+        and has no public call to upload again; this uses its context as MuJoCo's own
+        viewer does. The context's table of GL texture names says which texture the
+        skybox draws: the sky's slot gets the picked entry's name.
         """
         renderer._gl_context.make_current()
         context = renderer._mjr_context
-        for texture in self._textures:
-            mujoco.mjr_uploadTexture(self.model, context, texture)
+        context.texture[self._sky] = context.texture[self._sky_bank[self._sky_entry]]
         for mesh in self._meshes:
             mujoco.mjr_uploadMesh(self.model, context, mesh)
 
@@ -175,14 +204,39 @@ class SceneLook:
         self.model.vis.headlight.ambient = np.clip(self._head_ambient * colour, 0.0, 1.0)
         self.model.vis.headlight.diffuse = np.clip(self._head_diffuse * colour, 0.0, 1.0)
 
-    def _asphalt_texture(self, contrast: float, rng: np.random.Generator) -> None:
-        """White less ``contrast`` times smooth noise scaled to [0, 1]; none at contrast 0,
-        since sampling a texture costs a software rasteriser about 8% of a 64x64 step."""
-        self.model.mat_texid[self._asphalt, _RGB] = self._asphalt_texid if contrast else -1
-        texels = self._texels(self._textures[0])
-        noise = cv2.GaussianBlur(rng.random(texels.shape[:2]), (0, 0), 1.0)
-        noise = (noise - noise.min()) / max(float(np.ptp(noise)), 1e-9)
-        texels[:] = np.rint(255.0 * (1.0 - contrast * noise))[..., None].astype(np.uint8)
+    def _paint_asphalt_bank(self, rng: np.random.Generator) -> tuple[list[int], list[float]]:
+        """Paint the asphalt bank: each entry white less a contrast drawn from the range times
+        smooth noise scaled to [0, 1]; the entries' texture ids and contrasts."""
+        low, high = self.ranges.asphalt_texture_contrast
+        entries, contrasts = [], []
+        for entry in range(TEXTURE_BANK_SIZE):
+            texture = self.model.texture(bank_texture(ASPHALT_TEXTURE, entry)).id
+            contrast = float(rng.uniform(low, high)) if high > low else float(low)
+            texels = self._texels(texture)
+            noise = cv2.GaussianBlur(rng.random(texels.shape[:2]), (0, 0), 1.0)
+            noise = (noise - noise.min()) / max(float(np.ptp(noise)), 1e-9)
+            texels[:] = np.rint(255.0 * (1.0 - contrast * noise))[..., None].astype(np.uint8)
+            entries.append(texture)
+            contrasts.append(contrast)
+        return entries, contrasts
+
+    def _paint_sky_bank(self, rng: np.random.Generator) -> tuple[list[int], list[dict]]:
+        """Paint the sky bank: the built sky times a brightness and a per-channel tint drawn
+        from the ranges; the entries' texture ids and the values each was painted with."""
+        built = self._texels(self._sky).astype(float)
+        entries, values = [], []
+        for entry in range(TEXTURE_BANK_SIZE):
+            texture = self.model.texture(bank_texture(SKY_TEXTURE, entry)).id
+            drawn: dict[str, float] = {"sky_bank_entry": entry}
+            for name in ("sky_brightness", "sky_tint"):
+                low, high = getattr(self.ranges, name)
+                drawn[name] = float(rng.uniform(low, high)) if high > low else float(low)
+            tint = 1.0 + rng.uniform(-drawn["sky_tint"], drawn["sky_tint"], 3)
+            sky = built * drawn["sky_brightness"] * tint
+            self._texels(texture)[:] = np.clip(sky, 0, 255).astype(np.uint8)
+            entries.append(texture)
+            values.append(drawn)
+        return entries, values
 
     def _line_shape(self, width_scale: float, wear: float, rng: np.random.Generator) -> None:
         """Every line ``width_scale`` times as wide as built, and at worn vertex pairs (a
@@ -216,9 +270,15 @@ class SceneLook:
             self.model.cam_quat[camera] = quat
             self.model.cam_fovy[camera] = self._camera_fovy[k] + fovy_deg
 
-    def _draw_noise_bank(self, std: float, rng: np.random.Generator) -> np.ndarray:
-        """``NOISE_BANK_SIZE`` Gaussian noise images of the onboard images' size, each as
-        its positive and negative parts (uint8: two saturating adds cost half of one int16)."""
-        noise = np.rint(rng.normal(0.0, std, (NOISE_BANK_SIZE, *self.image_size, 3)))
+    def _scaled_noise(self, std: float, start: int) -> np.ndarray:
+        """:data:`NOISE_BANK_SIZE` of the environment's unit noise images from ``start`` on
+        (wrapping), times ``std``, each as its positive and negative parts (uint8: two
+        saturating adds cost half of one int16)."""
+        if self._unit_noise is None:
+            generator = np.random.default_rng(BANK_SEED + 1)
+            shape = (UNIT_NOISE_IMAGES, *self.image_size, 3)
+            self._unit_noise = generator.standard_normal(shape, dtype=np.float32)
+        picked = np.arange(start, start + NOISE_BANK_SIZE) % UNIT_NOISE_IMAGES
+        noise = np.rint(self._unit_noise[picked] * np.float32(std))
         parts = np.stack([np.clip(noise, 0, 255), np.clip(-noise, 0, 255)], axis=1)
         return parts.astype(np.uint8)
