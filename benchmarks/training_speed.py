@@ -1,0 +1,98 @@
+"""Training images per second of the control and the state network, and what changes it.
+
+One Adam step on a batch of uint8 frames (normalised inside the network, channels-last)
+is timed for both networks at 64x64, mono and stereo, and for a MIMO state network of 5
+subnetworks; then, for the mono state network, the settings an issue asked about, each
+against the default measured in the same run: ``torch.compile``, one thread instead of all,
+and batches of 64. Synthetic frames: the speed of a step does not depend on what the
+images show. Target (issue 32): twice the images per second of the default.
+
+    python benchmarks/training_speed.py [--steps N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from saferace.eval.tables import markdown_table
+from saferace.learning.networks import DrivingNetwork, control_config, state_config
+from saferace.learning.training import training_loss
+
+BATCH = 32
+WARM_UP_STEPS = 3
+
+
+def images_per_second(
+    network: DrivingNetwork, steps: int, batch: int = BATCH, compiled: bool = False
+) -> float:
+    """Frames per second of Adam steps on random frames of the network's input shape."""
+    config = network.config
+    generator = torch.Generator().manual_seed(0)
+    channels = config.in_channels * config.subnetworks
+    images = torch.randint(
+        0, 256, (batch, 64, 64, channels), dtype=torch.uint8, generator=generator
+    )
+    velocity = torch.randn(batch, 3, generator=generator) if config.uses_velocity else None
+    width = len(config.outputs)
+    targets = torch.randn(batch, config.subnetworks, width, generator=generator).squeeze(1)
+    network.to(memory_format=torch.channels_last)
+    network.train()
+    forward = torch.compile(network) if compiled else network
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-3)
+
+    def step() -> None:
+        loss = training_loss(network, forward(images, velocity), targets)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    for _ in range(WARM_UP_STEPS):
+        step()
+    start = time.perf_counter()
+    for _ in range(steps):
+        step()
+    return steps * batch / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=20)
+    args = parser.parse_args()
+    networks = {
+        "control, mono": control_config(),
+        "control, stereo": control_config(stereo=True),
+        "state, mono": state_config(),
+        "state, stereo": state_config(stereo=True),
+        "state, mono, MIMO(5)": state_config(log_variance=True, subnetworks=5),
+    }
+    rows = []
+    for label, config in networks.items():
+        torch.manual_seed(0)
+        rows.append([label, images_per_second(DrivingNetwork(config), args.steps)])
+    print(markdown_table(["network (64x64, batch 32)", "images/s"], rows))
+    threads = torch.get_num_threads()
+    default = rows[2][1]
+    variants = []
+    torch.manual_seed(0)
+    compiled = images_per_second(DrivingNetwork(state_config()), args.steps, compiled=True)
+    variants.append(["torch.compile", compiled])
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    variants.append(["1 thread", images_per_second(DrivingNetwork(state_config()), args.steps)])
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    batch_64 = images_per_second(DrivingNetwork(state_config()), args.steps, batch=64)
+    variants.append(["batches of 64", batch_64])
+    table = [[f"default ({threads} threads, eager, batch 32)", default, "1.00x"]]
+    table += [[label, rate, f"{rate / default:.2f}x"] for label, rate in variants]
+    print(markdown_table(["state network, mono", "images/s", "vs default"], table))
+    best = max(rate for _, rate in variants) / default
+    print(f"target: 2x the default's images per second -> best {best:.2f}x, "
+          f"{'met' if best >= 2.0 else 'MISSED'}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
