@@ -77,7 +77,7 @@ def test_a_checkpoint_saved_from_a_gpu_loads_on_the_cpu(
     if not torch.cuda.is_available():
         with pytest.raises(RuntimeError, match="CUDA"):
             torch.load(gpu_file, weights_only=True)  # what a plain load does here
-    loaded, reference = load_checkpoint(gpu_file, device="cpu"), load_checkpoint(path)
+    loaded, reference = load_checkpoint(gpu_file, device="cpu"), load_checkpoint(path, "cpu")
     for network, expected in ((loaded.control, reference.control), (loaded.state, reference.state)):
         weights = network.state_dict()
         assert {tensor.device.type for tensor in weights.values()} == {"cpu"}

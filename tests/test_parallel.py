@@ -24,9 +24,10 @@ def test_workers_on_every_core_see_one_thread_each_and_the_serial_path_keeps_its
     assert seen == [{"blas": 1, "torch": 1}] * cores
     serial: list[dict[str, int]] = []
     run_jobs(thread_counts, [()], lambda job, counts: serial.append(counts))
-    assert serial == [{"blas": cores, "torch": cores}]  # the serial path is not limited
+    assert serial == [thread_counts()]  # the serial path keeps this process's threads
 
 
 def test_more_workers_than_cores_are_warned_about():
     with pytest.warns(RuntimeWarning, match=f"workers on {available_cores()} cores"):
-        run_jobs(abs, [(-1,)] * 2, lambda job, value: None, workers=available_cores() + 1)
+        jobs = [(-1,)] * (available_cores() + 1)
+        run_jobs(abs, jobs, lambda job, value: None, workers=available_cores() + 1)

@@ -104,6 +104,20 @@ REFUSALS = {
     "a run of another track": (set_row(track="bean"), "bean/CenterLine/0/none is not a run of"),
     "a run of another suite version": (set_row(suite_version=2), "of suite v2, not v1"),
     "a run of another agent": (set_row(agent_sha256="0" * 64), "driven by another agent"),
+    "a drive too long for a float": (set_row(driven_s=10**400), "driven_s is 1000"),
+    "coordinates as text": (
+        lambda d: first_row(d)["trajectory"]["x_m"].__setitem__(0, "1.5"),
+        "trajectory points are not finite numbers",
+    ),
+    "a deviation as text": (set_row(mean_abs_deviation_m="0.1"), "mean_abs_deviation_m is '0.1'"),
+    "a filtered run without its interventions": (
+        lambda d: d["rows"][1].update(intervention_rate=None),
+        "run lab/CenterLine/0/cbf: intervention_rate None is not a share in [0, 1]",
+    ),
+    "a replay of the wrong shape": (
+        lambda d: d["replay"].update(files_sha256=["x.pt"]),
+        "replay or versions has fields of the wrong type",
+    ),
     "a replay of another agent": (
         lambda d: d["replay"].update(agent="expert"),
         "agent 'pure-pursuit' but replay agent 'expert'",
@@ -155,19 +169,38 @@ def test_the_page_escapes_every_string_of_a_submission(honest: dict):
     assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page and "&lt;b&gt;bold" in page
 
 
-def test_verify_replays_an_honest_submission_and_marks_it(honest_submission: Path, tmp_path: Path):
-    path = tmp_path / "pp.json"
+def test_verify_replays_an_honest_submission_and_marks_it_in_its_own_records(
+    honest_submission: Path, tmp_path: Path
+):
+    path, records = tmp_path / "pp.json", tmp_path / "records"
     shutil.copy(honest_submission, path)
-    result = verify_submission(path, runs=2, seed=3, progress=False)
+    result = verify_submission(path, runs=2, seed=3, progress=False, records=records)
     assert result.passed and len(result.replayed) == 2 and result.total_runs == 48
-    record = verification_record(path)
+    record = verification_record(path, records)
     assert record is not None and record["replayed"] == list(result.replayed)
     entry = {**check_submission(json.loads(path.read_text()), str(path)), "verification": record}
     assert leaderboard_rows([entry])[0][4] == "2 of 48"
+    shown = run_cli("leaderboard", str(path), "--verified-only", "--records", str(records))
+    assert shown.returncode == 0 and "2 of 48" in shown.stdout, shown.stderr
+    elsewhere = run_cli("leaderboard", str(path), "--verified-only", "--records", str(tmp_path))
+    assert elsewhere.returncode != 0  # a record is only worth the folder it is kept in
     path.write_text(json.dumps(json.loads(path.read_text()), indent=2))  # same rows, new bytes
-    assert verification_record(path) is None
-    listed = run_cli("leaderboard", str(path), "--verified-only")
+    assert verification_record(path, records) is None
+    listed = run_cli("leaderboard", str(path), "--verified-only", "--records", str(records))
     assert listed.returncode != 0 and "no submission has passed" in listed.stderr
+
+
+def test_a_forged_or_broken_record_is_no_mark(honest_submission: Path, tmp_path: Path):
+    from saferace.eval.runner import file_sha256
+    from saferace.experiments.verify import record_path
+
+    records = tmp_path / "records"
+    record = record_path(file_sha256(honest_submission), records)
+    record.parent.mkdir()
+    for content in (b"\xff\xfe", b"[]", b'{"replayed": 3, "total_runs": 48}',
+                    b'{"replayed": [1, 2, 3], "total_runs": 2}'):  # fmt: skip
+        record.write_bytes(content)
+        assert verification_record(honest_submission, records) is None
 
 
 def test_verify_finds_the_edited_row_it_replays(honest_submission: Path, tmp_path: Path):
@@ -179,7 +212,9 @@ def test_verify_finds_the_edited_row_it_replays(honest_submission: Path, tmp_pat
     path = tmp_path / "edited.json"
     path.write_text(json.dumps(edited))
     check_submission(json.loads(path.read_text()), str(path))  # consistent on its face
-    result = run_cli("verify", str(path), "--runs", "1", "--seed", "7")
+    result = run_cli(
+        "verify", str(path), "--runs", "1", "--seed", "7", "--records", str(tmp_path / "records")
+    )
     assert result.returncode != 0
     assert (
         f"run {replayed}: mean_abs_deviation_m was {row['mean_abs_deviation_m']!r}"
@@ -202,11 +237,13 @@ def test_verify_refuses_an_agent_file_swapped_after_the_runs(
         row["agent"], row["agent_sha256"] = data["agent"], data["replay"]["agent_sha256"]
     path = tmp_path / "mine.json"
     path.write_text(json.dumps(data))
-    assert verify_submission(path, runs=1, progress=False).passed  # pure pursuit's runs
+    records = tmp_path / "records"
+    assert verify_submission(path, runs=1, progress=False, records=records).passed
+    assert verification_record(path, records) is not None  # pure pursuit's runs, replayed
     module.write_text(module.read_text() + "# a different agent now\n")
     with pytest.raises(SafeRaceError, match=r"my_agent.py changed since the runs \(sha256 "):
-        verify_submission(path, runs=1, progress=False)
-    assert verification_record(path) is None  # the earlier pass is withdrawn
+        verify_submission(path, runs=1, progress=False, records=records)
+    assert verification_record(path, records) is None  # the earlier pass is withdrawn
 
 
 def test_a_benchmark_of_an_agent_whose_file_is_missing_is_refused(tmp_path: Path):

@@ -18,6 +18,11 @@ from saferace.cli.arguments import (
 from saferace.errors import SafeRaceError
 from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS, VERIFY_RUNS
 
+RECORDS_HELP = (
+    "folder of this machine's verification records (default: $SAFERACE_VERIFIED, else "
+    "~/.cache/saferace/verified)"
+)
+
 
 def register(commands: argparse._SubParsersAction) -> None:
     drive = commands.add_parser(
@@ -85,6 +90,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         action="store_true",
         help="submissions: list only those saferace verify has passed (in their current form)",
     )
+    board.add_argument("--records", type=Path, help=RECORDS_HELP)
     board.set_defaults(command=_leaderboard)
 
     bench = commands.add_parser(
@@ -120,6 +126,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     how_many.add_argument("--all", action="store_true", help="replay every run")
     verify.add_argument("--seed", type=int, default=0, help="draws the runs to replay")
     verify.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    verify.add_argument("--records", type=Path, help=RECORDS_HELP)
     add_device_argument(verify)
     verify.set_defaults(command=_verify)
 
@@ -227,7 +234,7 @@ def _submission_leaderboard(args: argparse.Namespace) -> int:
     if args.plot:
         raise SafeRaceError("--plot is for eval results; a submissions' page has --html")
     submissions = [
-        {**read_submission(path), "verification": verification_record(path)}
+        {**read_submission(path), "verification": verification_record(path, args.records)}
         for path in args.results
     ]
     if args.verified_only:
@@ -272,7 +279,11 @@ def _verify(args: argparse.Namespace) -> int:
     check_count("--workers", args.workers)
     check_count("--runs", args.runs)
     result = verify_submission(
-        args.submission, runs=None if args.all else args.runs, workers=args.workers, seed=args.seed
+        args.submission,
+        runs=None if args.all else args.runs,
+        workers=args.workers,
+        seed=args.seed,
+        records=args.records,
     )
     for note in result.version_notes:
         print(f"note: {note}")
@@ -286,6 +297,6 @@ def _verify(args: argparse.Namespace) -> int:
         )
     print(
         f"{args.submission}: {replayed} replayed, all as submitted; record in "
-        f"{record_path(args.submission)}"
+        f"{record_path(result.submission_sha256, args.records)}"
     )
     return 0

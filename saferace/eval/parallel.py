@@ -53,7 +53,7 @@ def run_jobs(
             keep(job, function(*job))
             advance()
     else:
-        cores = available_cores()
+        cores, workers = available_cores(), min(workers, len(jobs))
         if workers > cores:
             warnings.warn(
                 f"{workers} workers on {cores} cores: they share cores and run slower than "

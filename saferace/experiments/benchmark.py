@@ -276,7 +276,9 @@ def _keyed(row: dict, replay: dict, spec: RunSpec) -> dict:
 
 def replay_record(agent: str, mc_samples: int) -> dict:
     """What ``saferace verify`` needs to drive ``agent`` again: its spec, its settings, the
-    sha256 of every file it loads, and one hash of them all (the page's agent hash)."""
+    sha256 of every file it loads and one hash of them all (the page's agent hash), the
+    device its networks ran on (agents with files), and the sha256 of the car's identified
+    parameters."""
     files = {}
     for path in agent_files(agent):
         if not path.is_file():
@@ -290,7 +292,23 @@ def replay_record(agent: str, mc_samples: int) -> dict:
         "mc_samples": mc_samples,
         "files_sha256": files,
         "agent_sha256": hashlib.sha256(identity.encode()).hexdigest(),
+        "device": _network_device() if files else None,
+        "vehicle_params_sha256": vehicle_params_sha256(),
     }
+
+
+def _network_device() -> str:
+    """Where this process's networks run (see ``saferace.learning.device``)."""
+    from saferace.learning.device import resolve_device
+
+    return str(resolve_device())
+
+
+def vehicle_params_sha256() -> str:
+    """The sha256 of the car's identified parameters, which the expert and the filter use."""
+    from saferace.safety.vehicle_params import PARAMS_FILE
+
+    return file_sha256(PARAMS_FILE)
 
 
 def totals(rows: list[dict]) -> dict:

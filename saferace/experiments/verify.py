@@ -3,15 +3,18 @@
 The protocol is deterministic per seed, so anyone can check a submission by replaying it:
 the files its agent loads must still have the sha256 recorded in the submission, and the
 replayed runs (a seeded random sample, or all) must measure what the rows say, within
-:data:`TOLERANCES`. A verified submission gets a JSON record beside it
-(``SUB.json.verified``, which a ``*.json`` glob of submissions leaves out) holding the
-submission file's sha256, so that any later edit of the file voids the mark.
+:data:`TOLERANCES`, on the device the submission was driven on (a CUDA run replays only on
+CUDA, and cuDNN may not reproduce it). A pass is recorded in the verifier's own folder of
+records (:func:`records_folder`), named by the submission file's sha256: a record shipped
+beside a submission means nothing, and any edit of the file voids the mark. The
+leaderboard shows the marks of the records in its folder: those its maintainer made.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import random
 import time
 from dataclasses import dataclass
@@ -22,8 +25,15 @@ from tqdm import tqdm
 from saferace.errors import SafeRaceError
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import file_sha256, package_versions
-from saferace.experiments.benchmark import RunSpec, drive_run, load_suite, replay_record
+from saferace.experiments.benchmark import (
+    RunSpec,
+    drive_run,
+    load_suite,
+    replay_record,
+    vehicle_params_sha256,
+)
 from saferace.experiments.submission_checks import read_submission
+from saferace.learning.device import use_device
 from saferace.names import VERIFY_RUNS
 from saferace.version import __version__
 
@@ -60,22 +70,33 @@ class Verification:
         return not self.mismatches
 
 
-def record_path(submission: str | Path) -> Path:
-    """Where a verified submission's record lies: ``SUB.json.verified`` beside ``SUB.json``."""
-    path = Path(submission)
-    return path.with_name(f"{path.name}.verified")
+#: Where ``verify`` keeps its records, unless told otherwise.
+RECORDS_VARIABLE = "SAFERACE_VERIFIED"
 
 
-def verification_record(submission: str | Path) -> dict | None:
-    """The verification record of ``submission`` if there is one for its current content."""
-    record = record_path(submission)
-    if not record.exists():
-        return None
+def records_folder(folder: str | Path | None = None) -> Path:
+    """The folder of verification records: ``folder``, else :data:`RECORDS_VARIABLE`, else
+    ``~/.cache/saferace/verified``."""
+    chosen = folder or os.environ.get(RECORDS_VARIABLE) or "~/.cache/saferace/verified"
+    return Path(chosen).expanduser()
+
+
+def record_path(submission_sha256: str, folder: str | Path | None = None) -> Path:
+    """The record of the submission whose file has ``submission_sha256``."""
+    return records_folder(folder) / f"{submission_sha256}.json"
+
+
+def verification_record(submission: str | Path, folder: str | Path | None = None) -> dict | None:
+    """The record of a verification of ``submission`` in its current form, if ``folder``
+    (see :func:`records_folder`) holds a sound one."""
     try:
-        data = json.loads(record.read_text())
-    except json.JSONDecodeError:
+        data = json.loads(record_path(file_sha256(submission), folder).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return None
-    if not isinstance(data, dict) or data.get("submission_sha256") != file_sha256(submission):
+    if not isinstance(data, dict):
+        return None
+    replayed, total = data.get("replayed"), data.get("total_runs")
+    if not isinstance(replayed, list) or not isinstance(total, int) or len(replayed) > total:
         return None
     return data
 
@@ -148,34 +169,44 @@ def verify_submission(
     workers: int = 1,
     seed: int = 0,
     progress: bool = True,
+    records: str | Path | None = None,
 ) -> Verification:
     """Replay ``runs`` of the submission in ``path`` (None: all) and compare. A pass writes
-    its verification record; a refusal or a mismatch removes any earlier one."""
+    its record into ``records`` (see :func:`records_folder`); a refusal, a mismatch or a
+    failure removes an earlier one."""
     path = Path(path)
+    sha256 = file_sha256(path)  # of the bytes checked: a file changed meanwhile gets no mark
+    record = record_path(sha256, records)
     try:
-        result = _replay(path, runs, workers, seed, progress)
-    except SafeRaceError:
-        record_path(path).unlink(missing_ok=True)
+        result = _replay(path, sha256, runs, workers, seed, progress)
+    except Exception:
+        record.unlink(missing_ok=True)
         raise
     if not result.passed:
-        record_path(path).unlink(missing_ok=True)
+        record.unlink(missing_ok=True)
         return result
-    record = {
-        "submission_sha256": result.submission_sha256,
+    record.parent.mkdir(parents=True, exist_ok=True)
+    entry = {
+        "submission_sha256": sha256,
+        "submission": str(path.resolve()),
         "replayed": list(result.replayed),
         "total_runs": result.total_runs,
         "seed": seed,
         "saferace": __version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    record_path(path).write_text(json.dumps(record, indent=1) + "\n")
+    record.write_text(json.dumps(entry, indent=1) + "\n")
     return result
 
 
-def _replay(path: Path, runs: int | None, workers: int, seed: int, progress: bool) -> Verification:
+def _replay(
+    path: Path, sha256: str, runs: int | None, workers: int, seed: int, progress: bool
+) -> Verification:
     data = read_submission(path)
     replay = data["replay"]
     check_agent_files(replay, str(path))
+    if replay["files_sha256"]:  # a network may run: on the submission's device
+        use_device(replay.get("device") or "cpu")
     suite = load_suite()
     rows = {_spec(row).key: row for row in data["rows"]}
     chosen = choose_runs(list(rows), runs, seed)
@@ -185,6 +216,9 @@ def _replay(path: Path, runs: int | None, workers: int, seed: int, progress: boo
         for name, was in data["versions"].items()
         if installed.get(name) != was
     )
+    if replay.get("vehicle_params_sha256") not in (None, vehicle_params_sha256()):
+        notes += ("the car's identified parameters differ from the submission's: the "
+                  "expert's and the filter's runs will not replay",)  # fmt: skip
     replayed: dict[str, dict] = {}
     jobs = [(replay["agent"], _spec(rows[key]), suite, replay["mc_samples"]) for key in chosen]
     with tqdm(
@@ -203,7 +237,7 @@ def _replay(path: Path, runs: int | None, workers: int, seed: int, progress: boo
         for key in chosen
         if (difference := first_difference(rows[key], replayed[key])) is not None
     )
-    return Verification(file_sha256(path), tuple(chosen), len(rows), mismatches, notes)
+    return Verification(sha256, tuple(chosen), len(rows), mismatches, notes)
 
 
 def _spec(row: dict) -> RunSpec:
