@@ -29,6 +29,8 @@ from saferace.extras import require
 from saferace.names import DEVICE_VARIABLE
 
 RAY_RETRIES = 2
+#: Of a GPU, what each Ray task asks for when the networks run on CUDA: four tasks share one.
+RAY_GPU_SHARE = 0.25
 #: What BLAS, OpenMP and PyTorch builds read for their thread counts when they load.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -121,7 +123,13 @@ def _run_on_ray(
                 }
             },
         )
-    task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES, retry_exceptions=True)(function)
+    on_gpu = os.environ.get(DEVICE_VARIABLE, "").startswith("cuda")
+    task = ray.remote(
+        num_cpus=1,
+        num_gpus=RAY_GPU_SHARE if on_gpu else 0,  # Ray hides GPUs from tasks that ask for none
+        max_retries=RAY_RETRIES,
+        retry_exceptions=True,
+    )(function)
     pending = {task.remote(*job): job for job in jobs}
     failures = []
     while pending:
