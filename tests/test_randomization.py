@@ -119,11 +119,17 @@ def test_wider_lines_move_only_their_inner_edge():
         randomize=VisualRandomization(line_width_scale=(2.0, 2.0)),
     ).unwrapped
     model = env.model
-    mesh = model.mesh("left_line_mesh").id
-    start, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
-    built = model.mesh_vert[start : start + count].reshape(-1, 2, 3).copy()
+
+    def pairs(mesh: int) -> np.ndarray:
+        start, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+        return model.mesh_vert[start : start + count].reshape(-1, 2, 3)
+
+    built_mesh = model.mesh("left_line_mesh").id
+    built = pairs(built_mesh).copy()
     env.reset(seed=0)
-    moved = model.mesh_vert[start : start + count].reshape(-1, 2, 3)
+    shown = model.geom_dataid[model.geom("left_line").id]
+    assert shown != built_mesh  # the line drawn is a bank entry's reshaped copy
+    moved = pairs(shown)
     np.testing.assert_array_equal(moved[:, 0], built[:, 0])
     built_width = np.linalg.norm(built[:, 1] - built[:, 0], axis=1)
     np.testing.assert_allclose(

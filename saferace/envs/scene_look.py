@@ -11,11 +11,13 @@ time from the values as built. No scene is rebuilt, and a new look costs about a
   picks an entry: the asphalt's material switches texture, and each renderer's context
   points the skybox at the entry's GL texture (:meth:`SceneLook.upload`; uploading the sky
   cost 2 ms a look). A look's sky brightness, sky tint and texture contrast are therefore
-  one of the bank's 16 draws from their ranges, not a fresh one.
+  one of the bank's 16 draws from their ranges, not a fresh one (and so are the lines'
+  width and wear, below).
 - Image noise is drawn once per environment as :data:`UNIT_NOISE_IMAGES` standard-normal
   images; a look scales :data:`NOISE_BANK_SIZE` consecutive ones of them, from a drawn
   start, by its noise level (drawing them anew cost 1.2 ms a look).
-- The boundary lines' meshes, reshaped per look, are uploaded to each renderer.
+- The boundary lines likewise: a bank of reshaped copies of their meshes, and a look
+  switches the line geoms to an entry's (uploading the reshaped lines cost 0.24 ms).
 
 Image noise and blur are applied to each rendered onboard image
 (:meth:`SceneLook.postprocess`).
@@ -33,6 +35,7 @@ import numpy as np
 from saferace.envs.randomization import VisualRandomization
 from saferace.envs.scene import (
     ASPHALT_TEXTURE,
+    LINE_MESHES,
     ROADSIDE_RGBA,
     SKY_TEXTURE,
     TEXTURE_BANK_SIZE,
@@ -78,11 +81,12 @@ class SceneLook:
         self._line_materials = [model.material(f"{name}_material").id for name in LINES]
         self._solid = [model.geom(name).id for name in LINES]
         self._dashed = [model.geom(name).id for name in DASHES]
-        self._meshes = [model.mesh(f"{name}_mesh").id for name in (*LINES, *DASHES)]
-        self._built_pairs = [self._pairs(mesh).copy() for mesh in self._meshes]
+        built_meshes = [model.mesh(f"{name}_mesh").id for name in LINE_MESHES]
+        self._built_pairs = [self._pairs(mesh).copy() for mesh in built_meshes]
         # which edge of each mesh's vertex pairs is the inner one (see scene._add_ribbon and
         # scene._add_dashes): the right solid line's pairs run inner edge first
-        self._inner_edge = [0 if name == "right_line" else 1 for name in (*LINES, *DASHES)]
+        self._inner_edge = [0 if name == "right_line" else 1 for name in LINE_MESHES]
+        self._line_bank, self._line_values = self._paint_line_bank(bank)
         self._roadside = [
             model.geom(f"roadside_{kind}").id
             for kind in range(len(ROADSIDE_RGBA))
@@ -134,7 +138,9 @@ class SceneLook:
         for solid, dashes in zip(self._solid, self._dashed, strict=True):
             self.model.geom_rgba[solid, 3] = 0.0 if dashed else 1.0
             self.model.geom_rgba[dashes] = [*paint, 1.0 if dashed else 0.0]
-        self._line_shape(uniform("line_width_scale"), uniform("line_wear"), rng)
+        line_entry = int(rng.integers(TEXTURE_BANK_SIZE))
+        self.model.geom_dataid[[*self._solid, *self._dashed]] = self._line_bank[line_entry]
+        drawn.update(self._line_values[line_entry])
         self._roadside_objects(uniform("roadside_tint"), rng, drawn)
         height, pitch = uniform("camera_height_m"), uniform("camera_pitch_rad")
         self._camera(height, pitch, uniform("camera_fovy_deg"))
@@ -146,7 +152,8 @@ class SceneLook:
         return drawn
 
     def upload(self, renderer: mujoco.Renderer) -> None:
-        """Point ``renderer``'s skybox at the look's sky and send it the reshaped meshes.
+        """Point ``renderer``'s skybox at the look's sky (all else a look changes is model
+        data that every render reads).
 
         ``mujoco.Renderer`` uploads the model (the banks with it) once, when it is made,
         and has no public call to upload again; this uses its context as MuJoCo's own
@@ -156,8 +163,6 @@ class SceneLook:
         renderer._gl_context.make_current()
         context = renderer._mjr_context
         context.texture[self._sky] = context.texture[self._sky_bank[self._sky_entry]]
-        for mesh in self._meshes:
-            mujoco.mjr_uploadMesh(self.model, context, mesh)
 
     def postprocess(self, image: np.ndarray) -> np.ndarray:
         """``image`` blurred and noised as drawn for this episode (unchanged if neither)."""
@@ -238,17 +243,31 @@ class SceneLook:
             values.append(drawn)
         return entries, values
 
-    def _line_shape(self, width_scale: float, wear: float, rng: np.random.Generator) -> None:
-        """Every line ``width_scale`` times as wide as built, and at worn vertex pairs (a
-        share ``wear``) a random 0-50% of that: notches in solid lines, chipped dashes."""
-        for mesh, built, inner in zip(
-            self._meshes, self._built_pairs, self._inner_edge, strict=True
-        ):
-            outer = 1 - inner
-            worn = rng.random(len(built)) < wear
-            scale = width_scale * np.where(worn, rng.uniform(0.0, 0.5, len(built)), 1.0)
-            offset = built[:, inner] - built[:, outer]
-            self._pairs(mesh)[:, inner] = built[:, outer] + scale[:, None] * offset
+    def _paint_line_bank(self, rng: np.random.Generator) -> tuple[np.ndarray, list[dict]]:
+        """Shape the line bank: in each entry every line ``width_scale`` times as wide as
+        built, and at worn vertex pairs (a share ``wear``) a random 0-50% of that: notches in
+        solid lines, chipped dashes; the entries' mesh ids (a row of the four lines' per
+        entry) and the values each was shaped with."""
+        entries, values = [], []
+        for entry in range(TEXTURE_BANK_SIZE):
+            drawn = {}
+            for name in ("line_width_scale", "line_wear"):
+                low, high = getattr(self.ranges, name)
+                drawn[name] = float(rng.uniform(low, high)) if high > low else float(low)
+            meshes = [
+                self.model.mesh(bank_texture(f"{name}_mesh", entry)).id for name in LINE_MESHES
+            ]
+            for mesh, built, inner in zip(meshes, self._built_pairs, self._inner_edge, strict=True):
+                outer = 1 - inner
+                worn = rng.random(len(built)) < drawn["line_wear"]
+                scale = drawn["line_width_scale"] * np.where(
+                    worn, rng.uniform(0.0, 0.5, len(built)), 1.0
+                )
+                offset = built[:, inner] - built[:, outer]
+                self._pairs(mesh)[:, inner] = built[:, outer] + scale[:, None] * offset
+            entries.append(meshes)
+            values.append(drawn)
+        return np.array(entries), values
 
     def _roadside_objects(
         self, spread: float, rng: np.random.Generator, drawn: dict[str, Any]
