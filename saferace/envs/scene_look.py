@@ -107,8 +107,7 @@ class SceneLook:
         drawn: dict[str, Any] = {}
 
         def uniform(name: str) -> float:
-            low, high = getattr(r, name)
-            drawn[name] = float(rng.uniform(low, high)) if high > low else float(low)
+            drawn[name] = self._draw(name, rng)
             return drawn[name]
 
         def tint(name: str) -> np.ndarray:
@@ -179,6 +178,11 @@ class SceneLook:
         return image
 
     # ------------------------------------------------------------------ parts
+    def _draw(self, name: str, rng: np.random.Generator) -> float:
+        """A value of the range ``name`` (its low end when the range is a single value)."""
+        low, high = getattr(self.ranges, name)
+        return float(rng.uniform(low, high)) if high > low else float(low)
+
     def _texels(self, texture: int) -> np.ndarray:
         """The texture's texels as a writable ``(height, width, channels)`` view."""
         model = self.model
@@ -212,11 +216,10 @@ class SceneLook:
     def _paint_asphalt_bank(self, rng: np.random.Generator) -> tuple[list[int], list[float]]:
         """Paint the asphalt bank: each entry white less a contrast drawn from the range times
         smooth noise scaled to [0, 1]; the entries' texture ids and contrasts."""
-        low, high = self.ranges.asphalt_texture_contrast
         entries, contrasts = [], []
         for entry in range(TEXTURE_BANK_SIZE):
             texture = self.model.texture(bank_texture(ASPHALT_TEXTURE, entry)).id
-            contrast = float(rng.uniform(low, high)) if high > low else float(low)
+            contrast = self._draw("asphalt_texture_contrast", rng)
             texels = self._texels(texture)
             noise = cv2.GaussianBlur(rng.random(texels.shape[:2]), (0, 0), 1.0)
             noise = (noise - noise.min()) / max(float(np.ptp(noise)), 1e-9)
@@ -234,8 +237,7 @@ class SceneLook:
             texture = self.model.texture(bank_texture(SKY_TEXTURE, entry)).id
             drawn: dict[str, float] = {"sky_bank_entry": entry}
             for name in ("sky_brightness", "sky_tint"):
-                low, high = getattr(self.ranges, name)
-                drawn[name] = float(rng.uniform(low, high)) if high > low else float(low)
+                drawn[name] = self._draw(name, rng)
             tint = 1.0 + rng.uniform(-drawn["sky_tint"], drawn["sky_tint"], 3)
             sky = built * drawn["sky_brightness"] * tint
             self._texels(texture)[:] = np.clip(sky, 0, 255).astype(np.uint8)
@@ -252,8 +254,7 @@ class SceneLook:
         for entry in range(TEXTURE_BANK_SIZE):
             drawn = {}
             for name in ("line_width_scale", "line_wear"):
-                low, high = getattr(self.ranges, name)
-                drawn[name] = float(rng.uniform(low, high)) if high > low else float(low)
+                drawn[name] = self._draw(name, rng)
             meshes = [
                 self.model.mesh(bank_texture(f"{name}_mesh", entry)).id for name in LINE_MESHES
             ]

@@ -110,6 +110,11 @@ class RunSpec:
     def reference_key(self) -> str:
         return f"{self.track}/{self.task}/{self.seed}"
 
+    @classmethod
+    def of_row(cls, row: dict) -> RunSpec:
+        """The run a result row (or a submission's) was driven for."""
+        return cls(str(row["track"]), str(row["task"]), row["seed"], str(row["filter"]))
+
 
 def suite_folder(version: int = SUITE_VERSION) -> Path:
     return Path(str(resources.files("saferace.assets").joinpath(f"benchmark/v{version}")))

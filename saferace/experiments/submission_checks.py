@@ -173,7 +173,7 @@ def _check_replay(data: dict, source: str) -> None:
 def _run_spec(row: dict, index: int, source: str) -> RunSpec:
     if not isinstance(row["seed"], int) or isinstance(row["seed"], bool):
         raise SafeRaceError(f"{source}: row {index} has seed {row['seed']!r}, not an integer")
-    return RunSpec(str(row["track"]), str(row["task"]), row["seed"], str(row["filter"]))
+    return RunSpec.of_row(row)
 
 
 def _check_coverage(specs: list[RunSpec], source: str, suite: Suite) -> None:
@@ -281,7 +281,7 @@ def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where:
             f"{where}: time_outside_lane_s {outside_s} disagrees with the trajectory, outside "
             f"at {flagged} of its points ({flagged * CONTROL_DT_S:g}-{flagged * stride_s:g} s)"
         )
-    track = _track(suite, spec.track)
+    track = _load_track(suite.track_argument(spec.track))
     start_m = suite.start_fractions[suite.seeds.index(spec.seed)] * track.length_m
     start = track.centerline.position(np.array([start_m]))[0]
     half_width = max(track.widths(start_m))
@@ -319,10 +319,4 @@ def _finite(value: object) -> bool:
         return False
 
 
-@cache
-def _load_track(argument: str) -> Track:
-    return Track.load(argument)
-
-
-def _track(suite: Suite, name: str) -> Track:
-    return _load_track(suite.track_argument(name))
+_load_track = cache(Track.load)  # the suite's few tracks, loaded once per process

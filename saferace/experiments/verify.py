@@ -208,7 +208,7 @@ def _replay(
     if replay["files_sha256"]:  # a network may run: on the submission's device
         use_device(replay.get("device") or "cpu")
     suite = load_suite()
-    rows = {_spec(row).key: row for row in data["rows"]}
+    rows = {RunSpec.of_row(row).key: row for row in data["rows"]}
     chosen = choose_runs(list(rows), runs, seed)
     installed = {"saferace": __version__, **package_versions()}
     notes = tuple(
@@ -220,7 +220,9 @@ def _replay(
         notes += ("the car's identified parameters differ from the submission's: the "
                   "expert's and the filter's runs will not replay",)  # fmt: skip
     replayed: dict[str, dict] = {}
-    jobs = [(replay["agent"], _spec(rows[key]), suite, replay["mc_samples"]) for key in chosen]
+    jobs = [
+        (replay["agent"], RunSpec.of_row(rows[key]), suite, replay["mc_samples"]) for key in chosen
+    ]
     with tqdm(
         total=len(jobs), desc="verify", unit="run", disable=None if progress else True
     ) as bar:
@@ -238,7 +240,3 @@ def _replay(
         if (difference := first_difference(rows[key], replayed[key])) is not None
     )
     return Verification(sha256, tuple(chosen), len(rows), mismatches, notes)
-
-
-def _spec(row: dict) -> RunSpec:
-    return RunSpec(row["track"], row["task"], row["seed"], row["filter"])

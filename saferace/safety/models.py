@@ -236,14 +236,15 @@ class FrenetModel:
         turns into a weave. The stages' matrix exponentials are one batched call.
         """
         n, m = self.n_state, self.n_control
+        xs, us = np.asarray(xs, dtype=float), np.asarray(us, dtype=float)
         stages = len(xs)
         rate = 1.0 / steer_time_constant_s
         a_lag = np.zeros((stages, n + 1, n + 1))
         b_lag = np.zeros((stages, n + 1, m))
         x_dot = np.empty((stages, n + 1))
         for k in range(stages):
-            state, delta = np.asarray(xs[k][:n], dtype=float), float(xs[k][n])
-            applied = np.array([delta, us[k][1]], dtype=float)
+            state, delta = xs[k, :n], xs[k, n]
+            applied = np.array([delta, us[k, 1]])
             args = self._args(state, applied, kappas[k])
             a, b = np.asarray(self._a(*args)), np.asarray(self._b(*args))
             a_lag[k, :n, :n], a_lag[k, :n, n] = a, b[:, 0]
@@ -251,7 +252,6 @@ class FrenetModel:
             x_dot[k, :n] = np.asarray(self._f(*args)).ravel()
             x_dot[k, n] = rate * (us[k][0] - delta)
         a_lag[:, n, n], b_lag[:, n, 0] = -rate, rate
-        xs, us = np.asarray(xs, dtype=float), np.asarray(us, dtype=float)
         c = x_dot - np.einsum("kij,kj->ki", a_lag, xs) - np.einsum("kij,kj->ki", b_lag, us)
         return _zero_order_hold(a_lag, b_lag, c, dt_s)
 
