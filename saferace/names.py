@@ -39,6 +39,15 @@ CONFORMAL_ALPHA = 0.05
 OOD_MONITORS = ("features", "spread", "none")
 DEFAULT_MONITOR = "features"
 DEFAULT_GAINS = "grip"
+#: The filter's uncertainty mode and gains (and a DAgger run's state uncertainty) left to
+#: ``auto``: what keeps a user safe. A learned state source gets the robust mode over its
+#: conformal interval and ``ROBUST_GAINS`` (a steeper first class-K function, saturating
+#: to a stopping condition: with ``DEFAULT_GAINS`` an uncertain heading brakes the car to a
+#: crawl), and a DAgger run that feeds its filter the perceived state trains a deep
+#: ensemble; anything else gets the paper's chance constraints, ``DEFAULT_GAINS`` and MC
+#: dropout.
+AUTO = "auto"
+ROBUST_GAINS = "tuned"
 
 #: What feeds the filter the lane state: the truth, the truth with noise, a state network.
 STATE_SOURCE_KINDS = ("oracle", "noisy", "learned")

@@ -28,7 +28,9 @@ def unseen_track_csv(request: pytest.FixtureRequest, tmp_path: Path) -> Path:
 
 @pytest.fixture(scope="session")
 def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
-    """A checkpoint trained for one epoch on 3 s of expert driving on ``lab``, mono and stereo.
+    """A checkpoint trained for one epoch on 3 s of expert driving on ``lab``, mono and stereo,
+    conformally calibrated on the same frames (its monitor on the spread), so that the
+    robust filter a learned state source gets by default takes it.
 
     ``tiny_checkpoint(stereo)`` gives ``(checkpoint path, data folder)``; nothing in it
     drives well, but every part of the learned driver runs on it.
@@ -36,6 +38,7 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
     from saferace.learning.collect import collect_round
     from saferace.learning.commands import train_and_report
     from saferace.learning.configs import CollectionConfig, EpisodeSettings, TrainConfig
+    from saferace.learning.recalibrate import recalibrate
 
     made: dict[bool, tuple[Path, Path]] = {}
 
@@ -51,6 +54,7 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
             checkpoint = folder / "tiny.pt"
             settings = TrainConfig(epochs=1, val_stretch=(0.05, 0.08))
             train_and_report([folder / "data"], checkpoint, settings, mc_samples=3, progress=False)
+            recalibrate(checkpoint, [folder / "data"], checkpoint, mc_samples=3, monitor="spread")
             made[stereo] = checkpoint, folder / "data"
         return made[stereo]
 

@@ -19,7 +19,7 @@ from saferace.cli.safety import robustness_config
 from saferace.eval.filter_config import FilterConfig
 from saferace.experiments.robustness_config import RobustnessConfig
 from saferace.learning.configs import CollectionConfig, DaggerConfig, TrainConfig
-from saferace.names import DEFAULT_GAINS, GAIN_NAMES
+from saferace.names import AUTO, DEFAULT_GAINS, GAIN_NAMES, ROBUST_GAINS
 
 PARSER = build_parser()
 #: Each command built from a config: its shortest command line, its builder, the default.
@@ -63,20 +63,48 @@ def test_every_generated_option_defaults_to_its_field(command: str):
         a for a in parser._actions if a.option_strings and a.option_strings[0] in flags.values()
     ]
     assert len(generated) == len(set(flags.values())) > 5
+    settled = {"filter.uncertainty", "filter.gains"}  # auto: the config settles them
     for action in generated:
-        assert action.default == library_default(default, action.dest), action.dest
+        if action.dest in settled:
+            assert action.default == AUTO, action.dest
+        else:
+            assert action.default == library_default(default, action.dest), action.dest
 
 
 def test_one_default_gain_setting_everywhere():
     from saferace.safety.filter import GAIN_PRESETS
 
     assert tuple(GAIN_PRESETS) == GAIN_NAMES
-    assert DaggerConfig().filter.gains == FilterConfig().gains == DEFAULT_GAINS
+    assert FilterConfig().gains == FilterConfig(state_noise=(0.05, 0.05)).gains == DEFAULT_GAINS
     for command in ("eval", "dagger", "collect", "robustness"):
         args = PARSER.parse_args([command, "--out", "x"])
-        assert args.__dict__["filter.gains"] == DEFAULT_GAINS, command
+        assert args.__dict__["filter.gains"] == AUTO, command
     table = PARSER.parse_args(["safety-table"])
     assert table.filter_gains == DEFAULT_GAINS
+
+
+def built_filter(command: str, *options: str):
+    """The filter config (and the whole config) a command line of ``command`` builds."""
+    argv, build, _ = BUILT[command]
+    config = build(PARSER.parse_args([command, "--filter", "cbf", *options, *argv]))
+    if isinstance(config, FilterConfig):
+        return config, config
+    return getattr(config, "filter", None) or config.safety, config
+
+
+@pytest.mark.parametrize("command", ["eval", "drive", "collect", "robustness", "dagger"])
+def test_a_learned_state_source_gets_the_robust_filter_by_default(command: str):
+    learned = () if command == "dagger" else ("--state-source", "learned:m.pt")  # dagger's own
+    truth = ("--state-source", "oracle")
+    safety, config = built_filter(command, *learned)
+    assert (safety.uncertainty, safety.gains) == ("robust", ROBUST_GAINS)
+    paper, _ = built_filter(command, *learned, "--filter-uncertainty", "chance")
+    assert (paper.uncertainty, paper.gains) == ("chance", DEFAULT_GAINS)
+    oracle, unperceived = built_filter(command, *truth)
+    assert (oracle.uncertainty, oracle.gains) == ("chance", DEFAULT_GAINS)
+    if command == "dagger":  # the state networks that the robust filter can trust
+        assert config.training.state_uncertainty == "ensemble"
+        assert unperceived.training.state_uncertainty == "mc-dropout"
 
 
 def test_a_config_error_names_the_option(capsys: pytest.CaptureFixture):

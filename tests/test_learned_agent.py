@@ -7,6 +7,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from cli_helpers import run_cli
 from rerun.chunk import RrdReader
 
@@ -15,7 +16,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.runner import read_jsonl
 from saferace.learning.agent import learned_state_source
-from saferace.learning.checkpoint import load_checkpoint
+from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
 from saferace.learning.gradcam import gradcam_maps
 from saferace.safety.decision import NominalAction
 
@@ -103,25 +104,48 @@ def test_eval_rows_record_checkpoint_and_state_source(tiny_checkpoint, tmp_path:
     result = run_cli(
         "eval", "--agent", f"learned:{checkpoint}", "--task", "CenterLine", "--track", "lab",
         "--filter", "cbf", "--state-source", f"learned:{checkpoint}", "--samples", "3",
-        "--mc-samples", "4", "--spread-scale", "3", "2", "1",
+        "--mc-samples", "4", "--spread-scale", "3", "2", "1", "--filter-uncertainty", "chance",
         "--max-seconds", "1", "--out", str(out),
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     (row,) = read_jsonl(out)
     sha = load_checkpoint(checkpoint).sha256
     assert row["agent_checkpoint"] == {"path": str(checkpoint), "sha256": sha, "mc_samples": 4}
-    assert row["state_source"] == {
+    recorded = {
         "path": str(checkpoint),
         "sha256": sha,
         "mc_samples": 3,
         "spread_scale": [3.0, 2.0, 1.0],
     }
+    assert {name: row["state_source"][name] for name in recorded} == recorded
+    assert row["state_source"]["conformal"]["alpha"] == 0.05  # the checkpoint's calibration
     assert row["filter"]["state_source"] == f"learned:{checkpoint}"
     assert row["summary"]["intervention_rate"] is not None
     refused = run_cli(
         "eval", "--state-source", f"learned:{checkpoint}", "--out", str(tmp_path / "x.jsonl")
     )
     assert refused.returncode == 2 and "--filter cbf" in refused.stderr
+
+
+def test_the_default_filter_refuses_an_uncalibrated_state_network(tiny_checkpoint, tmp_path: Path):
+    checkpoint = tiny_checkpoint()[0]
+    payload = torch.load(checkpoint, weights_only=False)
+    del payload["metadata"][CONFORMAL_KEY]
+    uncalibrated = tmp_path / "uncalibrated.pt"
+    torch.save(payload, uncalibrated)
+    out = tmp_path / "rows.jsonl"
+    command = ("eval", "--track", "lab", "--max-seconds", "0.5", "--out", str(out), "--samples",
+               "3", "--filter", "cbf", "--state-source")  # fmt: skip
+    refused = run_cli(*command, f"learned:{uncalibrated}")
+    assert refused.returncode == 2
+    assert f"saferace calibrate {uncalibrated}" in refused.stderr, refused.stderr
+    assert "--filter-uncertainty chance" in refused.stderr
+    for source, mode in ((uncalibrated, "chance"), (checkpoint, "auto")):
+        taken = run_cli(*command, f"learned:{source}", "--filter-uncertainty", mode)
+        assert taken.returncode == 0, taken.stderr
+    paper, robust = (row["filter"] for row in read_jsonl(out))
+    assert (paper["uncertainty"], paper["gains"]) == ("chance", "grip")
+    assert (robust["uncertainty"], robust["gains"]) == ("robust", "tuned")
 
 
 @pytest.mark.parametrize("stereo", [False, True])

@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 
 import saferace  # noqa: F401  (registers the tasks)
+from saferace.eval.agents import make_agent
+from saferace.eval.filter_config import FilterConfig
+from saferace.eval.runner import make_task_env, run_episode
 from saferace.safety.fallback import (
     DISTRUST_BRAKE_MPS2,
     fallback_accel_bounds,
@@ -162,3 +165,23 @@ def test_the_oracle_makes_the_robust_filter_the_deterministic_one():
     assert decision.covered and decision.state_lower == decision.state_upper
     with pytest.raises(ValueError, match="uncertainty"):
         SafetyFilter(gym.make("saferace/CenterLine-v0", track="lab"), uncertainty="hopeful")
+
+
+def test_the_robust_modes_gains_keep_an_uncertain_car_at_speed(unseen_track_csv):
+    # A heading interval of +-0.16 rad: the grip gains' first class-K function (2.5 h) caps
+    # the speed at 2.5 h / sin(0.16) and the filter brakes the drift agent well below the
+    # true state's lap; the tuned gains' (20 h, saturating to a stopping condition) cost a
+    # few percent.
+    laps = {}
+    for gains in ("grip", "tuned"):
+        for noise in (None, (0.06, 0.08)):
+            config = FilterConfig(
+                kind="cbf", uncertainty="robust", gains=gains, state_noise=noise, samples=20
+            )
+            env = make_task_env("CenterLine", str(unseen_track_csv), 1, config, 0)
+            result = run_episode(env, make_agent("drift", env, seed=0), seed=0)
+            env.close()
+            assert result.laps[0].completed and not np.any(result.steps["lane_barrier_m"] < 0)
+            laps[gains, noise is not None] = result.laps[0].lap_time_s
+    assert laps["tuned", True] < 1.10 * laps["tuned", False]
+    assert laps["grip", True] > 1.20 * laps["grip", False]

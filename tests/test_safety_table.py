@@ -77,14 +77,16 @@ def test_table_adds_the_perceived_state_runs(tiny_checkpoint, tmp_path: Path):
         mc_samples=3,
     )  # fmt: skip
     learned = [row for row in rows if row["filter"]["state_source"] == source]
-    assert len(learned) == 2 * len(RECKLESS_TASKS)  # probabilistic and on the mean
-    assert {filter_label(row) for row in learned} == {"learned-prob", "learned-det"}
+    assert len(learned) == 3 * len(RECKLESS_TASKS)  # robust, probabilistic, on the mean
+    labels = {"learned-robust", "learned-prob", "learned-det"}
+    assert {filter_label(row) for row in learned} == labels
     assert all(row["state_source"]["mc_samples"] == 3 for row in learned)
+    robust = [row["filter"] for row in learned if filter_label(row) == "learned-robust"]
+    assert {(config["gains"], config["uncertainty"]) for config in robust} == {("tuned", "robust")}
     table = (tmp_path / "safety_table.md").read_text()
-    perceived_prob = [
-        line for line in table.splitlines() if "cbf, probabilistic" in line and "perceived" in line
-    ]
-    assert len(perceived_prob) == len(RECKLESS_TASKS)
+    for mode in ("cbf, probabilistic", "cbf, robust over the interval"):
+        rows_of_mode = [line for line in table.splitlines() if mode in line and "perceived" in line]
+        assert len(rows_of_mode) == len(RECKLESS_TASKS), mode
     again = run_table(
         ["lab"], tmp_path, laps=1, max_seconds=1.0, progress=False, state_source=source,
         mc_samples=3,

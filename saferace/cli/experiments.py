@@ -10,7 +10,12 @@ from saferace.cli import example
 from saferace.cli.arguments import add_device_argument, add_parallel_arguments, check_count
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
-from saferace.names import DAGGER_STATE_SOURCES, PAPER_PRESETS, STATE_UNCERTAINTY_METHODS
+from saferace.names import (
+    AUTO,
+    DAGGER_STATE_SOURCES,
+    PAPER_PRESETS,
+    STATE_UNCERTAINTY_METHODS,
+)
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -27,12 +32,22 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     defaults = DaggerConfig()
     add_config_options(dagger, defaults)
+    training = dagger.add_argument_group("training")
     add_config_options(
-        dagger.add_argument_group("training"),
+        training,
         defaults.training,
         prefix="training.",
-        exclude=("val_stretch", "init", "backbone_weights"),
+        exclude=("val_stretch", "init", "backbone_weights", "state_uncertainty"),
         command=dagger,
+    )
+    training.add_argument(
+        "--state-uncertainty",
+        dest="training.state_uncertainty",
+        default=AUTO,
+        choices=(AUTO, *STATE_UNCERTAINTY_METHODS),
+        help="the state network's uncertainty (see saferace train); auto: a deep ensemble "
+        "where the filter takes the perceived state in the robust mode (the default with "
+        "--filter cbf), MC dropout otherwise",
     )
     add_config_options(
         dagger.add_argument_group("driving"),

@@ -3,9 +3,10 @@
 Every field of a config made with :func:`saferace.config.setting` becomes an option: its
 flag (``--field-name`` unless the field names another), its type from the annotation
 (``bool`` a switch, ``tuple[float, float]`` two values, ``tuple[int, ...]`` one or more),
-its default from the config instance the command starts from, and its help from the
-field. A config's :class:`~saferace.errors.ConfigError` is shown with the option in place of
-the field's name.
+its default from the config instance the command starts from (``auto`` where the field
+declares it: the config settles it from the other options), and its help from the field.
+A config's :class:`~saferace.errors.ConfigError` is shown with the option in place of the
+field's name.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import dataclasses
 import types
 import typing
 from typing import Any
+
+from saferace.names import AUTO
 
 #: Where each command keeps, in its parsed arguments, the flags of its config fields.
 FLAGS_KEY = "config_flags"
@@ -37,6 +40,8 @@ def add_config_options(
             continue
         flag = field.metadata["flag"] or "--" + field.name.replace("_", "-")
         default = getattr(config, field.name)
+        if field.default == AUTO:  # settled when the config is made, from the other options
+            default = AUTO
         kwargs = _argument(hints[field.name], default)
         for key in ("choices", "metavar"):
             if field.metadata[key] is not None:

@@ -72,7 +72,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     table.add_argument(
         "--state-source",
         metavar="learned:CKPT",
-        help="also run the reckless agents through the filter fed this state network",
+        help="also run the reckless agents through the filter fed this state network: robust "
+        "over its conformal interval (the default of a learned source), and the paper's chance "
+        "constraints and on the mean",
     )
     table.add_argument(
         "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of the network"
@@ -81,7 +83,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--filter-gains",
         default=DEFAULT_GAINS,
         choices=GAIN_NAMES,
-        help="the filter's settings (see saferace.safety.filter.GAIN_PRESETS)",
+        help="the filter's settings (see saferace.safety.filter.GAIN_PRESETS) on the true and "
+        "noisy state and in the learned source's chance-constrained rows; its robust rows take "
+        "the robust mode's (--filter-gains auto of the other commands)",
     )
     add_parallel_arguments(table)
     add_device_argument(table)

@@ -14,11 +14,13 @@ from saferace.names import (
     ADAPTIVE_FEEDBACK as FEEDBACK_KINDS,
 )
 from saferace.names import (
+    AUTO,
     DEFAULT_FILTER_MODEL,
     DEFAULT_GAINS,
     FILTER_KINDS,
     GAIN_NAMES,
     NOISY_SAMPLES,
+    ROBUST_GAINS,
     UNCERTAINTY_MODES,
     VEHICLE_MODELS,
 )
@@ -41,6 +43,12 @@ class FilterConfig:
     calibration of the MC-dropout spread,
     :class:`~saferace.safety.state_sources.SpreadScaledStateSource`); ``fuse_odometry``
     fuses them with odometry (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`).
+
+    ``uncertainty`` and ``gains`` left at ``auto`` are settled when the config is made (see
+    :data:`saferace.names.AUTO`): with a learned state source the robust mode (which takes
+    the curvature from the map) and :data:`~saferace.names.ROBUST_GAINS`; otherwise the
+    paper's chance constraints and :data:`~saferace.names.DEFAULT_GAINS`. A copy made with
+    ``replace`` keeps what was settled.
     """
 
     kind: str = setting(
@@ -65,12 +73,13 @@ class FilterConfig:
     )
     eta: float = setting(0.95, "the chance constraints' confidence level")
     gains: str = setting(
-        DEFAULT_GAINS,
+        AUTO,
         "the filter's settings: the paper's gain, the same with the steering held within the "
         "tyres' grip (drivable at racing speed), or the gains measured to cost the expert "
-        "least on the built-in tracks",
+        f"least on the built-in tracks; auto: {ROBUST_GAINS} in the robust mode (an uncertain "
+        f"heading keeps its speed), {DEFAULT_GAINS} otherwise",
         flag="--filter-gains",
-        choices=GAIN_NAMES,
+        choices=(AUTO, *GAIN_NAMES),
     )
     state_source: str | None = setting(
         None, "what feeds the filter the lane state", metavar="oracle|noisy|learned:CKPT"
@@ -78,7 +87,7 @@ class FilterConfig:
     map_curvature: bool = setting(
         False,
         "the filter takes the centerline's curvature from the map at the car's s instead of "
-        "from the state source (a state network judges it worst)",
+        "from the state source (a state network judges it worst; always in the robust mode)",
     )
     spread_scale: tuple[float, float, float] | None = setting(
         None,
@@ -87,13 +96,14 @@ class FilterConfig:
         metavar=("E_Y", "E_PSI", "KAPPA"),
     )
     uncertainty: str = setting(
-        "chance",
+        AUTO,
         "how the filter treats the state's uncertainty: chance constraints on the samples' "
         "spread (the paper's), or barriers that hold over the whole interval (a learned "
-        "source's conformal one, if calibrated) with a fallback that slows the car where "
-        "they cannot, or where the source's monitor raises",
+        "source's conformal one) with a fallback that slows the car where they cannot, or "
+        "where the source's monitor raises; auto: robust with the map's curvature for a "
+        "learned state source, chance otherwise",
         flag="--filter-uncertainty",
-        choices=UNCERTAINTY_MODES,
+        choices=(AUTO, *UNCERTAINTY_MODES),
     )
     adaptive: str | None = setting(
         None,
@@ -110,6 +120,12 @@ class FilterConfig:
     )
 
     def __post_init__(self) -> None:
+        learned = self.state_source is not None
+        if self.uncertainty == AUTO:
+            object.__setattr__(self, "uncertainty", "robust" if learned else "chance")
+        if self.gains == AUTO:
+            robust = self.uncertainty == "robust"
+            object.__setattr__(self, "gains", ROBUST_GAINS if robust else DEFAULT_GAINS)
         if self.kind not in FILTER_KINDS:
             raise ConfigError(
                 "kind", f"must be one of {', '.join(FILTER_KINDS)}, got {self.kind!r}"

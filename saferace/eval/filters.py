@@ -12,7 +12,7 @@ from saferace.eval.agents import load_entry_point
 from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, FilterConfig
 from saferace.safety.adaptive import AdaptiveConformalStateSource
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.intervals import ConformalStateSource
+from saferace.safety.intervals import ConformalStateSource, IntervalStateSource
 from saferace.safety.state_fusion import OdometryFusedStateSource
 from saferace.safety.state_sources import (
     NoisyOracleStateSource,
@@ -41,6 +41,14 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
         image_shape = observation_space["image"].shape
         source = factory(argument, image_shape, n_samples=config.samples, seed=seed)
+        if config.uncertainty == "robust" and not isinstance(source, IntervalStateSource):
+            raise ConfigError(
+                "uncertainty",
+                f"robust holds the car over the state network's calibrated interval, and "
+                f"{argument} has no calibration: run saferace calibrate {argument} DATA --out "
+                "CKPT2 (frames it never trained on), or ask for the paper's chance constraints "
+                "on its spread with --filter-uncertainty chance",
+            )
     elif config.state_noise is None:
         source = OracleStateSource()
     else:

@@ -57,13 +57,18 @@ def planned_runs(
     mc_samples: int = 10,
 ) -> list[Run]:
     """Every run of the table, in order; ``state_source`` (``learned:CHECKPOINT``) adds the
-    reckless agents through the filter fed that source's samples, probabilistic and not."""
+    reckless agents through the filter fed that source: in the robust mode over its
+    calibrated interval (what ``auto`` gives a learned source), and with ``gains`` through
+    the paper's chance constraints and on the samples' mean."""
     oracle = FilterConfig(kind="cbf", model=model, gains=gains)
     noisy = FilterConfig(kind="cbf", model=model, state_noise=noise, samples=samples, gains=gains)
     reckless_filters = [FilterConfig(), oracle, noisy, replace(noisy, probabilistic=False)]
     if state_source is not None:
         learned = replace(oracle, state_source=state_source, samples=mc_samples)
-        reckless_filters += [learned, replace(learned, probabilistic=False)]
+        robust = FilterConfig(
+            kind="cbf", model=model, state_source=state_source, samples=mc_samples
+        )
+        reckless_filters += [robust, learned, replace(learned, probabilistic=False)]
     runs = []
     for track in tracks:
         for agent, task in RECKLESS_TASKS.items():
@@ -263,6 +268,7 @@ FILTER_COLOURS = {
     "noisy-det": "tab:orange",
     "learned-prob": "tab:purple",
     "learned-det": "tab:brown",
+    "learned-robust": "tab:red",
 }
 #: Inches per metre of a circuit on ``reckless_paths.png``, and the size of a panel's
 #: longer side (inches) that a small track is drawn at and a long circuit is capped at.

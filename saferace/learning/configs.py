@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 from saferace.config import setting
 from saferace.errors import ConfigError
 from saferace.eval.filter_config import FilterConfig
 from saferace.names import (
+    AUTO,
     DEFAULT_EXPERT_MODEL,
     MC_SAMPLES,
     RANDOMIZATION_PRESETS,
@@ -92,7 +93,7 @@ class TrainConfig:
     networks: tuple[str, ...] = NETWORKS
 
     def __post_init__(self) -> None:
-        if self.state_uncertainty not in STATE_UNCERTAINTY_METHODS:
+        if self.state_uncertainty not in (*STATE_UNCERTAINTY_METHODS, AUTO):
             raise ConfigError(
                 "state_uncertainty",
                 f"must be one of {', '.join(STATE_UNCERTAINTY_METHODS)}, "
@@ -248,7 +249,7 @@ class CollectionConfig:
 
 
 def _dagger_training() -> TrainConfig:
-    return TrainConfig(epochs=9, val_stretch=None)
+    return TrainConfig(epochs=9, val_stretch=None, state_uncertainty=AUTO)
 
 
 def _dagger_collection() -> EpisodeSettings:
@@ -299,6 +300,10 @@ class DaggerConfig:
     filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source="learned"))
 
     def __post_init__(self) -> None:
+        if self.training.state_uncertainty == AUTO:
+            honest = self.perceived and self.filter.uncertainty == "robust"
+            method = "ensemble" if honest else "mc-dropout"
+            object.__setattr__(self, "training", replace(self.training, state_uncertainty=method))
         if self.task not in TASKS:
             raise ConfigError("task", f"must be one of {', '.join(TASKS)}, got {self.task!r}")
         if self.episodes < 1:

@@ -31,7 +31,7 @@ import torch
 from torch.nn import functional
 from tqdm import tqdm
 
-from saferace.errors import SafeRaceError
+from saferace.errors import ConfigError, SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
 from saferace.learning.augmentation import photometric
 from saferace.learning.checkpoint import LearnedCheckpoint, load_checkpoint, save_atomically
@@ -47,6 +47,7 @@ from saferace.learning.networks import (
     state_config,
 )
 from saferace.learning.rounds import FrameSet
+from saferace.names import STATE_UNCERTAINTY_METHODS
 from saferace.version import __version__
 
 LOG = logging.getLogger(__name__)
@@ -308,6 +309,12 @@ def train_networks(
     ``member_history`` the others'), ``kept`` where the others came from (see
     ``TrainConfig.networks``).
     """
+    if config.state_uncertainty not in STATE_UNCERTAINTY_METHODS:  # auto: a DAgger run's
+        raise ConfigError(
+            "state_uncertainty",
+            f"must name a method ({', '.join(STATE_UNCERTAINTY_METHODS)}) to train, got "
+            f"{config.state_uncertainty!r} (a DaggerConfig settles auto)",
+        )
     held_out = held_out_mask(frames, config.val_stretch)
     if held_out.all() or (config.val_stretch is not None and not held_out.any()):
         raise SafeRaceError(

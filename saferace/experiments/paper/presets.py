@@ -166,6 +166,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
             model=setting.filter_model,
             gains=preset.filter_gains,
             state_source="learned",
+            uncertainty="chance",  # the paper's; the robust run asks for its own
             map_curvature=preset.map_curvature,
             fuse_odometry=preset.fuse_odometry,
         ),
