@@ -61,6 +61,20 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
     return make
 
 
+@pytest.fixture
+def uncalibrated_checkpoint(tiny_checkpoint, tmp_path: Path) -> Path:
+    """The mono tiny checkpoint without its conformal calibration."""
+    import torch
+
+    from saferace.learning.checkpoint import CONFORMAL_KEY
+
+    payload = torch.load(tiny_checkpoint()[0], weights_only=False)
+    del payload["metadata"][CONFORMAL_KEY]
+    path = tmp_path / "uncalibrated.pt"
+    torch.save(payload, path)
+    return path
+
+
 @pytest.fixture(scope="session")
 def honest_submission(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Pure pursuit's submission of the whole benchmark suite, as ``saferace benchmark``

@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from saferace.errors import SafeRaceError
+from saferace.eval.filter_config import FilterConfig
 from saferace.learning import training
 from saferace.learning.calibration import inside_lane
 from saferace.learning.checkpoint import load_checkpoint
@@ -43,6 +44,7 @@ TINY = DaggerConfig(
         mc_samples=3,
         train_fraction=0.3,
     ),
+    filter=FilterConfig(state_source="learned", uncertainty="chance"),  # the paper's filter
 )
 
 

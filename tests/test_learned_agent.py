@@ -7,7 +7,6 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 from cli_helpers import run_cli
 from rerun.chunk import RrdReader
 
@@ -16,7 +15,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.runner import read_jsonl
 from saferace.learning.agent import learned_state_source
-from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
+from saferace.learning.checkpoint import load_checkpoint
 from saferace.learning.gradcam import gradcam_maps
 from saferace.safety.decision import NominalAction
 
@@ -127,12 +126,10 @@ def test_eval_rows_record_checkpoint_and_state_source(tiny_checkpoint, tmp_path:
     assert refused.returncode == 2 and "--filter cbf" in refused.stderr
 
 
-def test_the_default_filter_refuses_an_uncalibrated_state_network(tiny_checkpoint, tmp_path: Path):
-    checkpoint = tiny_checkpoint()[0]
-    payload = torch.load(checkpoint, weights_only=False)
-    del payload["metadata"][CONFORMAL_KEY]
-    uncalibrated = tmp_path / "uncalibrated.pt"
-    torch.save(payload, uncalibrated)
+def test_the_default_filter_refuses_an_uncalibrated_state_network(
+    tiny_checkpoint, uncalibrated_checkpoint: Path, tmp_path: Path
+):
+    checkpoint, uncalibrated = tiny_checkpoint()[0], uncalibrated_checkpoint
     out = tmp_path / "rows.jsonl"
     command = ("eval", "--track", "lab", "--max-seconds", "0.5", "--out", str(out), "--samples",
                "3", "--filter", "cbf", "--state-source")  # fmt: skip

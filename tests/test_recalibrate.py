@@ -18,8 +18,10 @@ from saferace.safety.conformal import ConformalCalibration
 from saferace.safety.intervals import ConformalStateSource, state_interval
 
 
-def test_a_calibration_survives_the_checkpoint_round_trip(tiny_checkpoint, tmp_path: Path):
-    checkpoint, data = tiny_checkpoint()
+def test_a_calibration_survives_the_checkpoint_round_trip(
+    tiny_checkpoint, uncalibrated_checkpoint: Path, tmp_path: Path
+):
+    checkpoint, data = uncalibrated_checkpoint, tiny_checkpoint()[1]
     out = tmp_path / "calibrated.pt"
     rows = recalibrate(checkpoint, [data], out, alpha=0.1, mc_samples=4, test_share=0.5)
     assert [row["interval"].split(",")[0] for row in rows] == ["its own spread", "conformal"]
@@ -58,20 +60,23 @@ def test_the_command_prints_the_test_coverage_and_refuses_a_bad_split(
         recalibrate(checkpoint, [data], tmp_path / "x.pt", test_share=1.0)
 
 
-def test_an_adaptive_interval_needs_a_calibrated_checkpoint(tiny_checkpoint, tmp_path: Path):
+def test_an_adaptive_interval_needs_a_calibrated_checkpoint(
+    tiny_checkpoint, uncalibrated_checkpoint: Path, tmp_path: Path
+):
     import gymnasium as gym
 
     from saferace.eval.filters import FilterConfig, apply_filter
     from saferace.safety.adaptive import AdaptiveConformalStateSource
 
-    checkpoint, data = tiny_checkpoint()
+    checkpoint, data = uncalibrated_checkpoint, tiny_checkpoint()[1]
     calibrated = tmp_path / "calibrated.pt"
     recalibrate(checkpoint, [data], calibrated, alpha=0.1, mc_samples=3)
     env = gym.make("saferace/CenterLine-v0", track="lab", max_laps=1)
     for path, works in ((calibrated, True), (checkpoint, False)):
-        config = FilterConfig(
-            kind="cbf", state_source=f"learned:{path}", samples=3, adaptive="odometry"
-        )
+        config = FilterConfig(  # chance: the adaptive interval's own check, not the robust one's
+            kind="cbf", state_source=f"learned:{path}", samples=3, adaptive="odometry",
+            uncertainty="chance",
+        )  # fmt: skip
         if works:
             filtered = apply_filter(env, config, seed=0)
             assert isinstance(filtered.state_source, AdaptiveConformalStateSource)
