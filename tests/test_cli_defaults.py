@@ -6,6 +6,7 @@ different filters)."""
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 
 import pytest
@@ -16,6 +17,7 @@ from saferace.cli.experiments import dagger_config
 from saferace.cli.learning import collection_config, train_config
 from saferace.cli.options import FLAGS_KEY
 from saferace.cli.safety import robustness_config
+from saferace.errors import ConfigError, SafeRaceError
 from saferace.eval.filter_config import FilterConfig
 from saferace.experiments.robustness_config import RobustnessConfig
 from saferace.learning.configs import CollectionConfig, DaggerConfig, TrainConfig
@@ -130,3 +132,26 @@ def test_every_option_has_help_and_every_command_an_example(command: str):
         program, *argv = shlex.split(line)
         assert program == "saferace" and argv[0] == command
         PARSER.parse_args(argv)  # the example is a valid command line
+
+
+def test_options_of_the_chance_constraints_keep_auto_on_them(tmp_path):
+    learned = ("--state-source", "learned:m.pt")
+    for option in (("--deterministic",), ("--spread-scale", "2", "2", "1"), ("--fuse-odometry",)):
+        safety, _ = built_filter("eval", *learned, *option)
+        assert (safety.uncertainty, safety.gains) == ("chance", DEFAULT_GAINS), option
+    safety, config = built_filter("dagger", "--calibrate-spread")
+    assert safety.uncertainty == "chance" and config.training.state_uncertainty == "mc-dropout"
+    with pytest.raises(ConfigError, match="calibrate_spread"):
+        built_filter("dagger", "--calibrate-spread", "--filter-uncertainty", "robust")
+
+
+def test_a_fork_takes_the_state_networks_of_the_run_it_forks(tmp_path):
+    base = tmp_path / "base"
+    base.mkdir()
+    for recorded, method in ((None, "mc-dropout"), ("ensemble", "ensemble")):
+        fingerprint = {"task": "CenterLine"} | ({"state_uncertainty": recorded} if recorded else {})
+        (base / "run.json").write_text(json.dumps({"fingerprint": fingerprint}))
+        _, config = built_filter("dagger", "--fork-of", str(base))
+        assert config.training.state_uncertainty == method
+    with pytest.raises(SafeRaceError, match="holds no DAgger run"):
+        built_filter("dagger", "--fork-of", str(tmp_path / "nothing"))

@@ -12,8 +12,10 @@ from saferace.experiments.safety_table import (
     RANDOM_TRACK_RADIUS_M,
     RECKLESS_TASKS,
     filter_label,
+    planned_runs,
     run_table,
 )
+from saferace.learning.checkpoint import is_calibrated
 from saferace.safety.filter import GAIN_PRESETS
 from saferace.track import builtin_track_names
 from saferace.track.random_track import write_random_track
@@ -92,6 +94,21 @@ def test_table_adds_the_perceived_state_runs(tiny_checkpoint, tmp_path: Path):
         mc_samples=3,
     )  # fmt: skip
     assert len(again) == len(rows) == len(read_jsonl(tmp_path / "runs.jsonl"))  # resumed
+
+
+def test_an_uncalibrated_state_network_gets_no_robust_rows(
+    tiny_checkpoint, uncalibrated_checkpoint: Path
+):
+    labels = {}
+    for path in (tiny_checkpoint()[0], uncalibrated_checkpoint):
+        robust = is_calibrated(path)
+        runs = planned_runs(["lab"], (0.05, 0.05), 20, "kinematic", "grip", f"learned:{path}",
+                            3, robust)  # fmt: skip
+        labels[robust] = {run.safety.label for run in runs if run.safety.state_source}
+    assert labels == {
+        True: {"learned-robust", "learned-prob", "learned-det"},
+        False: {"learned-prob", "learned-det"},
+    }
 
 
 def test_table_command_refuses_bad_arguments(tmp_path: Path):

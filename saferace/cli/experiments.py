@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -47,7 +48,8 @@ def register(commands: argparse._SubParsersAction) -> None:
         choices=(AUTO, *STATE_UNCERTAINTY_METHODS),
         help="the state network's uncertainty (see saferace train); auto: a deep ensemble "
         "where the filter takes the perceived state in the robust mode (the default with "
-        "--filter cbf), MC dropout otherwise",
+        "--filter cbf), MC dropout otherwise, and with --fork-of the method of the run it "
+        "forks",
     )
     add_config_options(
         dagger.add_argument_group("driving"),
@@ -121,19 +123,39 @@ def dagger_config(args: argparse.Namespace):
             "--fuse-odometry fuses the state network's samples: add --filter cbf "
             "(and keep --state-source learned)"
         )
+    method = args.__dict__["training.state_uncertainty"]
+    if method == AUTO and args.fork_of is not None:  # the networks of the run it shares
+        method = forked_state_uncertainty(args.fork_of)
+    uncertainty = args.__dict__["filter.uncertainty"]
+    if uncertainty == AUTO and args.calibrate_spread:  # an option of the chance constraints
+        uncertainty = "chance"
     defaults = DaggerConfig()
     return config_from_args(
         defaults,
         args,
-        training=config_from_args(defaults.training, args, prefix="training."),
+        training=config_from_args(
+            defaults.training, args, prefix="training.", state_uncertainty=method
+        ),
         collection=config_from_args(defaults.collection, args, prefix="collection."),
         filter=config_from_args(
             defaults.filter,
             args,
             prefix="filter.",
             state_source="learned" if perceived else None,
+            uncertainty=uncertainty,
         ),
     )
+
+
+def forked_state_uncertainty(base: Path) -> str:
+    """The state networks' uncertainty method of the DAgger run in ``base`` (a fork shares
+    its networks, so ``auto`` takes it): MC dropout where the run predates the option."""
+    from saferace.learning.run_layout import RunLayout
+
+    path = RunLayout(base).run_file
+    if not path.is_file():
+        raise SafeRaceError(f"--fork-of {base} holds no DAgger run ({path.name} is missing)")
+    return json.loads(path.read_text())["fingerprint"].get("state_uncertainty", "mc-dropout")
 
 
 def _dagger(args: argparse.Namespace) -> int:

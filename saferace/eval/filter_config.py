@@ -46,9 +46,11 @@ class FilterConfig:
 
     ``uncertainty`` and ``gains`` left at ``auto`` are settled when the config is made (see
     :data:`saferace.names.AUTO`): with a learned state source the robust mode (which takes
-    the curvature from the map) and :data:`~saferace.names.ROBUST_GAINS`; otherwise the
-    paper's chance constraints and :data:`~saferace.names.DEFAULT_GAINS`. A copy made with
-    ``replace`` keeps what was settled.
+    the curvature from the map) and :data:`~saferace.names.ROBUST_GAINS`; otherwise, and
+    where an option of the chance constraints is set (``probabilistic=False``,
+    ``spread_scale``, ``fuse_odometry``: each hides a calibrated source's interval and
+    monitor), the paper's chance constraints and :data:`~saferace.names.DEFAULT_GAINS`. A
+    copy made with ``replace`` keeps what was settled.
     """
 
     kind: str = setting(
@@ -101,7 +103,8 @@ class FilterConfig:
         "spread (the paper's), or barriers that hold over the whole interval (a learned "
         "source's conformal one) with a fallback that slows the car where they cannot, or "
         "where the source's monitor raises; auto: robust with the map's curvature for a "
-        "learned state source, chance otherwise",
+        "learned state source, chance otherwise and with --deterministic, --spread-scale or "
+        "--fuse-odometry",
         flag="--filter-uncertainty",
         choices=(AUTO, *UNCERTAINTY_MODES),
     )
@@ -121,8 +124,10 @@ class FilterConfig:
 
     def __post_init__(self) -> None:
         learned = self.state_source is not None
+        chance_options = not self.probabilistic or self.spread_scale or self.fuse_odometry
         if self.uncertainty == AUTO:
-            object.__setattr__(self, "uncertainty", "robust" if learned else "chance")
+            robust = learned and not chance_options
+            object.__setattr__(self, "uncertainty", "robust" if robust else "chance")
         if self.gains == AUTO:
             robust = self.uncertainty == "robust"
             object.__setattr__(self, "gains", ROBUST_GAINS if robust else DEFAULT_GAINS)

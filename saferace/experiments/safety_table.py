@@ -11,6 +11,7 @@ an interrupted table resumes.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -26,9 +27,12 @@ from saferace.eval.leaderboard import (
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
-from saferace.names import DEFAULT_GAINS, TASKS
+from saferace.learning.checkpoint import is_calibrated
+from saferace.names import DEFAULT_GAINS, ROBUST_GAINS, TASKS
 from saferace.names import RANDOM_TRACK_RADIUS_M as RANDOM_TRACK_RADIUS_M  # size of test tracks
 from saferace.track.random_track import write_random_tracks
+
+LOG = logging.getLogger(__name__)
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
 
@@ -55,20 +59,23 @@ def planned_runs(
     gains: str,
     state_source: str | None = None,
     mc_samples: int = 10,
+    robust: bool = True,
 ) -> list[Run]:
     """Every run of the table, in order; ``state_source`` (``learned:CHECKPOINT``) adds the
-    reckless agents through the filter fed that source: in the robust mode over its
-    calibrated interval (what ``auto`` gives a learned source), and with ``gains`` through
-    the paper's chance constraints and on the samples' mean."""
+    reckless agents through the filter fed that source: with ``robust`` (its checkpoint is
+    calibrated) in the robust mode over its conformal interval (what ``auto`` gives a
+    learned source), and with ``gains`` through the paper's chance constraints and on the
+    samples' mean."""
     oracle = FilterConfig(kind="cbf", model=model, gains=gains)
     noisy = FilterConfig(kind="cbf", model=model, state_noise=noise, samples=samples, gains=gains)
     reckless_filters = [FilterConfig(), oracle, noisy, replace(noisy, probabilistic=False)]
     if state_source is not None:
         learned = replace(oracle, state_source=state_source, samples=mc_samples)
-        robust = FilterConfig(
+        calibrated = FilterConfig(
             kind="cbf", model=model, state_source=state_source, samples=mc_samples
         )
-        reckless_filters += [robust, learned, replace(learned, probabilistic=False)]
+        reckless_filters += [calibrated] if robust else []
+        reckless_filters += [learned, replace(learned, probabilistic=False)]
     runs = []
     for track in tracks:
         for agent, task in RECKLESS_TASKS.items():
@@ -106,7 +113,14 @@ def run_table(
     tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
     runs_file = out_dir / "runs.jsonl"
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
-    runs = planned_runs(tracks, noise, samples, model, gains, state_source, mc_samples)
+    robust = state_source is None or is_calibrated(state_source.partition(":")[2])
+    if not robust:
+        LOG.warning(
+            "%s has no conformal calibration: the table leaves out its robust rows "
+            "(saferace calibrate CKPT DATA --out CKPT2 makes one)",
+            state_source,
+        )
+    runs = planned_runs(tracks, noise, samples, model, gains, state_source, mc_samples, robust)
     todo = [run for run in runs if run.key not in done]
     env_kwargs = {"max_steps": max_steps_for(max_seconds)}
 
@@ -246,7 +260,8 @@ def write_tables(rows: list[dict], out_dir: Path, gains: str) -> None:
     """``safety_table.md`` (both tables) and ``safety_table.csv`` / ``expert_cost.csv``."""
     runs, costs = table_rows(rows), expert_cost_rows(rows)
     text = (
-        f"# Safety filter ({gains} gains): reckless agents and the expert\n\n"
+        f"# Safety filter ({gains} gains; robust rows {ROBUST_GAINS}): reckless agents and the "
+        "expert\n\n"
         + markdown_table(TABLE_COLUMNS, runs)
         + "\n\n## Expert lap-time cost of the filter\n\n"
         + markdown_table(EXPERT_COLUMNS, costs)

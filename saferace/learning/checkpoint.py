@@ -106,6 +106,11 @@ def _write_atomically(path: str | Path, write: Callable[[BinaryIO], object]) -> 
     return path
 
 
+def is_calibrated(path: str | Path) -> bool:
+    """Whether the checkpoint at ``path`` holds a conformal calibration of its state network."""
+    return CONFORMAL_KEY in load_checkpoint(path).metadata
+
+
 def load_checkpoint(
     path: str | Path, device: str | torch.device | None = None
 ) -> LearnedCheckpoint:

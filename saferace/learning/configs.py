@@ -339,6 +339,13 @@ class DaggerConfig:
                 "robust calibrates the state network on the part of the lap no network "
                 "trained on: it needs train_fraction < 1",
             )
+        if self.calibrates_spread and self.filter.uncertainty == "robust":
+            raise ConfigError(
+                "calibrate_spread",
+                "widens the spread of the chance constraints; the robust mode holds the car "
+                "over the conformal interval, which the widened samples would hide: ask for "
+                "the chance constraints (--filter-uncertainty chance) or drop it",
+            )
         if self.calibrates_spread and self.collection.train_fraction >= 1.0:
             raise ConfigError(
                 "calibrate_spread",
