@@ -11,7 +11,8 @@ have random weights (the time does not depend on them). Target: at least 50 lear
 at 64x64 mono on 2 cores. The next tables time the control network's inference alone, from
 the naive way (the whole network once per MC sample, NCHW, autograd on) adding one lever at
 a time: one backbone pass with the head sampled in one batch, inference mode, channels-last;
-and the same on one thread.
+and the same on one thread. The last table times the deep ensemble's backbones one after
+another, under bfloat16 autocast, and two members at a time on one thread each.
 
     python benchmarks/learned_step_speed.py [--steps N] [--track NAME]
 """
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import gymnasium as gym
 import numpy as np
@@ -188,6 +190,40 @@ def main() -> None:
         first = levers[0][1]
         lines = [[label, ms, first / ms] for label, ms in levers]
         print(markdown_table(["lever", "median [ms]", "speed-up"], lines) + "\n")
+    image = np.random.default_rng(0).integers(0, 256, (64, 64, 3), np.uint8)
+    levers = ensemble_lever_times_ms(image)
+    print(f"{DEFAULT_MEMBERS}-member deep ensemble's backbones, one mono 64x64x3 frame:")
+    first = levers[0][1]
+    lines = [[label, ms, first / ms] for label, ms in levers]
+    print(markdown_table(["lever", "median [ms]", "speed-up"], lines) + "\n")
+
+
+def ensemble_lever_times_ms(image: np.ndarray) -> list[tuple[str, float]]:
+    """The deep ensemble's backbones on one frame: one after another (what ``predict``
+    does), under bfloat16 autocast, and two members at a time on one thread each."""
+    members = ensemble(stereo=False).members
+    frame = torch.from_numpy(image[None])
+    threads = torch.get_num_threads()
+
+    @torch.inference_mode()
+    def features(member: DrivingNetwork, dtype: torch.dtype | None = None) -> torch.Tensor:
+        with torch.autocast("cpu", dtype=dtype or torch.bfloat16, enabled=dtype is not None):
+            return member.features(frame)
+
+    def in_pairs() -> None:
+        torch.set_num_threads(1)
+        try:
+            list(pool.map(features, members))
+        finally:
+            torch.set_num_threads(threads)
+
+    with ThreadPoolExecutor(2) as pool:
+        levers = [
+            ("one after another (what predict() does)", lambda: [features(m) for m in members]),
+            ("bfloat16 autocast", lambda: [features(m, torch.bfloat16) for m in members]),
+            ("two members at a time, one thread each", in_pairs),
+        ]
+        return [(label, median_ms(run, 30)) for label, run in levers]
 
 
 def one_thread_ms(network: DrivingNetwork, image: np.ndarray, velocity: np.ndarray) -> tuple:
