@@ -111,9 +111,11 @@ def test_self_intersecting_centerline_is_rejected(tmp_path: Path):
     path = tmp_path / "eight.csv"
     write_track_csv(path, x, y, 0.4, 0.4)
     with pytest.raises(
-        TrackError, match=r"the center line crosses itself between .*line \d+ and .*line \d+"
-    ):
+        TrackError, match=r"the center line crosses itself between line \d+ and line \d+"
+    ) as raised:
         Track.load(path)
+    assert str(raised.value).count(str(path)) == 1  # the file is named once
+    assert str(raised.value).startswith(f"{path}: ")
 
 
 def test_overlapping_boundaries_are_rejected():

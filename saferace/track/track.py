@@ -115,7 +115,7 @@ class Track:
         lines = table.line_numbers
 
         def row(i: int) -> str:
-            return f"{path}: line {lines[i]}"
+            return f"line {lines[i]}"  # the file is named once, before the whole message
 
         try:
             return cls.from_arrays(
