@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -152,10 +151,13 @@ def forked_state_uncertainty(base: Path) -> str:
     its networks, so ``auto`` takes it): MC dropout where the run predates the option."""
     from saferace.learning.run_layout import RunLayout
 
-    path = RunLayout(base).run_file
-    if not path.is_file():
-        raise SafeRaceError(f"--fork-of {base} holds no DAgger run ({path.name} is missing)")
-    return json.loads(path.read_text())["fingerprint"].get("state_uncertainty", "mc-dropout")
+    layout = RunLayout(base)
+    stored = layout.stored_fingerprint()
+    if stored is None:
+        raise SafeRaceError(
+            f"--fork-of {base} holds no DAgger run ({layout.run_file.name} is missing)"
+        )
+    return stored.get("state_uncertainty", "mc-dropout")
 
 
 def _dagger(args: argparse.Namespace) -> int:

@@ -270,8 +270,8 @@ class DaggerRun:
         """Write ``run.json``, or check that the one there describes this run."""
         path = self.layout.run_file
         wanted = self.config.fingerprint
-        if path.exists():
-            stored = json.loads(path.read_text())["fingerprint"]
+        stored = self.layout.stored_fingerprint()
+        if stored is not None:
             # as read back from JSON: tuples are lists
             wanted = json.loads(json.dumps(wanted))
             if stored != wanted:

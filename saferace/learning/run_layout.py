@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +37,12 @@ class RunLayout:
     @property
     def run_file(self) -> Path:
         return self.root / "run.json"
+
+    def stored_fingerprint(self) -> dict | None:
+        """The settings ``run.json`` records (None: no run has claimed the folder)."""
+        if not self.run_file.exists():
+            return None
+        return json.loads(self.run_file.read_text())["fingerprint"]
 
     @property
     def data_dir(self) -> Path:
