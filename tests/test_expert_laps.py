@@ -6,11 +6,13 @@ from pathlib import Path
 
 import gymnasium as gym
 import pytest
+from track_shapes import paperclip
 
 import saferace  # noqa: F401
 from saferace.agents.mpc import MPCExpert
 from saferace.eval.runner import run_episode
-from saferace.track import builtin_track_names
+from saferace.track import Track, builtin_track_names
+from saferace.track.track_io import write_track_csv
 
 
 def expert_lap(task: str, track: str) -> dict:
@@ -38,3 +40,11 @@ def test_expert_on_builtin_tracks(track: str):
 
 def test_expert_on_unseen_tracks(unseen_track_csv: Path):
     assert_clean_laps_racing_faster(str(unseen_track_csv))
+
+
+def test_expert_where_two_legs_of_the_track_meet(tmp_path: Path):
+    """Straights 2 m apart in a 2.4 m lane: the loader clips both legs (Montreal's hairpin)."""
+    path = tmp_path / "paperclip.csv"
+    write_track_csv(path, *paperclip(legs_apart_m=2.0, straight_m=12.0), 1.2, 1.2)
+    assert Track.load(path).narrowing.points
+    assert_clean_laps_racing_faster(str(path))

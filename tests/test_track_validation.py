@@ -10,10 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import run_cli
+from track_shapes import paperclip
 
 from saferace.errors import TrackError
 from saferace.track import Track
 from saferace.track.track_io import write_track_csv
+from saferace.track.validation import LEG_GAP_M
 
 HEADER = "# x_m,y_m,w_tr_right_m,w_tr_left_m"
 
@@ -118,12 +120,33 @@ def test_self_intersecting_centerline_is_rejected(tmp_path: Path):
     assert str(raised.value).startswith(f"{path}: ")
 
 
-def test_overlapping_boundaries_are_rejected():
+def test_overlapping_boundaries_are_rejected_when_strict():
     """A hairpin whose two legs are closer than the lane width: boundaries cross."""
     t = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
     x, y = 10.0 * np.cos(t), 0.4 * np.sin(t)
     with pytest.raises(TrackError, match=r"(boundary crosses itself|turn radius)"):
-        Track.from_arrays(x, y, 0.5, 0.5)
+        Track.from_arrays(x, y, 0.5, 0.5, strict=True)
+
+
+def test_legs_closer_than_the_lane_are_clipped_to_either_side_of_the_line_between(caplog):
+    """Straights 2 m apart with 1.2 m half widths (Montreal's hairpin: 1.9 m and 1.1 m)."""
+    x, y = paperclip(legs_apart_m=2.0)
+    with pytest.raises(TrackError):
+        Track.from_arrays(x, y, 1.2, 1.2, strict=True)
+    with caplog.at_level(logging.WARNING, logger="saferace.track.track"):
+        track = Track.from_arrays(x, y, 1.2, 1.2, name="paperclip")
+    assert "two legs of the track come closer than the lane" in caplog.records[0].message
+    s = track.centerline.sample(0.05)
+    center = track.centerline.position(s)
+    w_right, w_left = track.widths(s)
+    left, _ = track.boundaries_at(s)
+    middle = np.abs(center[:, 0]) < 2.0  # 2 m and more from either turn
+    bottom, top = left[middle & (center[:, 1] < 0.0)], left[middle & (center[:, 1] > 0.0)]
+    apart = np.hypot(*(bottom[:, None, :] - top[None, :, :]).transpose(2, 0, 1)).min()
+    assert LEG_GAP_M - 0.002 < apart < LEG_GAP_M + 0.01  # clipped to the gap, no further
+    assert np.all(w_right[middle] == 1.2)  # the outer boundaries keep their width
+    assert np.allclose(w_left[middle], (2.0 - LEG_GAP_M) / 2.0, atol=0.002)
+    assert track.narrowing.points == track.point_count
 
 
 def hairpin(radius_m: float, count: int = 240) -> tuple[np.ndarray, np.ndarray]:

@@ -157,8 +157,11 @@ class Track:
         with the centre line) or, ``smooth_keeps="boundaries"``, the given boundaries
         (:func:`~saferace.track.smoothing.smooth_centerline`; off by default). Where a turn is
         tighter than its inner half width, the lane is narrowed there so that the boundary
-        does not fold (:func:`~saferace.track.validation.narrow_folding_widths`, one warning
-        per process says how much); ``strict=True`` refuses such a track instead.
+        does not fold (:func:`~saferace.track.validation.narrow_folding_widths`), and where
+        two legs of the track come closer than the lane is wide, both are clipped to keep
+        to their side of the line between them
+        (:func:`~saferace.track.validation.clip_meeting_legs`); one warning per process says
+        how much. ``strict=True`` refuses such a track instead.
         """
         x_m = np.asarray(x_m, dtype=float).ravel()
         y_m = np.asarray(y_m, dtype=float).ravel()
@@ -173,38 +176,32 @@ class Track:
             x_m, y_m, w_right_m, w_left_m = lane.x_m, lane.y_m, lane.w_right_m, lane.w_left_m
             smoothing = lane.smoothing
         centerline = ClosedPath(np.column_stack([x_m, y_m]))
+        _check_centerline(centerline, row_name)  # before narrowing, which would hide it
         narrowing = validation.NOT_NARROWED
         if not strict:
-            knots = centerline.knot_s_m[:-1]
-            segment = np.searchsorted(centerline.point_s_m, knots, side="right") - 1
-            w_right_m, w_left_m, narrowing = validation.narrow_folding_widths(
-                centerline.curvature(knots),
-                segment,
-                centerline.point_s_m,
-                centerline.length_m,
-                w_right_m,
-                w_left_m,
-            )
+            given = w_right_m, w_left_m
+            w_right_m, w_left_m = _narrowed_widths(centerline, w_right_m, w_left_m)
+            narrowing = validation.Narrowing.between(*given, w_right_m, w_left_m)
             reported = (name, len(x_m), narrowing.points, round(narrowing.max_m, 6))
             if narrowing.points:
                 LOG.log(
                     logging.DEBUG if reported in _REPORTED_NARROWINGS else logging.WARNING,
                     "%s: narrowed the lane at %d of %d points, by up to %.3f m, where turns are "
-                    "tighter than the half width (Track.load(..., strict=True) refuses instead)",
+                    "tighter than the half width or two legs of the track come closer than the "
+                    "lane is wide (Track.load(..., strict=True) refuses instead)",
                     name,
                     narrowing.points,
                     len(x_m),
                     narrowing.max_m,
                 )
                 _REPORTED_NARROWINGS.add(reported)
-        validation.check_lane_width(w_right_m, w_left_m, car_width_m, row_name)
+        validation.check_lane_width(w_right_m, w_left_m, car_width_m, row_name, narrowing)
         track = cls(name, centerline, w_right_m, w_left_m, narrowing, smoothing)
         track._validate_geometry(row_name)
         return track
 
     def _validate_geometry(self, row_name: validation.RowName) -> None:
-        step = max(_CHECK_STEP_M, self.length_m / _MAX_CHECK_SAMPLES)
-        s = self.centerline.sample(step)
+        s = self.centerline.sample(_check_step_m(self.centerline))
         rows = self.row_of(s)
 
         def row_of_sample(i: int) -> str:
@@ -221,7 +218,6 @@ class Track:
         )
         center = self.centerline.position(s)
         normal = self.centerline.normal(s)
-        validation.check_no_self_intersection("center line", center, row_of_sample)
         left = center + w_left[:, None] * normal
         right = center - w_right[:, None] * normal
         validation.check_no_self_intersection("left boundary", left, row_of_sample)
@@ -292,3 +288,40 @@ class Track:
 
     def __repr__(self) -> str:
         return f"Track({self.name!r}, length_m={self.length_m:.2f}, points={self.point_count})"
+
+
+def _check_step_m(centerline: ClosedPath) -> float:
+    """Spacing of the samples the boundaries are checked at (and legs clipped)."""
+    return max(_CHECK_STEP_M, centerline.length_m / _MAX_CHECK_SAMPLES)
+
+
+def _check_centerline(centerline: ClosedPath, row_name: validation.RowName) -> None:
+    """The centre line must not cross itself."""
+    s = centerline.sample(_check_step_m(centerline))
+    rows = np.searchsorted(centerline.point_s_m, s, side="right") - 1
+    validation.check_no_self_intersection(
+        "center line", centerline.position(s), lambda i: row_name(int(rows[i]))
+    )
+
+
+def _narrowed_widths(
+    centerline: ClosedPath, w_right_m: np.ndarray, w_left_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The half widths narrowed where turns fold the inner boundary, then clipped where two
+    legs of the track meet (see :meth:`Track.from_arrays`)."""
+    distance = validation.arc_distance(centerline.point_s_m, centerline.length_m)
+
+    def segment_of(s_m: np.ndarray) -> np.ndarray:
+        return np.searchsorted(centerline.point_s_m, s_m, side="right") - 1
+
+    knots = centerline.knot_s_m[:-1]
+    w_right_m, w_left_m = validation.narrow_folding_widths(
+        centerline.curvature(knots), segment_of(knots), distance, w_right_m, w_left_m
+    )
+    samples = centerline.sample(_check_step_m(centerline))
+    right_limit, left_limit = validation.meeting_leg_limits(
+        centerline.position(samples), centerline.normal(samples), samples, centerline.length_m
+    )
+    return validation.clip_meeting_legs(
+        right_limit, left_limit, segment_of(samples), distance, w_right_m, w_left_m
+    )

@@ -53,15 +53,28 @@ def check_points(
 
 
 def check_lane_width(
-    w_right_m: np.ndarray, w_left_m: np.ndarray, car_width_m: float, row: RowName
+    w_right_m: np.ndarray,
+    w_left_m: np.ndarray,
+    car_width_m: float,
+    row: RowName,
+    narrowing: Narrowing | None = None,
 ) -> None:
-    """The lane must be wider than the car everywhere."""
+    """The lane must be wider than the car everywhere (``narrowing``: where the loader
+    narrowed it, which the message then names as the cause)."""
     width = w_right_m + w_left_m
     narrow = np.flatnonzero(width <= car_width_m)
     if narrow.size:
         i = int(narrow[0])
+        cause = ""
+        if narrowing is not None and i in narrowing.indices:
+            cause = (
+                " after narrowing it where a turn is tighter than the half width or another leg "
+                "of the track comes closer than the lane is wide (strict=True names the fold or "
+                "crossing)"
+            )
         raise TrackError(
-            f"{row(i)}: lane is {width[i]:.3f} m wide, narrower than the car ({car_width_m:.3f} m)"
+            f"{row(i)}: lane is {width[i]:.3f} m wide{cause}, narrower than the car "
+            f"({car_width_m:.3f} m)"
         )
 
 
@@ -91,62 +104,148 @@ FOLD_MARGIN_M = 0.05
 NARROWING_SLOPE = 0.1
 
 
+#: Least gap between the boundaries of two legs of the track that come closer than their
+#: lane is wide (the straights of a hairpin side by side), where the loader clips them (m).
+LEG_GAP_M = 0.1
+#: Two points of the centre line ``d`` apart lie on different legs when the track between
+#: them is longer than this many times ``d`` (the ends of a half circle: 1.57, one leg).
+OTHER_LEG_ARC_RATIO = 2.0
+#: Rows of the pairwise leg distances computed at once (bounds the memory to a few MB).
+_LEG_CHUNK = 256
+
+
 @dataclass(frozen=True)
 class Narrowing:
-    """Where :func:`narrow_folding_widths` narrowed the lane: how many points (``indices``
-    into the track's points), by how much at most."""
+    """Where the loader narrowed the lane: how many points (``indices`` into the track's
+    points), by how much at most (both sides together)."""
 
     points: int = 0
     max_m: float = 0.0
     indices: tuple[int, ...] = ()
+
+    @classmethod
+    def between(
+        cls,
+        w_right_m: np.ndarray,
+        w_left_m: np.ndarray,
+        new_right_m: np.ndarray,
+        new_left_m: np.ndarray,
+    ) -> Narrowing:
+        """What changed from the given half widths to the narrowed ones."""
+        cut = (w_left_m - new_left_m) + (w_right_m - new_right_m)
+        narrowed = np.flatnonzero(cut > 0.0)
+        return cls(len(narrowed), float(cut.max(initial=0.0)), tuple(narrowed.tolist()))
 
 
 #: Nothing narrowed.
 NOT_NARROWED = Narrowing()
 
 
+def arc_distance(point_s_m: np.ndarray, length_m: float) -> np.ndarray:
+    """Distances along the closed centre line between every pair of its points."""
+    gap = np.abs(point_s_m[:, None] - point_s_m[None, :])
+    return np.minimum(gap, length_m - gap)
+
+
+def capped(
+    width: np.ndarray, limit: np.ndarray, binding: np.ndarray, distance: np.ndarray
+) -> np.ndarray:
+    """``width`` lowered to ``limit`` at the ``binding`` points and, around them, to a cap
+    that widens again at :data:`NARROWING_SLOPE` along the centre line (``distance``: the
+    points' :func:`arc_distance`)."""
+    binding = np.flatnonzero(binding)
+    if not binding.size:
+        return width
+    cap = np.min(limit[binding][None, :] + NARROWING_SLOPE * distance[:, binding], axis=1)
+    return np.minimum(width, cap)
+
+
+def point_limits(sample_limit: np.ndarray, segment: np.ndarray, count: int) -> np.ndarray:
+    """Each point's tightest limit over the samples of the two segments it bounds (widths
+    are linear between points, so a segment within its ends' limits stays within them)."""
+    tightest = np.full(count, np.inf)
+    np.minimum.at(tightest, segment, sample_limit)
+    return np.minimum(tightest, np.roll(tightest, 1))
+
+
 def narrow_folding_widths(
     curvature_radpm: np.ndarray,
     segment: np.ndarray,
-    point_s_m: np.ndarray,
-    length_m: float,
+    distance: np.ndarray,
     w_right_m: np.ndarray,
     w_left_m: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, Narrowing]:
+) -> tuple[np.ndarray, np.ndarray]:
     """Narrow each turn's inner half width to ``radius - FOLD_MARGIN_M`` where it is wider.
 
     Real circuits given with one fixed lane width (the F1TENTH collection's 2.2 m) have a
     few turns tighter than the half width: there the inner boundary would fold over itself.
     ``curvature_radpm`` is sampled densely along the centerline, ``segment`` says between
-    which two input points each sample lies (``i``: points ``i`` and ``i + 1``, wrapping).
-    Widths are linear between points, so each point's width is capped by the tightest turn
-    of the two segments it bounds, and the cap widens again at ``NARROWING_SLOPE`` on either
-    side: the smallest change that keeps the boundaries from folding or crossing, with a
-    margin. Outer boundaries and points away from a too-tight turn keep their widths.
+    which two input points each sample lies (``i``: points ``i`` and ``i + 1``, wrapping),
+    ``distance`` is the points' :func:`arc_distance`. Each point's width is capped by the
+    tightest turn of the two segments it bounds, and the cap widens again at
+    ``NARROWING_SLOPE`` on either side: the smallest change that keeps the boundaries from
+    folding or crossing, with a margin. Outer boundaries and points away from a too-tight
+    turn keep their widths.
     """
     count = len(w_right_m)
-    tightest_left, tightest_right = np.zeros(count), np.zeros(count)
-    np.maximum.at(tightest_left, segment, np.maximum(curvature_radpm, 0.0))
-    np.maximum.at(tightest_right, segment, np.maximum(-curvature_radpm, 0.0))
 
-    gap = np.abs(point_s_m[:, None] - point_s_m[None, :])
-    distance = np.minimum(gap, length_m - gap)  # along the closed centerline
+    def narrowed(width: np.ndarray, curvature_toward_side: np.ndarray) -> np.ndarray:
+        with np.errstate(divide="ignore"):
+            radius = point_limits(1.0 / np.maximum(curvature_toward_side, 0.0), segment, count)
+        limit = np.maximum(radius - FOLD_MARGIN_M, 0.0)
+        return capped(width, limit, width > radius, distance)
 
-    def capped(width: np.ndarray, tightest_on_segment: np.ndarray) -> np.ndarray:
-        tightest = np.maximum(tightest_on_segment, np.roll(tightest_on_segment, 1))
-        radius = 1.0 / np.maximum(tightest, 1e-12)
-        folds = np.flatnonzero(width > radius)
-        if not folds.size:
-            return width
-        limit = np.maximum(radius[folds] - FOLD_MARGIN_M, 0.0)
-        cap = np.min(limit[None, :] + NARROWING_SLOPE * distance[:, folds], axis=1)
-        return np.minimum(width, cap)
+    return narrowed(w_right_m, -curvature_radpm), narrowed(w_left_m, curvature_radpm)
 
-    new_right, new_left = capped(w_right_m, tightest_right), capped(w_left_m, tightest_left)
-    cut = (w_left_m - new_left) + (w_right_m - new_right)
-    narrowed = np.flatnonzero(cut > 0.0)
-    narrowing = Narrowing(len(narrowed), float(cut.max(initial=0.0)), tuple(narrowed.tolist()))
-    return new_right, new_left, narrowing
+
+def meeting_leg_limits(
+    position_m: np.ndarray, normal: np.ndarray, sample_s_m: np.ndarray, length_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The widest right and left half widths at centre-line samples that keep each boundary
+    point nearer its own sample than any other leg's centre line, by :data:`LEG_GAP_M`.
+
+    A boundary point ``q = p + w n`` (``n`` towards the side) is at ``w`` from its sample
+    ``p``; it stays ``LEG_GAP_M`` nearer than another leg's point ``c`` when
+    ``|q - c| >= w + gap``, that is ``w <= (|p - c|^2 - gap^2) / (2 (gap + n . (c - p)))``
+    wherever ``gap + n . (c - p) > 0``. Both legs keep to their side of the line halfway
+    between them, so their boundaries cannot cross. ``inf`` where no other leg is near.
+    """
+    limits = np.full((2, len(sample_s_m)), np.inf)  # right, left
+    gap = LEG_GAP_M
+    for start in range(0, len(sample_s_m), _LEG_CHUNK):
+        rows = slice(start, start + _LEG_CHUNK)
+        offset = position_m[None, :, :] - position_m[rows, None, :]
+        squared = np.einsum("ijk,ijk->ij", offset, offset)
+        along = np.abs(sample_s_m[rows, None] - sample_s_m[None, :])
+        along = np.minimum(along, length_m - along)
+        other = along > OTHER_LEG_ARC_RATIO * np.sqrt(squared)
+        toward_left = np.einsum("ijk,ik->ij", offset, normal[rows])
+        for side, toward in enumerate((-toward_left, toward_left)):
+            ahead = other & (gap + toward > 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bound = np.where(ahead, (squared - gap**2) / (2.0 * (gap + toward)), np.inf)
+            limits[side, rows] = np.maximum(bound.min(axis=1), 0.0)
+    return limits[0], limits[1]
+
+
+def clip_meeting_legs(
+    right_limit_m: np.ndarray,
+    left_limit_m: np.ndarray,
+    segment: np.ndarray,
+    distance: np.ndarray,
+    w_right_m: np.ndarray,
+    w_left_m: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Clip the half widths where two legs of the track come closer than their lanes are
+    wide (Montreal's hairpin: straights 1.9 m apart, a 2.2 m lane), to the samples'
+    :func:`meeting_leg_limits` (``segment``: the input segment each sample lies on), the cap
+    widening again at ``NARROWING_SLOPE`` as in a narrowed turn."""
+    count = len(w_right_m)
+    clipped = []
+    for width, sample_limit in ((w_right_m, right_limit_m), (w_left_m, left_limit_m)):
+        limit = point_limits(sample_limit, segment, count)
+        clipped.append(capped(width, limit, width > limit, distance))
+    return clipped[0], clipped[1]
 
 
 def check_no_self_intersection(name: str, polyline: np.ndarray, row_of_segment: RowName) -> None:
