@@ -48,6 +48,10 @@ DEFAULT_GAINS = "grip"
 #: dropout.
 AUTO = "auto"
 ROBUST_GAINS = "tuned"
+#: The filter QP's penalty on its slacks: the paper's squared one, or the exact L1 one
+#: (``saferace.safety.exact_penalty``: the hard constraints wherever they can hold).
+SQUARED_SLACK = "squared"
+SLACK_PENALTIES = (SQUARED_SLACK, "l1")
 
 #: What feeds the filter the lane state: the truth, the truth with noise, a state network.
 STATE_SOURCE_KINDS = ("oracle", "noisy", "learned")

@@ -455,3 +455,28 @@ def test_the_lane_barriers_preview_the_narrowest_width_ahead():
     )
     with pytest.raises(ValueError, match="width_preview_s"):
         SafetyFilter(make_env(), width_preview_s=-1.0)
+
+
+def test_the_l1_slack_holds_the_barriers_exactly_where_the_squared_one_gives_a_little():
+    """The drift agent behind either slack: both keep it inside; on the steps the filter bent,
+    the squared slack leaves its active barriers a sliver of violation, the L1 one none."""
+    slivers = {}
+    for slack in ("squared", "l1"):
+        env = apply_filter(make_env(max_steps=300), FilterConfig(kind="cbf", slack=slack))
+        agent = DriftAgent.for_env(env)
+        observation, info = env.reset(seed=0)
+        outside, sliver = 0.0, 0
+        for _ in range(300):
+            observation, _, terminated, truncated, info = env.step(agent.act(observation, info))
+            outside += info["cost"]
+            slack_needed = max(info["safety"]["slacks"].values())
+            sliver += info["safety"]["intervened"] and 1e-9 < slack_needed < 1e-4
+            if terminated or truncated:
+                break
+        env.close()
+        assert outside == 0.0
+        slivers[slack] = sliver
+    assert slivers["squared"] > 10 and slivers["l1"] == 0
+    with pytest.raises(ValueError, match="slack"):
+        FilterConfig(kind="cbf", slack="huber")
+    assert FilterConfig(kind="cbf", slack="l1").label == "oracle-l1"

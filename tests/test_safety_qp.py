@@ -14,6 +14,7 @@ from saferace.safety.chance import (
     spread_at_accel,
     tightening,
 )
+from saferace.safety.exact_penalty import solve_filter_qp_l1
 from saferace.safety.qp import FilterProblem, solve_filter_qp, solve_filter_qp_linearised
 from saferace.safety.reference_qp import solve_with_cvxpy
 
@@ -168,3 +169,19 @@ def test_nearly_parallel_constraints_with_a_large_slack_weight():
     solution = solve_filter_qp(problem)
     assert solution.solved and solution.slack.max() < 1e-6
     np.testing.assert_allclose(solution.u, cvxpy_solution(problem), atol=1e-5)
+
+
+def test_the_l1_slack_agrees_with_cvxpy_and_holds_what_can_hold():
+    rng = np.random.default_rng(17)
+    exact = held = 0
+    for trial in range(60):
+        problem = random_problem(rng, chance=trial % 2 == 1, k_err=[1e2, 1e3, 1e4][trial % 3])
+        solution = solve_filter_qp_l1(problem)
+        assert solution.solved
+        reference, status = solve_with_cvxpy(problem, slack_penalty="l1")
+        assert status in ("optimal", "optimal_inaccurate")
+        np.testing.assert_allclose(solution.u, reference, atol=1e-5)
+        if solution.slack.max() < 1e-9:  # everything holds: the hard constraints' optimum,
+            exact += 1  # where the squared penalty lets each active constraint give a little
+            held += solve_filter_qp(problem).slack.max() > 1e-7
+    assert exact >= 10 and held >= 5

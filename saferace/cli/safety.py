@@ -23,6 +23,8 @@ from saferace.names import (
     GAIN_NAMES,
     MC_SAMPLES,
     NOISY_SAMPLES,
+    SLACK_PENALTIES,
+    SQUARED_SLACK,
     VEHICLE_MODELS,
 )
 
@@ -87,6 +89,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         "noisy state and in the learned source's chance-constrained rows; its robust rows take "
         "the robust mode's (--filter-gains auto of the other commands)",
     )
+    table.add_argument(
+        "--filter-slack",
+        default=SQUARED_SLACK,
+        choices=SLACK_PENALTIES,
+        help="the filter QP's penalty on its slacks in every filtered row: squared (the "
+        "paper's) or the exact l1",
+    )
     add_parallel_arguments(table)
     add_device_argument(table)
     table.set_defaults(command=_safety_table)
@@ -150,6 +159,7 @@ def _safety_table(args: argparse.Namespace) -> int:
         samples=args.samples,
         model=args.filter_model,
         gains=args.filter_gains,
+        slack=args.filter_slack,
         state_source=args.state_source,
         mc_samples=args.mc_samples,
         workers=args.workers,

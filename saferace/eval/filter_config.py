@@ -21,6 +21,8 @@ from saferace.names import (
     GAIN_NAMES,
     NOISY_SAMPLES,
     ROBUST_GAINS,
+    SLACK_PENALTIES,
+    SQUARED_SLACK,
     UNCERTAINTY_MODES,
     VEHICLE_MODELS,
 )
@@ -121,6 +123,13 @@ class FilterConfig:
         "fuse the state samples with odometry (yaw rate, speed, the map's curvature) in a "
         "Kalman filter that leaves out outliers",
     )
+    slack: str = setting(
+        SQUARED_SLACK,
+        "the filter QP's penalty on its slacks: squared (the paper's: each active constraint "
+        "gives a little) or the exact l1 (the hard constraints wherever they can hold)",
+        flag="--filter-slack",
+        choices=SLACK_PENALTIES,
+    )
 
     def __post_init__(self) -> None:
         learned = self.state_source is not None
@@ -143,6 +152,10 @@ class FilterConfig:
             raise ConfigError(
                 "uncertainty",
                 f"must be one of {', '.join(UNCERTAINTY_MODES)}, got {self.uncertainty!r}",
+            )
+        if self.slack not in SLACK_PENALTIES:
+            raise ConfigError(
+                "slack", f"must be one of {', '.join(SLACK_PENALTIES)}, got {self.slack!r}"
             )
         if self.model not in VEHICLE_MODELS:
             raise ConfigError(
@@ -197,16 +210,18 @@ class FilterConfig:
     def label(self) -> str:
         """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
         ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused;
-        ``-robust`` in place of ``-prob`` in the robust mode)."""
+        ``-robust`` in place of ``-prob`` in the robust mode; ``-l1`` after any of them with
+        the L1 slack)."""
         if self.kind == "none":
             return "none"
+        slack = "" if self.slack == SQUARED_SLACK else f"-{self.slack}"
         if self.state_source is None and self.state_noise is None:
-            return "oracle"
+            return f"oracle{slack}"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
         fused = "-fused" if self.fuse_odometry else ""
         fused += f"-aci-{self.adaptive}" if self.adaptive else ""
         mode = "robust" if self.uncertainty == "robust" else "prob" if self.probabilistic else "det"
-        return f"{source}{fused}-{mode}"
+        return f"{source}{fused}-{mode}{slack}"
 
     def as_dict(self) -> dict:
         return asdict(self)

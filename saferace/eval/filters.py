@@ -77,5 +77,6 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         probabilistic=config.probabilistic,
         map_curvature=config.map_curvature,
         uncertainty=config.uncertainty,
+        slack_penalty=config.slack,
         **GAIN_PRESETS[config.gains],
     )

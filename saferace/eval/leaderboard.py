@@ -74,6 +74,8 @@ def filter_words(config: FilterConfig) -> str:
         parts.append(f"{config.model} model")
     if config.map_curvature:
         parts.append("map curvature")
+    if config.slack != _DEFAULT_FILTER.slack:
+        parts.append(f"{config.slack} slack")
     if config.adaptive == "oracle":
         parts.append("adaptive conformal, oracle feedback")
     elif config.adaptive is not None:

@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from saferace.names import UNCERTAINTY_MODES
+from saferace.names import SLACK_PENALTIES, SQUARED_SLACK, UNCERTAINTY_MODES
 from saferace.safety.barriers import (
     BARRIER_NAMES,
     BarrierContext,
@@ -25,6 +25,7 @@ from saferace.safety.chance import (
     spread_at_accel,
 )
 from saferace.safety.decision import SafetyDecision, nominal_parts
+from saferace.safety.exact_penalty import solve_filter_qp_l1
 from saferace.safety.fallback import (
     FALLBACK_BRAKE_MPS2,
     FALLBACK_LATERAL_MPS2,
@@ -127,8 +128,10 @@ class SafetyFilter(gym.Wrapper):
     ``action_std``: the spread assumed when the agent gives none, ``min_action_std`` its
     floor; ``lane_margin_m``: added to the car's half width in the lane barriers (the
     models are not exact); ``params``: vehicle parameters (default: identified ones).
-    ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`. ``GAIN_PRESETS``
-    names the settings the command line offers.
+    ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`; ``slack_penalty``:
+    the QP's squared slack (the paper's) or the exact L1 one
+    (:mod:`~saferace.safety.exact_penalty`). ``GAIN_PRESETS`` names the settings the command
+    line offers.
     """
 
     def __init__(
@@ -153,10 +156,16 @@ class SafetyFilter(gym.Wrapper):
         creep_speed_mps: float = 0.5,
         params: VehicleParams | None = None,
         uncertainty: str = "chance",
+        slack_penalty: str = SQUARED_SLACK,
     ) -> None:
         super().__init__(env)
         if uncertainty not in UNCERTAINTY_MODES:
             raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
+        if slack_penalty not in SLACK_PENALTIES:
+            raise ValueError(
+                f"slack_penalty must be one of {SLACK_PENALTIES}, got {slack_penalty!r}"
+            )
+        self.solve = solve_filter_qp if slack_penalty == SQUARED_SLACK else solve_filter_qp_l1
         gains = class_k_gains(lam)
         for name, value in (
             ("lateral_decel_mps2", lateral_decel_mps2),
@@ -358,7 +367,7 @@ class SafetyFilter(gym.Wrapper):
                 states, kappa, linearised_at, context, speed, nominal, spread, lower, upper, chance
             )
             solve_started = time.perf_counter()
-            solution = solve_filter_qp(problem)
+            solution = self.solve(problem)
             solve_time += time.perf_counter() - solve_started
             if accepted is not None and not solution.solved:
                 break  # keep the last solved pass

@@ -83,7 +83,7 @@ class FilterSolution:
         return self.status == "solved"
 
 
-class _Objective:
+class PenaltyObjective:
     """``F(u)`` with its gradient and Hessian, in plain floats for speed."""
 
     def __init__(self, problem: FilterProblem, anchors: list[float] | None = None) -> None:
@@ -178,7 +178,7 @@ class _Objective:
 
 
 def _minimise(
-    objective: _Objective, start: list[float], lower: list[float], upper: list[float]
+    objective: PenaltyObjective, start: list[float], lower: list[float], upper: list[float]
 ) -> tuple[list[float], str, int]:
     u = [min(max(start[0], lower[0]), upper[0]), min(max(start[1], lower[1]), upper[1])]
     f = objective.value(*u)
@@ -222,7 +222,7 @@ def _minimise(
 
 
 def _active_set_minimum(
-    objective: _Objective,
+    objective: PenaltyObjective,
     rows: list[tuple[float, float, float]],
     lower: list[float],
     upper: list[float],
@@ -301,21 +301,29 @@ def _active_set_minimum(
     return None
 
 
+def linearised_rows(
+    objective: PenaltyObjective, u: list[float]
+) -> list[tuple[float, float, float]]:
+    """The constraints as affine rows ``(a0, a1, b)``, ``a0 u0 + a1 u1 <= b``, the chance
+    constraints' spread replaced by its tangent at ``u``."""
+    rows = []
+    for row in objective.rows:
+        a0, a1, b = row[0], row[1], row[2]
+        if objective.z and row[3] is not None:
+            s, s0, s1, *_ = objective.spread(row, *u)
+            a0, a1 = a0 + objective.z * s0, a1 + objective.z * s1
+            b = b - objective.z * s + objective.z * (s0 * u[0] + s1 * u[1])
+        rows.append((a0, a1, b))
+    return rows
+
+
 def _rescue(
-    objective: _Objective, u: list[float], lower: list[float], upper: list[float]
+    objective: PenaltyObjective, u: list[float], lower: list[float], upper: list[float]
 ) -> tuple[list[float], str]:
     """When Newton stalls: exact active-set solves of the constraints linearised at ``u``
     (exact at once for affine constraints; for the cone, repeated to a fixed point)."""
     for _ in range(MAX_RESCUE_ROUNDS):
-        rows = []
-        for row in objective.rows:
-            a0, a1, b = row[0], row[1], row[2]
-            if objective.z and row[3] is not None:
-                s, s0, s1, *_ = objective.spread(row, *u)
-                a0, a1 = a0 + objective.z * s0, a1 + objective.z * s1
-                b = b - objective.z * s + objective.z * (s0 * u[0] + s1 * u[1])
-            rows.append((a0, a1, b))
-        new_u = _active_set_minimum(objective, rows, lower, upper)
+        new_u = _active_set_minimum(objective, linearised_rows(objective, u), lower, upper)
         if new_u is None:
             return u, "stalled"
         moved = abs(new_u[0] - u[0]) + abs(new_u[1] - u[1])
@@ -325,7 +333,7 @@ def _rescue(
     return u, "max_iterations"
 
 
-def _solution(objective: _Objective, u: list[float], status: str, iterations: int):
+def packaged_solution(objective: PenaltyObjective, u: list[float], status: str, iterations: int):
     """Package ``u`` with the exact constraints' slacks (``objective`` without anchors)."""
     slack = [max(g, 0.0) for g in objective.constraint_values(*u)]
     if not math.isfinite(u[0] + u[1] + sum(slack)):
@@ -335,21 +343,21 @@ def _solution(objective: _Objective, u: list[float], status: str, iterations: in
     )
 
 
-def _failed(problem: FilterProblem) -> FilterSolution:
+def failed_solution(problem: FilterProblem) -> FilterSolution:
     count = len(problem.b)
     return FilterSolution(np.asarray(problem.u_mean, dtype=float), np.zeros(count), "non_finite", 0)
 
 
 def solve_filter_qp(problem: FilterProblem) -> FilterSolution:
     """The exact minimiser (to ``GRADIENT_TOLERANCE``), starting from the clipped nominal."""
-    objective = _Objective(problem)
+    objective = PenaltyObjective(problem)
     if not objective.finite:
-        return _failed(problem)
+        return failed_solution(problem)
     lower, upper = problem.lower.tolist(), problem.upper.tolist()
     u, status, iterations = _minimise(objective, objective.mean, lower, upper)
     if status == "stalled":
         u, status = _rescue(objective, u, lower, upper)
-    return _solution(objective, u, status, iterations)
+    return packaged_solution(objective, u, status, iterations)
 
 
 def solve_filter_qp_linearised(
@@ -360,21 +368,21 @@ def solve_filter_qp_linearised(
     ``iterations`` counts the rounds; each round is a smooth problem with quadratic
     constraints solved by the same Newton method.
     """
-    exact = _Objective(problem)
+    exact = PenaltyObjective(problem)
     if not exact.finite:
-        return _failed(problem)
+        return failed_solution(problem)
     lower, upper = problem.lower.tolist(), problem.upper.tolist()
     if exact.z == 0.0:
         u, status, _ = _minimise(exact, exact.mean, lower, upper)
-        return _solution(exact, u, status, 1)
+        return packaged_solution(exact, u, status, 1)
     u = [min(max(v, lo), hi) for v, lo, hi in zip(exact.mean, lower, upper, strict=True)]
     for round_index in range(1, max_rounds + 1):
         anchors = [exact.spread(row, *u)[0] for row in exact.rows]
-        new_u, status, _ = _minimise(_Objective(problem, anchors), u, lower, upper)
+        new_u, status, _ = _minimise(PenaltyObjective(problem, anchors), u, lower, upper)
         if status != "solved":
-            return _solution(exact, new_u, status, round_index)
+            return packaged_solution(exact, new_u, status, round_index)
         moved = max(abs(new_u[0] - u[0]), abs(new_u[1] - u[1]))
         u = new_u
         if moved <= tolerance:
-            return _solution(exact, u, "solved", round_index)
-    return _solution(exact, u, "max_iterations", max_rounds)
+            return packaged_solution(exact, u, "solved", round_index)
+    return packaged_solution(exact, u, "max_iterations", max_rounds)

@@ -7,6 +7,7 @@ import warnings
 import cvxpy as cp
 import numpy as np
 
+from saferace.names import SQUARED_SLACK
 from saferace.safety.qp import FilterProblem
 
 
@@ -16,8 +17,11 @@ def covariance_root(covariance: np.ndarray) -> np.ndarray:
     return (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T
 
 
-def filter_qp_problem(problem: FilterProblem) -> tuple[cp.Problem, cp.Expression, cp.Variable]:
-    """The paper's QP with explicit slacks and second-order cones, as a cvxpy problem.
+def filter_qp_problem(
+    problem: FilterProblem, slack_penalty: str = SQUARED_SLACK
+) -> tuple[cp.Problem, cp.Expression, cp.Variable]:
+    """The paper's QP with explicit slacks and second-order cones, as a cvxpy problem
+    (``slack_penalty="l1"``: the exact penalty ``k_err * sum(eps)``, ``eps >= 0``).
 
     The variable is the control's deviation in units of ``u_std`` (``u = u_mean + u_std *
     v``), which keeps the conic solver's problem well scaled; returns the problem, ``u``
@@ -27,8 +31,12 @@ def filter_qp_problem(problem: FilterProblem) -> tuple[cp.Problem, cp.Expression
     v = cp.Variable(2)
     u = problem.u_mean + cp.multiply(std, v)
     slack = cp.Variable(len(problem.b))
-    objective = cp.sum_squares(v) + problem.k_err * cp.sum_squares(slack)
     constraints = [u >= problem.lower, u <= problem.upper]
+    if slack_penalty == SQUARED_SLACK:
+        objective = cp.sum_squares(v) + problem.k_err * cp.sum_squares(slack)
+    else:
+        objective = cp.sum_squares(v) + problem.k_err * cp.sum(slack)
+        constraints.append(slack >= 0.0)
     c = cp.hstack([u, np.array([-1.0])])
     for j in range(len(problem.b)):
         lhs = problem.a[j] @ u - problem.b[j]
@@ -48,14 +56,16 @@ CLARABEL_TIGHT = {
 }
 
 
-def solve_with_cvxpy(problem: FilterProblem, tight: bool = True) -> tuple[np.ndarray, str]:
+def solve_with_cvxpy(
+    problem: FilterProblem, tight: bool = True, slack_penalty: str = SQUARED_SLACK
+) -> tuple[np.ndarray, str]:
     """The reference minimiser (Clarabel) and cvxpy's status.
 
     At tight tolerances Clarabel often reports ``optimal_inaccurate``: it stopped at its
     reduced tolerances, which are still far below the 1e-5 the filter is checked to. If
     Clarabel fails at them, it solves again at its defaults.
     """
-    program, u, _ = filter_qp_problem(problem)
+    program, u, _ = filter_qp_problem(problem, slack_penalty)
     with warnings.catch_warnings():  # the status says it; no need to warn as well
         warnings.filterwarnings("ignore", message="Solution may be inaccurate")
         try:
