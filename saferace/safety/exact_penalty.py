@@ -46,7 +46,7 @@ def solve_filter_qp_l1(problem: FilterProblem) -> FilterSolution:
     lower, upper = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
     a, b = np.asarray(problem.a, float), np.asarray(problem.b, float)
     count = len(b)
-    chance = problem.covariance is not None and problem.z > 0.0
+    covariance = problem.covariance if problem.z > 0.0 else None  # None: deterministic
     width = 2 + count
     # the constraints' rows  a_j . (mean + std v) - eps_j <= b_j ; the box ; -eps <= 0
     constraint_rows = np.hstack([a * std, -np.eye(count)])
@@ -55,14 +55,15 @@ def solve_filter_qp_l1(problem: FilterProblem) -> FilterSolution:
     slack_rows = np.hstack([np.zeros((count, 2)), -np.eye(count)])
     constraint_bounds = b - a @ mean
     box_bounds = np.concatenate([(upper - mean) / std, (mean - lower) / std, np.zeros(count)])
-    if chance:  # each constraint a cone instead of a row: t = bound - row . x >= |w|
+    bounds: list[np.ndarray]
+    if covariance is not None:  # each constraint a cone instead of a row: t = bound - row x >= |w|
         blocks, bounds = [box_rows, slack_rows], [box_bounds]
         for j in range(count):
-            root = problem.z * covariance_root(problem.covariance[j])
+            root = problem.z * covariance_root(covariance[j])
             spread_rows = np.zeros((3, width))
             spread_rows[:, :2] = -root[:, :2] * std
             blocks += [constraint_rows[j : j + 1], spread_rows]
-            bounds += [[constraint_bounds[j]], root @ np.append(mean, -1.0)]
+            bounds += [constraint_bounds[j : j + 1], root @ np.append(mean, -1.0)]
         kinds = [clarabel.NonnegativeConeT(4 + count)] + [clarabel.SecondOrderConeT(4)] * count
     else:
         blocks = [constraint_rows, box_rows, slack_rows]
