@@ -6,11 +6,13 @@ the loader narrowed, the racing line's integral of kappa^2 ds against the one of
 of points outside our lane is given, since such a line cannot be driven), and the time the
 racing line took. Unless ``--geometry-only``, also what ``saferace safety-table`` measures on
 it (the expert's laps on both tasks, the reckless agents with and without the filter, oracle
-and noisy), resumable in ``--out``. ``--smooth-rms-m`` measures the circuits with their
-centre lines smoothed (``Track.load``'s option); the lanes as loaded are written to a folder
-of ``--out`` named by the smoothing, and driven.
+and noisy), resumable in ``--out``; ``--expert-only`` drives only the expert, unfiltered,
+one lap of each task per circuit (every circuit as given must load and be lapped).
+``--smooth-rms-m`` measures the circuits with their centre lines smoothed (``Track.load``'s
+option); the lanes as loaded are written to a folder of ``--out`` named by the smoothing,
+and driven.
 
-    python benchmarks/real_tracks.py ../shared/tracks/f1tenth [--geometry-only]
+    python benchmarks/real_tracks.py ../shared/tracks/f1tenth [--geometry-only | --expert-only]
         [--smooth-rms-m 0.08 [--smooth-keeps widths|boundaries]] [--out DIR]
 """
 
@@ -23,9 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from saferace.eval.runner import evaluate
 from saferace.eval.tables import markdown_table
 from saferace.experiments.safety_table import filter_label, run_table
-from saferace.names import DEFAULT_GAINS
+from saferace.names import DEFAULT_GAINS, TASKS
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import RacingLineSettings, racing_line
 from saferace.track.smoothing import SMOOTHING_KEEPS
@@ -128,11 +131,29 @@ def driving_rows(rows: list[dict]) -> list[list]:
     return lines
 
 
+def expert_rows(tracks: list[Path]) -> list[list]:
+    """Per circuit: the expert's lap on both tasks without a filter ('-': it did not
+    finish one) and its time outside the lane."""
+    lines = []
+    for path in tracks:
+        laps, outside = [], 0.0
+        for task in TASKS:
+            (row,) = evaluate("expert", task, str(path), [0], progress=False)
+            laps.append(row["summary"]["best_lap_time_s"] or "-")
+            outside += row["summary"]["time_outside_lane_s"]
+        lines.append([path.stem, *laps, outside])
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="a folder of track CSVs")
     parser.add_argument("--out", type=Path, default=Path("results/real_tracks"))
-    parser.add_argument("--geometry-only", action="store_true", help="load and racing line only")
+    modes = parser.add_mutually_exclusive_group()
+    modes.add_argument("--geometry-only", action="store_true", help="load and racing line only")
+    modes.add_argument(
+        "--expert-only", action="store_true", help="and the expert's laps, without the table"
+    )
     parser.add_argument(
         "--smooth-rms-m",
         type=float,
@@ -163,6 +184,10 @@ def main() -> None:
     }
     print(markdown_table(GEOMETRY_COLUMNS, [geometry_row(*item) for item in loaded.items()]))
     if args.geometry_only:
+        return
+    if args.expert_only:
+        columns = ("track", *(f"expert {task} lap [s]" for task in TASKS), "outside [s]")
+        print(markdown_table(columns, expert_rows(tracks)))
         return
     if args.smooth_rms_m is not None:
         folder = args.out / f"tracks_smoothed_{args.smooth_rms_m}m_keeping_{args.smooth_keeps}"

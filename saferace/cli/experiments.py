@@ -14,6 +14,8 @@ from saferace.names import (
     AUTO,
     DAGGER_STATE_SOURCES,
     PAPER_PRESETS,
+    SLACK_PENALTIES,
+    SQUARED_SLACK,
     STATE_UNCERTAINTY_METHODS,
 )
 
@@ -101,6 +103,13 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the state networks' uncertainty in every run: MC dropout (the paper's), a deep "
         "ensemble or a MIMO ensemble (see saferace train)",
     )
+    tables.add_argument(
+        "--filter-slack",
+        default=SQUARED_SLACK,
+        choices=SLACK_PENALTIES,
+        help="the filter QP's penalty on its slacks in every filtered run and drive: squared "
+        "(the paper's) or the exact l1",
+    )
     tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     add_device_argument(tables)
@@ -179,7 +188,9 @@ def _paper_tables(args: argparse.Namespace) -> int:
     from saferace.experiments.paper import run_paper_tables
     from saferace.experiments.paper.presets import PRESETS
 
-    preset = replace(PRESETS[args.preset], state_uncertainty=args.state_uncertainty)
+    preset = replace(
+        PRESETS[args.preset], state_uncertainty=args.state_uncertainty, slack=args.filter_slack
+    )
     for path in run_paper_tables(preset, list(args.seeds), args.out):
         if path.suffix == ".md":
             print(path.read_text())

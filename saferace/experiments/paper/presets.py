@@ -6,6 +6,7 @@ from dataclasses import dataclass, replace
 
 from saferace.eval.filter_config import FilterConfig
 from saferace.learning.configs import DaggerConfig, EpisodeSettings, TrainConfig
+from saferace.names import SQUARED_SLACK
 
 #: The runs of a line: name, filter, what feeds the filter the lane state. ``cbf`` is the
 #: paper's filter (chance constraints on the state network's spread, here widened by variance
@@ -68,7 +69,8 @@ class Preset:
     track it never saw, the racing-line policies behind the fused filter left the lane for
     0.8 and 2.65 s (inside without it): started from the network's first, wrong heading,
     the fusion trusted its own dead reckoning over a network whose heading spread was
-    0.15-0.8 rad.
+    0.15-0.8 rad. ``slack``: the filter QP's slack penalty in every filtered run and drive
+    (:data:`~saferace.names.SLACK_PENALTIES`).
     """
 
     name: str
@@ -90,6 +92,7 @@ class Preset:
     unseen_tracks: tuple[str, ...] = ()
     random_tracks: tuple[int, ...] = ()
     state_uncertainty: str = "mc-dropout"
+    slack: str = SQUARED_SLACK
 
 
 #: Both filters use the kinematic model: with the linear-tyre model's HOCBF (the paper's
@@ -167,6 +170,7 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
             gains=preset.filter_gains,
             state_source="learned",
             uncertainty="chance",  # the paper's; the robust run asks for its own
+            slack=preset.slack,
             map_curvature=preset.map_curvature,
             fuse_odometry=preset.fuse_odometry,
         ),

@@ -128,6 +128,7 @@ def final_policy(
         spread_scale=scale,
         fuse_odometry=preset.fuse_odometry,
         uncertainty="robust" if robust else "chance",
+        slack=preset.slack,
     )
     return spec, safety
 
