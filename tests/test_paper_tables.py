@@ -168,18 +168,20 @@ def test_quick_preset_end_to_end(tmp_path: Path):
     assert (tmp_path / "table2_trajectories.png").stat().st_size > 50_000
 
 
-def test_the_state_uncertainty_reaches_every_runs_training(monkeypatch, tmp_path: Path):
+def test_the_state_uncertainty_and_slack_reach_every_run(monkeypatch, tmp_path: Path):
     import saferace.experiments.paper as paper
 
     called = {}
     monkeypatch.setattr(
         paper, "run_paper_tables", lambda preset, seeds, out: called.update(preset=preset) or []
     )
-    assert main(["paper-tables", "--state-uncertainty", "ensemble", "--out", str(tmp_path)]) == 0
+    arguments = ["--state-uncertainty", "ensemble", "--filter-slack", "l1", "--out", str(tmp_path)]
+    assert main(["paper-tables", *arguments]) == 0
     preset = called["preset"]
     assert preset.name == "quick" and preset.state_uncertainty == "ensemble"
     for kind, _, _ in RUN_KINDS:
         config = run_config(dagger_config(preset, preset.settings[0], "CenterLine", 0), kind)
         assert config.training.state_uncertainty == "ensemble"
+        assert config.filter.slack == "l1"
         assert config.filter.uncertainty == ("robust" if kind == "robust" else "chance")
         assert config.calibrate_spread == (kind != "robust")
