@@ -13,7 +13,9 @@ from saferace.names import (
     MC_SAMPLES,
     NOISY_SAMPLES,
     RANDOMIZATION_PRESETS,
+    SLACK_PENALTIES,
     SMOOTHING_KEEPS,
+    SQUARED_SLACK,
     STATE_SOURCE_KINDS,
     TASKS,
 )
@@ -151,6 +153,17 @@ def add_track_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", help=f"where the networks run: {DEVICE_HELP} (default: auto)")
+
+
+def add_slack_argument(parser: argparse.ArgumentParser, where: str) -> None:
+    """``--filter-slack`` for a command that runs many filters (``where``: which of them)."""
+    parser.add_argument(
+        "--filter-slack",
+        default=SQUARED_SLACK,
+        choices=SLACK_PENALTIES,
+        help=f"the filter QP's penalty on its slacks in {where}: squared (the paper's) or the "
+        "exact l1",
+    )
 
 
 def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:

@@ -7,15 +7,18 @@ from dataclasses import replace
 from pathlib import Path
 
 from saferace.cli import example
-from saferace.cli.arguments import add_device_argument, add_parallel_arguments, check_count
+from saferace.cli.arguments import (
+    add_device_argument,
+    add_parallel_arguments,
+    add_slack_argument,
+    check_count,
+)
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
 from saferace.names import (
     AUTO,
     DAGGER_STATE_SOURCES,
     PAPER_PRESETS,
-    SLACK_PENALTIES,
-    SQUARED_SLACK,
     STATE_UNCERTAINTY_METHODS,
 )
 
@@ -103,13 +106,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the state networks' uncertainty in every run: MC dropout (the paper's), a deep "
         "ensemble or a MIMO ensemble (see saferace train)",
     )
-    tables.add_argument(
-        "--filter-slack",
-        default=SQUARED_SLACK,
-        choices=SLACK_PENALTIES,
-        help="the filter QP's penalty on its slacks in every filtered run and drive: squared "
-        "(the paper's) or the exact l1",
-    )
+    add_slack_argument(tables, "every filtered run and drive")
     tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     add_device_argument(tables)

@@ -11,6 +11,7 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_filter_arguments,
     add_parallel_arguments,
+    add_slack_argument,
     check_count,
     filter_config,
 )
@@ -23,8 +24,6 @@ from saferace.names import (
     GAIN_NAMES,
     MC_SAMPLES,
     NOISY_SAMPLES,
-    SLACK_PENALTIES,
-    SQUARED_SLACK,
     VEHICLE_MODELS,
 )
 
@@ -89,13 +88,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "noisy state and in the learned source's chance-constrained rows; its robust rows take "
         "the robust mode's (--filter-gains auto of the other commands)",
     )
-    table.add_argument(
-        "--filter-slack",
-        default=SQUARED_SLACK,
-        choices=SLACK_PENALTIES,
-        help="the filter QP's penalty on its slacks in every filtered row: squared (the "
-        "paper's) or the exact l1",
-    )
+    add_slack_argument(table, "every filtered row")
     add_parallel_arguments(table)
     add_device_argument(table)
     table.set_defaults(command=_safety_table)

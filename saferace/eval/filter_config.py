@@ -207,6 +207,11 @@ class FilterConfig:
             )
 
     @property
+    def uncertain_state(self) -> bool:
+        """Whether the filter sees an estimate (noisy or learned) rather than the truth."""
+        return self.state_source is not None or self.state_noise is not None
+
+    @property
     def label(self) -> str:
         """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
         ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused;
@@ -215,7 +220,7 @@ class FilterConfig:
         if self.kind == "none":
             return "none"
         slack = "" if self.slack == SQUARED_SLACK else f"-{self.slack}"
-        if self.state_source is None and self.state_noise is None:
+        if not self.uncertain_state:
             return f"oracle{slack}"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
         fused = "-fused" if self.fuse_odometry else ""

@@ -51,10 +51,6 @@ def row_filter(row: dict) -> FilterConfig:
     return FilterConfig(**config)
 
 
-def _uncertain(config: FilterConfig) -> bool:
-    return config.state_source is not None or config.state_noise is not None
-
-
 def filter_words(config: FilterConfig) -> str:
     """The filter in words: ``none``; ``cbf`` on the true state; ``cbf, probabilistic`` or
     ``cbf, on the mean`` on uncertain state samples, ``cbf, robust over the interval`` in
@@ -64,7 +60,7 @@ def filter_words(config: FilterConfig) -> str:
     parts = [config.kind]
     if config.uncertainty == "robust":
         parts.append("robust over the interval")
-    elif _uncertain(config):
+    elif config.uncertain_state:
         parts.append("probabilistic" if config.probabilistic else "on the mean")
         if config.probabilistic and config.eta != _DEFAULT_FILTER.eta:
             parts.append(f"eta {config.eta:g}")
@@ -92,7 +88,7 @@ def state_source_words(config: FilterConfig) -> str:
     default."""
     if config.kind == "none":
         return "none"
-    if not _uncertain(config):
+    if not config.uncertain_state:
         return "true state"
     details = []
     if config.state_source is None:

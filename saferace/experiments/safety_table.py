@@ -229,8 +229,9 @@ def expert_cost_rows(rows: list[dict]) -> list[list]:
     """Per track and task: the expert's mean lap time without and with the oracle filter."""
     by_key = {(r["track"], r["task"], filter_label(r)): r for r in rows}
     lines = []
-    for (track, task, label), row in by_key.items():
-        oracle = label.partition("-")[0] == "oracle"  # either slack penalty
+    for (track, task, _), row in by_key.items():
+        safety = row_filter(row)
+        oracle = safety.kind != "none" and not safety.uncertain_state
         if row["agent"] != "expert" or not oracle or (track, task, "none") not in by_key:
             continue
         free = by_key[(track, task, "none")]["summary"]["mean_lap_time_s"]

@@ -79,8 +79,7 @@ def solve_filter_qp_l1(problem: FilterProblem) -> FilterSolution:
     result = clarabel.DefaultSolver(
         cost, linear, rows, np.concatenate(bounds), kinds, settings
     ).solve()
-    status = "solved" if str(result.status) in _SOLVED else "stalled"
-    u = np.clip(mean + std * np.asarray(result.x[:2]), lower, upper)
-    if status != "solved":
-        u = np.clip(mean, lower, upper)
+    solved = str(result.status) in _SOLVED
+    u = np.clip(mean + std * np.asarray(result.x[:2]) if solved else mean, lower, upper)
+    status = "solved" if solved else "stalled"
     return packaged_solution(objective, [float(u[0]), float(u[1])], status, result.iterations)

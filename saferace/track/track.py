@@ -309,7 +309,8 @@ def _narrowed_widths(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The half widths narrowed where turns fold the inner boundary, then clipped where two
     legs of the track meet (see :meth:`Track.from_arrays`)."""
-    distance = validation.arc_distance(centerline.point_s_m, centerline.length_m)
+    point_s = centerline.point_s_m
+    distance = validation.arc_distance(point_s, point_s, centerline.length_m)
 
     def segment_of(s_m: np.ndarray) -> np.ndarray:
         return np.searchsorted(centerline.point_s_m, s_m, side="right") - 1

@@ -141,9 +141,10 @@ class Narrowing:
 NOT_NARROWED = Narrowing()
 
 
-def arc_distance(point_s_m: np.ndarray, length_m: float) -> np.ndarray:
-    """Distances along the closed centre line between every pair of its points."""
-    gap = np.abs(point_s_m[:, None] - point_s_m[None, :])
+def arc_distance(from_s_m: np.ndarray, to_s_m: np.ndarray, length_m: float) -> np.ndarray:
+    """Distances along the closed centre line from each arc length of ``from_s_m`` (rows)
+    to each of ``to_s_m`` (columns)."""
+    gap = np.abs(from_s_m[:, None] - to_s_m[None, :])
     return np.minimum(gap, length_m - gap)
 
 
@@ -216,8 +217,7 @@ def meeting_leg_limits(
         rows = slice(start, start + _LEG_CHUNK)
         offset = position_m[None, :, :] - position_m[rows, None, :]
         squared = np.einsum("ijk,ijk->ij", offset, offset)
-        along = np.abs(sample_s_m[rows, None] - sample_s_m[None, :])
-        along = np.minimum(along, length_m - along)
+        along = arc_distance(sample_s_m[rows], sample_s_m, length_m)
         other = along > OTHER_LEG_ARC_RATIO * np.sqrt(squared)
         toward_left = np.einsum("ijk,ik->ij", offset, normal[rows])
         for side, toward in enumerate((-toward_left, toward_left)):
