@@ -14,10 +14,17 @@ TASKS: tuple[str, ...] = tuple(TASK_IDS)
 #: Vehicle models of the expert MPC and the safety filter (``saferace.safety.models``).
 VEHICLE_MODELS = ("kinematic", "dynamic", "dynamic-paper")
 DEFAULT_EXPERT_MODEL = "dynamic"
-DEFAULT_FILTER_MODEL = "kinematic"
+#: Each filter family's vehicle model unless one is named: the CBF's barriers are the
+#: paper's kinematic ones; the predictive filter's plan needs the tyres' slip at speed
+#: (on its kinematic model the speeding agent left the lane on ``lab``).
+DEFAULT_FILTER_MODELS = {"cbf": "kinematic", "mpsf": "dynamic"}
 
-#: Safety-filter families a run can be wrapped in.
-FILTER_KINDS = ("none", "cbf")
+#: Safety-filter families a run can be wrapped in: none, the probabilistic HOCBF QP
+#: (the paper's) and the predictive safety filter.
+FILTER_KINDS = ("none", "cbf", "mpsf")
+#: The filters ``saferace safety-table --filters`` compares: the CBF with the squared
+#: slack (the paper's) or the exact L1 one, and the predictive filter.
+COMPARED_FILTERS = ("cbf", "cbf-l1", "mpsf")
 #: Named gain settings of the filter (the keys of ``saferace.safety.filter.GAIN_PRESETS``).
 GAIN_NAMES = ("paper", "grip", "tuned")
 #: How the filter treats its state's uncertainty: chance constraints on the samples' spread

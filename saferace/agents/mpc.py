@@ -111,6 +111,7 @@ class MPCExpert:
     def reset(self) -> None:
         """Forget the previous plan (call at the start of an episode)."""
         self._plan_x: np.ndarray | None = None
+        self._plan_slack: np.ndarray | None = None  # each stage's lane slack (m)
         self._plan_u = np.zeros((self.settings.horizon, self.model.n_control))
         self._previous_u = np.zeros(self.model.n_control)
         self._x0 = np.zeros(self._layout.n)
@@ -171,12 +172,12 @@ class MPCExpert:
             [np.tile(q_state, N), np.zeros(N * m), np.full(N, s.slack_quadratic)]
         )
         rate = np.array([s.weight_steer_rate, s.weight_accel_rate])
-        effort = np.array([s.weight_steer, s.weight_accel])
+        effort = self._input_weights()
         rows, cols, vals = list(range(L.size)), list(range(L.size)), list(p_diag)
         for k in range(N):
             for j in range(m):
                 i = L.u(k) + j
-                vals[i] += effort[j] + rate[j] * (2.0 if k < N - 1 else 1.0)
+                vals[i] += effort[k, j] + rate[j] * (2.0 if k < N - 1 else 1.0)
                 if k > 0:
                     rows.append(L.u(k - 1) + j)
                     cols.append(i)
@@ -223,6 +224,19 @@ class MPCExpert:
         for k in range(N):
             self._entry(row, L.eps(k), 1.0)
             row += 1
+        self._speed_rows = row
+        for k in range(N if self.speed_rows else 0):  # v_k - eps_k <= the speed cap
+            self._entry(row, L.x(k) + self.model.speed_index, 1.0)
+            self._entry(row, L.eps(k), -1.0)
+            row += 1
+        self._heading_rows = row
+        if self.terminal_heading_rad is not None:  # |e_psi_N| - k v_N - eps_N <= the bound
+            for sign in (-1.0, 1.0):
+                self._entry(row, L.x(N - 1) + 1, 1.0)  # e_psi is the second state
+                speed_gain = sign * self.terminal_heading_per_mps
+                self._entry(row, L.x(N - 1) + self.model.speed_index, speed_gain)
+                self._entry(row, L.eps(N - 1), sign)
+                row += 1
         self._n_rows = row
         nnz = len(self._A_rows)
         order = sp.coo_matrix(
@@ -272,13 +286,12 @@ class MPCExpert:
         reference[:, 0] = self.reference.offset_at(s_ref)
         reference[:, 1] = self.reference.heading_offset_at(s_ref)
         reference[:, model.speed_index] = st.speed_scale * self.reference.speed_at(s_ref)
-        w_right, w_left = self.track.widths(s_ref)
-        clearance = self.half_width_m + st.lane_margin_m
-        upper, lower = w_left - clearance, -(w_right - clearance)
+        upper, lower = self._lane_bounds(s_stage, plan_x)
 
         q = np.zeros(L.size)
         q[: N * n] = -2.0 * (reference * self._q_state).ravel()
-        q[L.u(0) : L.u(0) + m] -= 2.0 * self._rate_weights * self._previous_u
+        q[L.u(0) : L.u(0) + m] -= 2.0 * self._rate_weights * self._rate_anchor()
+        q[L.u(0) : L.u(0) + m] -= 2.0 * self._first_input_pull()
         q[L.eps(0) :] = st.slack_linear
         lo = np.empty(self._n_rows)
         hi = np.empty(self._n_rows)
@@ -286,11 +299,10 @@ class MPCExpert:
         dynamics_rhs[0] += A_stages[0] @ x0
         lo[: N * n] = hi[: N * n] = dynamics_rhs.ravel()
         p = self.drivetrain
-        u_min = np.tile([-p.max_steer_rad, -p.max_brake_mps2], N)
-        u_max = np.tile([p.max_steer_rad, p.max_accel_mps2], N)
+        u_min, u_max = self._input_bounds(plan_x)
         lo[self._input_rows : self._rate_rows], hi[self._input_rows : self._rate_rows] = (
-            u_min,
-            u_max,
+            u_min.ravel(),
+            u_max.ravel(),
         )
         step = p.max_steer_rate_radps * dt
         rate_lo, rate_hi = np.full(N, -step), np.full(N, step)
@@ -306,10 +318,39 @@ class MPCExpert:
             lane_lo,
             lane_hi,
         )
-        lo[self._slack_rows :], hi[self._slack_rows :] = 0.0, np.inf
+        lo[self._slack_rows : self._speed_rows] = 0.0
+        hi[self._slack_rows : self._speed_rows] = np.inf
+        if self.speed_rows:
+            lo[self._speed_rows : self._heading_rows] = -np.inf
+            hi[self._speed_rows : self._heading_rows] = self._speed_caps_mps(
+                s_stage[1:], plan_x[1:]
+            )
+        if self.terminal_heading_rad is not None:
+            bound = self.terminal_heading_rad
+            lo[self._heading_rows :] = [-np.inf, -bound]
+            hi[self._heading_rows :] = [bound, np.inf]
         a_values = self._constraint_values(A_stages, B_stages)
 
         start = time.perf_counter()
+        z = self._solve_qp(q, lo, hi, a_values)
+        self.stats.solve_times_s.append(time.perf_counter() - start)
+        if z is None:
+            self.stats.failures += 1
+            u = plan_u[0]
+            self._plan_x = self._plan_slack = None
+            return np.clip(
+                u, [-p.max_steer_rad, -p.max_brake_mps2], [p.max_steer_rad, p.max_accel_mps2]
+            )
+        self._plan_x = np.vstack([x0, z[: N * n].reshape(N, n)])
+        self._plan_u = z[L.u(0) : L.u(0) + N * m].reshape(N, m)
+        self._plan_slack = z[L.eps(0) :]
+        return self._plan_u[0].copy()
+
+    def _solve_qp(
+        self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, a_values: np.ndarray
+    ) -> np.ndarray | None:
+        """The QP's solution with this step's vectors and constraint values (None if OSQP
+        failed), warm-started from the last."""
         if self._solver is None:
             A = self._A_template.copy()
             A.data = a_values
@@ -330,22 +371,50 @@ class MPCExpert:
         else:
             self._solver.update(q=q, l=lo, u=hi, Ax=a_values)
         result = self._solver.solve(raise_error=False)
-        self.stats.solve_times_s.append(time.perf_counter() - start)
+        solved = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
+        return result.x if result.info.status_val in solved else None
 
-        if result.info.status_val not in (
-            osqp.SolverStatus.OSQP_SOLVED,
-            osqp.SolverStatus.OSQP_SOLVED_INACCURATE,
-        ):
-            self.stats.failures += 1
-            u = plan_u[0]
-            self._plan_x = None
-            return np.clip(
-                u, [-p.max_steer_rad, -p.max_brake_mps2], [p.max_steer_rad, p.max_accel_mps2]
-            )
-        z = result.x
-        self._plan_x = np.vstack([x0, z[: N * n].reshape(N, n)])
-        self._plan_u = z[L.u(0) : L.u(0) + N * m].reshape(N, m)
-        return self._plan_u[0].copy()
+    # ------------------------------------------------ what a planner on this QP changes
+    #: Whether the QP caps each stage's speed (rows ``v_k - eps_k <= cap_k``).
+    speed_rows = False
+    #: A bound on the last stage's heading error, growing with its speed (rad, rad per m/s;
+    #: rows ``|e_psi_N| - terminal_heading_per_mps v_N - eps_N <= terminal_heading_rad``).
+    terminal_heading_rad: float | None = None
+    terminal_heading_per_mps = 0.0
+
+    def _input_weights(self) -> np.ndarray:
+        """Weights ``(N, m)`` of each input's squared size: the settings' effort weights."""
+        s = self.settings
+        return np.tile([s.weight_steer, s.weight_accel], (s.horizon, 1))
+
+    def _rate_anchor(self) -> np.ndarray:
+        """What the first input's change is penalised from: the last command."""
+        return self._previous_u
+
+    def _first_input_pull(self) -> np.ndarray:
+        """``w u_target``: the first input's linear cost is ``-2 w u_target`` (none here)."""
+        return np.zeros(self.model.n_control)
+
+    def _lane_bounds(
+        self, s_stage: np.ndarray, plan_x: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(upper, lower)`` of each stage's lateral offset: the lane less the car's half
+        width and the settings' margin at the stages' predicted arc lengths."""
+        w_right, w_left = self.track.widths(s_stage[1:])
+        clearance = self.half_width_m + self.settings.lane_margin_m
+        return w_left - clearance, -(w_right - clearance)
+
+    def _input_bounds(self, plan_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(u_min, u_max)`` of each stage ``(N, m)``: the drivetrain's limits."""
+        p, N = self.drivetrain, self.settings.horizon
+        return (
+            np.tile([-p.max_steer_rad, -p.max_brake_mps2], (N, 1)),
+            np.tile([p.max_steer_rad, p.max_accel_mps2], (N, 1)),
+        )
+
+    def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """Each stage's speed cap at its arc length and state (with ``speed_rows``)."""
+        return np.full(len(s_m), np.inf)
 
     def _stage_curvature(self, x: np.ndarray, s_m: float, dt_s: float) -> float:
         """The centre line's mean curvature over the stretch a stage covers from ``s_m``.

@@ -11,14 +11,15 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_filter_arguments,
     add_parallel_arguments,
-    add_slack_argument,
     check_count,
     filter_config,
 )
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
 from saferace.names import (
-    DEFAULT_FILTER_MODEL,
+    AUTO,
+    COMPARED_FILTERS,
+    DEFAULT_FILTER_MODELS,
     DEFAULT_GAINS,
     DEFAULT_STATE_NOISE,
     GAIN_NAMES,
@@ -66,9 +67,11 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     table.add_argument(
         "--filter-model",
-        default=DEFAULT_FILTER_MODEL,
-        choices=VEHICLE_MODELS,
-        help="the filter's vehicle model",
+        default=AUTO,
+        choices=(AUTO, *VEHICLE_MODELS),
+        help="every filter's vehicle model (auto: each family's own, "
+        + ", ".join(f"{model} for {kind}" for kind, model in DEFAULT_FILTER_MODELS.items())
+        + ")",
     )
     table.add_argument(
         "--state-source",
@@ -88,7 +91,14 @@ def register(commands: argparse._SubParsersAction) -> None:
         "noisy state and in the learned source's chance-constrained rows; its robust rows take "
         "the robust mode's (--filter-gains auto of the other commands)",
     )
-    add_slack_argument(table, "every filtered row")
+    table.add_argument(
+        "--filters",
+        nargs="+",
+        default=["cbf"],
+        choices=COMPARED_FILTERS,
+        help="the filters to run every agent behind, compared in filter_comparison.md: the CBF "
+        "with the squared slack (the paper's) or the exact l1 one, and the predictive filter",
+    )
     add_parallel_arguments(table)
     add_device_argument(table)
     table.set_defaults(command=_safety_table)
@@ -152,7 +162,7 @@ def _safety_table(args: argparse.Namespace) -> int:
         samples=args.samples,
         model=args.filter_model,
         gains=args.filter_gains,
-        slack=args.filter_slack,
+        filters=tuple(dict.fromkeys(args.filters)),
         state_source=args.state_source,
         mc_samples=args.mc_samples,
         workers=args.workers,
@@ -160,7 +170,10 @@ def _safety_table(args: argparse.Namespace) -> int:
         random_tracks=tuple(args.random_tracks),
     )
     print((args.out / "safety_table.md").read_text())
-    print(f"tables, runs and reckless_paths.png written to {args.out}")
+    print(
+        f"tables, filter_comparison.md, runs, reckless_paths.png and failures/ written to "
+        f"{args.out}"
+    )
     return 0
 
 

@@ -15,7 +15,7 @@ from saferace.names import (
 )
 from saferace.names import (
     AUTO,
-    DEFAULT_FILTER_MODEL,
+    DEFAULT_FILTER_MODELS,
     DEFAULT_GAINS,
     FILTER_KINDS,
     GAIN_NAMES,
@@ -59,10 +59,11 @@ class FilterConfig:
         "none", "wrap the agent in a safety filter", flag="--filter", choices=FILTER_KINDS
     )
     model: str = setting(
-        DEFAULT_FILTER_MODEL,
-        "the filter's vehicle model",
+        AUTO,
+        "the filter's vehicle model; auto: "
+        + ", ".join(f"{model} for {kind}" for kind, model in DEFAULT_FILTER_MODELS.items()),
         flag="--filter-model",
-        choices=VEHICLE_MODELS,
+        choices=(AUTO, *VEHICLE_MODELS),
     )
     state_noise: tuple[float, float] | None = setting(
         None,
@@ -137,6 +138,9 @@ class FilterConfig:
         if self.uncertainty == AUTO:
             robust = learned and not chance_options
             object.__setattr__(self, "uncertainty", "robust" if robust else "chance")
+        if self.model == AUTO:
+            default = DEFAULT_FILTER_MODELS.get(self.kind, DEFAULT_FILTER_MODELS["cbf"])
+            object.__setattr__(self, "model", default)
         if self.gains == AUTO:
             robust = self.uncertainty == "robust"
             object.__setattr__(self, "gains", ROBUST_GAINS if robust else DEFAULT_GAINS)
@@ -156,6 +160,10 @@ class FilterConfig:
         if self.slack not in SLACK_PENALTIES:
             raise ConfigError(
                 "slack", f"must be one of {', '.join(SLACK_PENALTIES)}, got {self.slack!r}"
+            )
+        if self.kind == "mpsf" and self.slack != SQUARED_SLACK:
+            raise ConfigError(
+                "slack", "is the CBF filter's QP penalty: the predictive filter (mpsf) has none"
             )
         if self.model not in VEHICLE_MODELS:
             raise ConfigError(
@@ -216,17 +224,18 @@ class FilterConfig:
         """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
         ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused;
         ``-robust`` in place of ``-prob`` in the robust mode; ``-l1`` after any of them with
-        the L1 slack)."""
+        the L1 slack; ``mpsf-`` before them for the predictive filter)."""
         if self.kind == "none":
             return "none"
         slack = "" if self.slack == SQUARED_SLACK else f"-{self.slack}"
+        family = "mpsf-" if self.kind == "mpsf" else ""
         if not self.uncertain_state:
-            return f"oracle{slack}"
+            return f"{family}oracle{slack}"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]
         fused = "-fused" if self.fuse_odometry else ""
         fused += f"-aci-{self.adaptive}" if self.adaptive else ""
         mode = "robust" if self.uncertainty == "robust" else "prob" if self.probabilistic else "det"
-        return f"{source}{fused}-{mode}{slack}"
+        return f"{family}{source}{fused}-{mode}{slack}"
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -13,6 +13,7 @@ from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, FilterConfig
 from saferace.safety.adaptive import AdaptiveConformalStateSource
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.intervals import ConformalStateSource, IntervalStateSource
+from saferace.safety.predictive import PredictiveSafetyFilter
 from saferace.safety.state_fusion import OdometryFusedStateSource
 from saferace.safety.state_sources import (
     NoisyOracleStateSource,
@@ -69,6 +70,16 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         )
     if config.fuse_odometry:
         source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
+    if config.kind == "mpsf":
+        return PredictiveSafetyFilter(
+            env,
+            state_source=source,
+            model=config.model,
+            eta=config.eta,
+            probabilistic=config.probabilistic,
+            map_curvature=config.map_curvature,
+            uncertainty=config.uncertainty,
+        )
     return SafetyFilter(
         env,
         state_source=source,

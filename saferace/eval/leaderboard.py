@@ -16,7 +16,7 @@ import numpy as np
 
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.tables import markdown_table, write_csv
-from saferace.names import DEFAULT_FILTER_MODEL, DEFAULT_GAINS, NOISY_SAMPLES
+from saferace.names import DEFAULT_FILTER_MODELS, DEFAULT_GAINS, NOISY_SAMPLES
 
 COLUMNS = (
     "agent",
@@ -64,9 +64,9 @@ def filter_words(config: FilterConfig) -> str:
         parts.append("probabilistic" if config.probabilistic else "on the mean")
         if config.probabilistic and config.eta != _DEFAULT_FILTER.eta:
             parts.append(f"eta {config.eta:g}")
-    if config.gains != DEFAULT_GAINS:
+    if config.gains != DEFAULT_GAINS and config.kind == "cbf":
         parts.append(f"{config.gains} gains")
-    if config.model != DEFAULT_FILTER_MODEL:
+    if config.model != DEFAULT_FILTER_MODELS[config.kind]:
         parts.append(f"{config.model} model")
     if config.map_curvature:
         parts.append("map curvature")

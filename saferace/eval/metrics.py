@@ -31,6 +31,7 @@ SAFETY_FIELDS = (
     "alarm",
     "covered",
     "solve_time_s",
+    "filter_time_s",
 )
 
 
@@ -171,6 +172,7 @@ def safety_step_record(safety: dict) -> dict:
         "alarm": safety["alarm"],
         "covered": safety["covered"],
         "solve_time_s": safety["solve_time_s"],
+        "filter_time_s": safety["filter_time_s"],
     }
 
 

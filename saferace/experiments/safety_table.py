@@ -17,6 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from saferace.errors import ConfigError
 from saferace.eval.filters import FilterConfig
 from saferace.eval.leaderboard import (
     filter_phrase,
@@ -27,14 +28,21 @@ from saferace.eval.leaderboard import (
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
+from saferace.experiments.filter_comparison import plot_failures, write_comparison
 from saferace.learning.checkpoint import is_calibrated
-from saferace.names import DEFAULT_GAINS, ROBUST_GAINS, SQUARED_SLACK, TASKS
+from saferace.names import AUTO, DEFAULT_GAINS, ROBUST_GAINS, SQUARED_SLACK, TASKS
 from saferace.names import RANDOM_TRACK_RADIUS_M as RANDOM_TRACK_RADIUS_M  # size of test tracks
 from saferace.track.random_track import write_random_tracks
 
 LOG = logging.getLogger(__name__)
 
 RECKLESS_TASKS = {"drift": "CenterLine", "weave": "CenterLine", "speeding": "RacingLine"}
+#: What each name of :data:`~saferace.names.COMPARED_FILTERS` runs: family and slack penalty.
+FILTER_SETTINGS = {
+    "cbf": ("cbf", SQUARED_SLACK),
+    "cbf-l1": ("cbf", "l1"),
+    "mpsf": ("mpsf", SQUARED_SLACK),
+}
 
 
 @dataclass(frozen=True)
@@ -60,30 +68,37 @@ def planned_runs(
     state_source: str | None = None,
     mc_samples: int = 10,
     robust: bool = True,
-    slack: str = SQUARED_SLACK,
+    filters: tuple[str, ...] = ("cbf",),
 ) -> list[Run]:
-    """Every run of the table, in order; ``state_source`` (``learned:CHECKPOINT``) adds the
-    reckless agents through the filter fed that source: with ``robust`` (its checkpoint is
-    calibrated) in the robust mode over its conformal interval (what ``auto`` gives a
-    learned source), and with ``gains`` through the paper's chance constraints and on the
-    samples' mean; every filter with the QP's ``slack`` penalty."""
-    oracle = FilterConfig(kind="cbf", model=model, gains=gains, slack=slack)
-    noisy = replace(oracle, state_noise=noise, samples=samples)
-    reckless_filters = [FilterConfig(), oracle, noisy, replace(noisy, probabilistic=False)]
-    if state_source is not None:
-        learned = replace(oracle, state_source=state_source, samples=mc_samples)
-        calibrated = FilterConfig(
-            kind="cbf", model=model, state_source=state_source, samples=mc_samples, slack=slack
-        )
-        reckless_filters += [calibrated] if robust else []
-        reckless_filters += [learned, replace(learned, probabilistic=False)]
+    """Every run of the table, in order: per track, each reckless agent without a filter and
+    behind each of ``filters`` (:data:`FILTER_SETTINGS`) on the true state, on noisy state
+    with chance constraints (the predictive filter: its lane tightened by the samples'
+    interval) and on the samples' mean; the expert without and behind each filter on the
+    true state. ``state_source`` (``learned:CHECKPOINT``) adds the reckless agents behind
+    each filter fed that source: with ``robust`` (its checkpoint is calibrated) in the
+    robust mode over its conformal interval (what ``auto`` gives a learned source), and
+    with ``gains`` through the paper's chance constraints and on the samples' mean."""
+    reckless_filters, expert_filters = [FilterConfig()], [FilterConfig()]
+    for name in filters:
+        kind, slack = FILTER_SETTINGS[name]
+        oracle = FilterConfig(kind=kind, model=model, gains=gains, slack=slack)
+        noisy = replace(oracle, state_noise=noise, samples=samples)
+        reckless_filters += [oracle, noisy, replace(noisy, probabilistic=False)]
+        if state_source is not None:
+            learned = replace(oracle, state_source=state_source, samples=mc_samples)
+            calibrated = FilterConfig(
+                kind=kind, model=model, state_source=state_source, samples=mc_samples, slack=slack
+            )
+            reckless_filters += [calibrated] if robust else []
+            reckless_filters += [learned, replace(learned, probabilistic=False)]
+        expert_filters.append(oracle)
     runs = []
     for track in tracks:
         for agent, task in RECKLESS_TASKS.items():
             for safety in reckless_filters:
                 runs.append(Run(agent, task, track, safety))
         for task in TASKS:
-            for safety in (FilterConfig(), oracle):
+            for safety in expert_filters:
                 runs.append(Run("expert", task, track, safety))
     return runs
 
@@ -95,7 +110,7 @@ def run_table(
     max_seconds: float = 60.0,
     noise: tuple[float, float] = (0.05, 0.05),
     samples: int = 20,
-    model: str = "kinematic",
+    model: str = AUTO,
     gains: str = DEFAULT_GAINS,
     seed: int = 0,
     progress: bool = True,
@@ -104,12 +119,12 @@ def run_table(
     workers: int = 1,
     ray_address: str | None = None,
     random_tracks: tuple[int, ...] = (),
-    slack: str = SQUARED_SLACK,
+    filters: tuple[str, ...] = ("cbf",),
 ) -> list[dict]:
     """Run what is not in ``out_dir/runs.jsonl`` yet (over ``workers`` processes or Ray
     tasks, see :func:`~saferace.eval.parallel.run_jobs`) on ``tracks`` and a random track
-    per seed of ``random_tracks`` (written to ``out_dir/tracks``); write the tables; all
-    rows."""
+    per seed of ``random_tracks`` (written to ``out_dir/tracks``) behind each of
+    ``filters``; write the tables, the filters' comparison and the plots; all rows."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
@@ -122,8 +137,11 @@ def run_table(
             "(saferace calibrate CKPT DATA --out CKPT2 makes one)",
             state_source,
         )
+    unknown = sorted(set(filters) - set(FILTER_SETTINGS))
+    if unknown or not filters:
+        raise ConfigError("filters", f"name some of {', '.join(FILTER_SETTINGS)}, got {unknown}")
     runs = planned_runs(
-        tracks, noise, samples, model, gains, state_source, mc_samples, robust, slack
+        tracks, noise, samples, model, gains, state_source, mc_samples, robust, filters
     )
     todo = [run for run in runs if run.key not in done]
     env_kwargs = {"max_steps": max_steps_for(max_seconds)}
@@ -145,8 +163,10 @@ def run_table(
             describe=lambda job: " ".join(map(str, job[0].key[:4])),
         )
     rows = [done[run.key] for run in runs]
-    write_tables(rows, out_dir, gains, slack)
+    write_tables(rows, out_dir, gains, filters)
+    write_comparison(rows, out_dir, laps)
     plot_reckless_paths(rows, out_dir / "reckless_paths.png")
+    plot_failures(rows, out_dir / "failures", laps)
     return rows
 
 
@@ -226,7 +246,8 @@ def table_rows(rows: list[dict]) -> list[list]:
 
 
 def expert_cost_rows(rows: list[dict]) -> list[list]:
-    """Per track and task: the expert's mean lap time without and with the oracle filter."""
+    """Per track, task and filter: the expert's mean lap time without and with the filter
+    on the true state."""
     by_key = {(r["track"], r["task"], filter_label(r)): r for r in rows}
     lines = []
     for (track, task, _), row in by_key.items():
@@ -241,6 +262,7 @@ def expert_cost_rows(rows: list[dict]) -> list[list]:
             [
                 track,
                 task,
+                filter_words(safety),
                 "-" if free is None else free,
                 "-" if filtered is None else filtered,
                 "-" if cost is None else cost,
@@ -254,6 +276,7 @@ def expert_cost_rows(rows: list[dict]) -> list[list]:
 EXPERT_COLUMNS = [
     "track",
     "task",
+    "filter",
     "lap, no filter [s]",
     "lap, filter [s]",
     "lap-time cost [%]",
@@ -262,12 +285,14 @@ EXPERT_COLUMNS = [
 ]
 
 
-def write_tables(rows: list[dict], out_dir: Path, gains: str, slack: str = SQUARED_SLACK) -> None:
+def write_tables(
+    rows: list[dict], out_dir: Path, gains: str, filters: tuple[str, ...] = ("cbf",)
+) -> None:
     """``safety_table.md`` (both tables) and ``safety_table.csv`` / ``expert_cost.csv``."""
     runs, costs = table_rows(rows), expert_cost_rows(rows)
     text = (
-        f"# Safety filter ({gains} gains; robust rows {ROBUST_GAINS}; {slack} slack): reckless "
-        "agents and the expert\n\n"
+        f"# Safety filters {', '.join(filters)} (CBF: {gains} gains, robust rows "
+        f"{ROBUST_GAINS}): reckless agents and the expert\n\n"
         + markdown_table(TABLE_COLUMNS, runs)
         + "\n\n## Expert lap-time cost of the filter\n\n"
         + markdown_table(EXPERT_COLUMNS, costs)

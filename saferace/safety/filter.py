@@ -25,6 +25,7 @@ from saferace.safety.chance import (
     spread_at_accel,
 )
 from saferace.safety.decision import SafetyDecision, nominal_parts
+from saferace.safety.estimate import checked_action, estimate_state
 from saferace.safety.exact_penalty import solve_filter_qp_l1
 from saferace.safety.fallback import (
     FALLBACK_BRAKE_MPS2,
@@ -34,7 +35,7 @@ from saferace.safety.fallback import (
     fitting_speed_mps,
 )
 from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
-from saferace.safety.intervals import MonitoredStateSource, interval_points, state_interval
+from saferace.safety.intervals import interval_points
 from saferace.safety.models import MIN_SPEED_MPS, param_values, symbolic_model
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.state_sources import OracleStateSource, StateSource
@@ -246,25 +247,14 @@ class SafetyFilter(gym.Wrapper):
     ) -> SafetyDecision:
         """The filtered action for ``action`` in the state seen by ``observation``/``info``."""
         started = time.perf_counter()
-        nominal = np.asarray(action, dtype=float).ravel()
-        if nominal.shape != (2,) or not np.all(np.isfinite(nominal)):
-            raise ValueError(f"action must be 2 finite numbers [steer, accel], got {action!r}")
-        spread = self.action_std if action_std is None else np.asarray(action_std, dtype=float)
-        spread = np.maximum(spread, self.min_action_std)
+        nominal, spread = checked_action(action, action_std, self.action_std, self.min_action_std)
         u0 = np.clip(nominal, self.lower, self.upper)
-
-        samples = np.atleast_2d(self.state_source.samples(observation, info))
         s_m = float(info["s_m"])
-        state_lower, state_upper = state_interval(self.state_source, samples, self.z)
-        if self.map_curvature:
-            state_lower[2] = state_upper[2] = self.track.centerline.curvature_scalar(s_m)
-        score, alarm = (
-            self.state_source.monitor(samples)
-            if isinstance(self.state_source, MonitoredStateSource)
-            else (None, False)
-        )
-        bounded = bool(np.all(np.isfinite(state_lower)) and np.all(np.isfinite(state_upper)))
-        alarm = alarm or not bounded  # an unbounded interval rules out no state at all
+        curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
+        estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
+        samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper
+        score, alarm = estimate.monitor_score, estimate.alarm
+        bounded = estimate.bounded
         chance = not self.robust and self.probabilistic and len(samples) > 1
         if self.robust and bounded:
             lane = interval_points(state_lower, state_upper)
@@ -308,24 +298,11 @@ class SafetyFilter(gym.Wrapper):
         self.interventions += intervened
         self.failures += fallback == "solver"
         self.fallbacks += bool(fallback)
-        truth = np.array([info[name] for name in ("e_y_m", "e_psi_rad", "kappa_radpm")], float)
-        checked = slice(0, 2 if self.map_curvature else 3)  # the map's curvature is no estimate
         reduce = np.min if self.robust else np.mean
         return SafetyDecision(
             nominal_action=nominal.tolist(),
             filtered_action=filtered.tolist(),
-            state_true=truth.tolist(),
-            state_mean=[*samples[:, :2].mean(axis=0), float(lane[:, 2].mean())],
-            state_std=[
-                *samples[:, :2].std(axis=0),
-                0.0 if self.map_curvature else float(samples[:, 2].std()),
-            ],
-            state_lower=state_lower.tolist(),
-            state_upper=state_upper.tolist(),
-            covered=bool(
-                np.all(state_lower[checked] <= truth[checked])
-                and np.all(truth[checked] <= state_upper[checked])
-            ),
+            **estimate.fields(info, float(lane[:, 2].mean())),
             barriers=self._by_name(reduce(h, axis=0)),
             constraints=self._by_name(
                 self._per_constraint(problem.b - problem.a @ filtered, np.min)

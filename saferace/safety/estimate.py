@@ -1,0 +1,91 @@
+"""What a safety filter reads from its inputs each step: the agent's action and the state.
+
+Shared by the filter families (:mod:`saferace.safety.filter`,
+:mod:`saferace.safety.predictive`): the action checked and given its spread, the state
+source's samples, the interval it holds the state to and its monitor's verdict, and the
+record of all that in a :class:`~saferace.safety.decision.SafetyDecision`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from saferace.safety.intervals import MonitoredStateSource, state_interval
+from saferace.safety.state_sources import StateSource
+
+
+def checked_action(
+    action: Any, action_std: Any, default_std: np.ndarray, min_std: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The agent's ``[steer, accel]``, checked, and its spread (``default_std`` where it
+    gives none), floored at ``min_std``."""
+    nominal = np.asarray(action, dtype=float).ravel()
+    if nominal.shape != (2,) or not np.all(np.isfinite(nominal)):
+        raise ValueError(f"action must be 2 finite numbers [steer, accel], got {action!r}")
+    spread = default_std if action_std is None else np.asarray(action_std, dtype=float)
+    return nominal, np.maximum(spread, min_std)
+
+
+@dataclass(frozen=True)
+class StateEstimate:
+    """One step's belief of the lane state ``[e_y, e_psi, kappa]``: the source's samples,
+    the interval it holds the state to, the monitor's score (None without a monitor) and
+    whether it raised or the interval is unbounded (``alarm``: the source is in doubt)."""
+
+    samples: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    monitor_score: float | None
+    alarm: bool
+    map_curvature: bool
+
+    @property
+    def bounded(self) -> bool:
+        return bool(np.all(np.isfinite(self.lower)) and np.all(np.isfinite(self.upper)))
+
+    def fields(self, info: dict[str, Any], kappa_mean: float) -> dict[str, Any]:
+        """The decision's record of the state: the simulator's truth, the belief and
+        whether the interval covered the truth (the map's curvature, no estimate, is not
+        checked)."""
+        truth = np.array([info[name] for name in ("e_y_m", "e_psi_rad", "kappa_radpm")], float)
+        checked = slice(0, 2 if self.map_curvature else 3)
+        lower, upper = self.lower, self.upper
+        return {
+            "state_true": truth.tolist(),
+            "state_mean": [*self.samples[:, :2].mean(axis=0), kappa_mean],
+            "state_std": [
+                *self.samples[:, :2].std(axis=0),
+                0.0 if self.map_curvature else float(self.samples[:, 2].std()),
+            ],
+            "state_lower": lower.tolist(),
+            "state_upper": upper.tolist(),
+            "covered": bool(
+                np.all(lower[checked] <= truth[checked])
+                and np.all(truth[checked] <= upper[checked])
+            ),
+        }
+
+
+def estimate_state(
+    source: StateSource,
+    observation: dict[str, np.ndarray],
+    info: dict[str, Any],
+    z: float,
+    map_curvature_radpm: float | None,
+) -> StateEstimate:
+    """``source``'s belief this step, its interval ``mean +- z std`` where it has no own
+    (its curvature pinned to ``map_curvature_radpm`` where given)."""
+    samples = np.atleast_2d(source.samples(observation, info))
+    lower, upper = state_interval(source, samples, z)
+    if map_curvature_radpm is not None:
+        lower[2] = upper[2] = map_curvature_radpm
+    score, alarm = (
+        source.monitor(samples) if isinstance(source, MonitoredStateSource) else (None, False)
+    )
+    estimate = StateEstimate(samples, lower, upper, score, alarm, map_curvature_radpm is not None)
+    if not estimate.bounded:  # an unbounded interval rules out no state at all
+        return StateEstimate(samples, lower, upper, score, True, estimate.map_curvature)
+    return estimate

@@ -1,0 +1,274 @@
+"""``PredictiveSafetyFilter``: the second filter family, a predictive safety filter (MPSF).
+
+Where the CBF filter judges an action by barrier conditions at the car's current point, the
+predictive filter plans ahead along the map (:mod:`saferace.safety.predictive_plan`): an
+action is let through if some continuation of it keeps the car inside the lane over the
+horizon and ends where the map's speed limit holds, and is bent as little as that needs
+otherwise. A kink ahead is in the plan before the car reaches it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from saferace.names import UNCERTAINTY_MODES
+from saferace.safety.decision import SafetyDecision
+from saferace.safety.estimate import checked_action, estimate_state
+from saferace.safety.fallback import FALLBACK_BRAKE_MPS2, fallback_steer_rad
+from saferace.safety.filter import INTERVENTION_TOLERANCE, SafetyFilter
+from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2
+from saferace.safety.predictive_plan import PREDICTIVE_HORIZON, PredictivePlanner
+from saferace.safety.state_sources import StateSource
+from saferace.safety.vehicle_params import VehicleParams, load_params
+
+#: How far (m, rad) the believed ``[e_y, e_psi]`` may be from where the last certified plan
+#: expects the car, beyond the state's half-interval, for its tail to still be followed:
+#: farther, the plan's guarantee is void and the filter replans from the car as it is.
+TAIL_TOLERANCE = np.array([0.05, 0.1])
+#: The constraints a decision reports, by name.
+PREDICTIVE_CONSTRAINTS = ("lane_left", "lane_right", "terminal_speed")
+
+
+class PredictiveSafetyFilter(SafetyFilter):
+    """Keep any agent in its lane with a predictive safety filter (model predictive safety
+    certification, Wabersich and Zeilinger 2018), behind the same wrapper and ``certify``
+    interface as the CBF filter (:class:`~saferace.safety.filter.SafetyFilter`).
+
+    Each step it plans from the believed state (the state source's samples' mean, or its
+    interval's centre in the robust mode) the inputs over ``horizon`` stages whose first is
+    closest to the agent's action (weighed by ``1 / std^2`` of the action's spread) with the
+    predicted lane offset inside the lane less the car's half width, ``lane_margin_m`` and
+    the state's uncertainty at every stage, the steering inside ``max_lateral_accel_mps2``
+    and the last stage below the map's speed limit (``speed_limit_factor`` times the task's
+    reference speed, braked for in time). A plan that keeps the lane with its margin (no
+    more slack than the uncertainty's tightening and
+    :data:`~saferace.safety.predictive_plan.CERTIFIED_SLACK`) is *certified*:
+    its first input is applied and its tail kept. Where none is (the QP failed, needed slack, or the
+    state source's monitor raised), the filter follows the tail of the last certified plan
+    (the MPSC fallback) while it lasts and the car is where that plan expects it
+    (``TAIL_TOLERANCE``), or else the least-violating plan's first input, and after a failed
+    solve it brakes steering the lane's curvature. Each such step counts in
+    ``fallbacks``.
+
+    Uncertainty: the state's interval (``mean +- z std`` of the samples at confidence
+    ``eta``, or a calibrated source's own) tightens the lane by its offset half-width and
+    by its heading half-width over the distance driven in
+    :data:`~saferace.safety.predictive_plan.HEADING_CORRECTION_S`; ``probabilistic=False``
+    plans from the samples' mean alone. ``map_curvature`` and ``uncertainty`` are the CBF
+    filter's (the plan always takes the curvature from the map).
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        state_source: StateSource | None = None,
+        model: str = "kinematic",
+        eta: float = 0.95,
+        action_std: tuple[float, float] = (0.1, 1.0),
+        min_action_std: tuple[float, float] = (0.02, 0.2),
+        lane_margin_m: float = 0.05,
+        speed_limit_factor: float | None = 1.1,
+        max_lateral_accel_mps2: float = SPEED_LIMIT_LATERAL_MPS2,
+        creep_speed_mps: float = 0.0,
+        horizon: int = PREDICTIVE_HORIZON,
+        probabilistic: bool = True,
+        map_curvature: bool = False,
+        params: VehicleParams | None = None,
+        uncertainty: str = "chance",
+    ) -> None:
+        if uncertainty not in UNCERTAINTY_MODES:
+            raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
+        if horizon < 2:
+            raise ValueError(f"horizon must be at least 2 stages, got {horizon}")
+        params = params or load_params()
+        super().__init__(
+            env,
+            state_source=state_source,
+            model=model,
+            eta=eta,
+            action_std=action_std,
+            min_action_std=min_action_std,
+            lane_margin_m=lane_margin_m,
+            speed_limit_factor=speed_limit_factor,
+            max_lateral_accel_mps2=max_lateral_accel_mps2,
+            creep_speed_mps=creep_speed_mps,
+            params=params,
+            uncertainty=uncertainty,
+            probabilistic=probabilistic,
+            map_curvature=map_curvature,
+        )
+        self.vehicle_params = params
+        self.constraint_names = PREDICTIVE_CONSTRAINTS
+        base = env.unwrapped
+        self.planner = PredictivePlanner(
+            self.track,
+            base.reference,
+            model,
+            params,
+            base.params,
+            self.control_dt_s,
+            lane_margin_m,
+            max_lateral_accel_mps2,
+            self.map.speed_limit,
+            horizon,
+        )
+        self._tail_inputs = self._tail_states = np.empty((0, 2))  # the certified plan's rest
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        self.planner.reset()
+        self._tail_inputs = self._tail_states = np.empty((0, 2))
+        return super().reset(seed=seed, options=options)
+
+    def certify(
+        self,
+        observation: dict[str, np.ndarray],
+        info: dict[str, Any],
+        action: np.ndarray,
+        action_std: np.ndarray | None = None,
+    ) -> SafetyDecision:
+        """The filtered action for ``action`` in the state seen by ``observation``/``info``."""
+        started = time.perf_counter()
+        nominal, spread = checked_action(action, action_std, self.action_std, self.min_action_std)
+        s_m = float(info["s_m"])
+        curvature = self.track.centerline.curvature_scalar(s_m)
+        estimate = estimate_state(
+            self.state_source, observation, info, self.z, curvature if self.map_curvature else None
+        )
+        velocity = observation["velocity"]
+        v_x = float(velocity[0])
+        if self.robust and estimate.bounded:
+            believed = 0.5 * (estimate.lower + estimate.upper)
+        else:
+            believed = estimate.samples.mean(axis=0)
+        half_interval = 0.5 * (estimate.upper - estimate.lower)
+        tightened = estimate.bounded and (self.probabilistic or self.robust)
+        offset_margin, heading_margin = half_interval[:2] if tightened else (0.0, 0.0)
+        x0 = np.append(
+            self.planner.model.state_from(
+                believed[0], believed[1], v_x, float(velocity[1]), float(velocity[2])
+            ),
+            float(info["steer_angle_rad"]),
+        )
+        lower, upper = self._action_box(v_x, float(nominal[1]))
+        to_model = (
+            np.array([1.0, self.vehicle_params.accel_gain]),
+            np.array([0.0, -self.vehicle_params.drag_per_s * v_x]),
+        )
+        solve_started = time.perf_counter()
+        u, solved = self.planner.plan(
+            x0,
+            s_m,
+            float(info["steer_rad"]),
+            nominal * to_model[0] + to_model[1],
+            1.0 / spread**2,
+            (lower * to_model[0] + to_model[1], upper * to_model[0] + to_model[1]),
+            float(offset_margin),
+            float(min(heading_margin, 0.5 * math.pi)),
+        )
+        solve_time = time.perf_counter() - solve_started
+        slack = self.planner.plan_slack
+        certified = solved and self.planner.certified
+        fallback = "" if certified and not estimate.alarm else "alarm" if estimate.alarm else (
+            "infeasible" if solved else "solver"
+        )  # fmt: skip
+        tail_expected = self._tail_states[:1, :2]  # where the last certified plan is now
+        on_tail = len(tail_expected) > 0 and (
+            estimate.alarm
+            or bool(
+                np.all(
+                    np.abs(tail_expected[0] - believed[:2]) <= TAIL_TOLERANCE + half_interval[:2]
+                )
+            )
+        )
+        if not fallback:
+            filtered = self._command(u, v_x)
+            self._keep_tail()
+        elif on_tail:
+            filtered = self._tail_inputs[0]
+            self._tail_inputs, self._tail_states = self._tail_inputs[1:], self._tail_states[1:]
+        elif solved:
+            filtered = self._command(u, v_x)
+        else:
+            feedforward = math.atan(self.wheelbase_m * curvature)
+            steer = fallback_steer_rad(feedforward, believed[:2])
+            filtered = np.array([steer, -FALLBACK_BRAKE_MPS2])
+        filtered = np.clip(filtered, *self._action_box(v_x, -math.inf))
+        u0 = np.clip(nominal, self.lower, self.upper)
+        intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
+        self.steps += 1
+        self.interventions += intervened
+        self.failures += fallback == "solver"
+        self.fallbacks += bool(fallback)
+        return SafetyDecision(
+            nominal_action=nominal.tolist(),
+            filtered_action=filtered.tolist(),
+            **estimate.fields(info, float(believed[2])),
+            barriers=self._margins(s_m, believed[0], v_x),
+            constraints=self._plan_margins(),
+            tightening={"lane_left": float(offset_margin), "lane_right": float(offset_margin)}
+            | {"terminal_speed": 0.0},
+            slacks=self._slacks(slack),
+            intervened=intervened,
+            monitor_score=estimate.monitor_score,
+            alarm=estimate.alarm,
+            fallback=fallback,
+            status="certified" if certified else "uncertified" if solved else "failed",
+            iterations=1,
+            solve_time_s=solve_time,
+            filter_time_s=time.perf_counter() - started,
+            n_samples=len(estimate.samples),
+        )
+
+    def _keep_tail(self) -> None:
+        """Keep the certified plan's inputs after its first, the drivetrain's commands, with
+        the states the plan expects the car in when each is applied."""
+        states = self.planner.plan_states
+        assert states is not None  # a certified plan solved
+        speeds = states[1:-1, self.planner.model.speed_index]
+        self._tail_inputs = np.array(
+            [self._command(u, v) for u, v in zip(self.planner.plan_inputs[1:], speeds, strict=True)]
+        )
+        self._tail_states = states[1:-1, :2]
+
+    def _command(self, u: np.ndarray, speed_mps: float) -> np.ndarray:
+        """The drivetrain's command for the model's input ``u`` at ``speed_mps``."""
+        accel = (u[1] + self.vehicle_params.drag_per_s * speed_mps) / self.vehicle_params.accel_gain
+        return np.array([u[0], accel])
+
+    def _margins(self, s_m: float, e_y_m: float, v_x: float) -> dict[str, float]:
+        """Now: the lane margins of the believed offset, and the speed limit's."""
+        w_right, w_left = (float(w) for w in self.track.widths(s_m))
+        limit = self.map.speed_limit(s_m, e_y_m) if self.map.speed_limit else math.inf
+        return {
+            "lane_left": w_left - e_y_m - self.half_width_m,
+            "lane_right": w_right + e_y_m - self.half_width_m,
+            "terminal_speed": limit - v_x,
+        }
+
+    def _plan_margins(self) -> dict[str, float]:
+        """Over the plan: its least lane margins and its terminal speed's margin."""
+        states = self.planner.plan_states
+        if states is None:
+            return dict.fromkeys(PREDICTIVE_CONSTRAINTS, math.nan)
+        speed_index = self.planner.model.speed_index
+        s_m = self.planner.plan_arc_lengths
+        w_right, w_left = self.track.widths(s_m)
+        e_y = states[:, 0]
+        limit = self.map.speed_limit(s_m[-1], e_y[-1]) if self.map.speed_limit else math.inf
+        return {
+            "lane_left": float(np.min(w_left - e_y)) - self.half_width_m,
+            "lane_right": float(np.min(w_right + e_y)) - self.half_width_m,
+            "terminal_speed": float(limit - states[-1, speed_index]),
+        }
+
+    @staticmethod
+    def _slacks(slack: np.ndarray | None) -> dict[str, float]:
+        if slack is None:
+            return dict.fromkeys(PREDICTIVE_CONSTRAINTS, math.nan)
+        lane = float(slack.max())
+        return {"lane_left": lane, "lane_right": lane, "terminal_speed": float(slack[-1])}

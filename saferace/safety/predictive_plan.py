@@ -1,0 +1,240 @@
+"""The predictive safety filter's plan: the expert's LTV QP with the agent's action as target.
+
+Model predictive safety certification (Wabersich and Zeilinger 2018; safe-control-gym's
+MPSC): over a short horizon along the map, the control sequence closest in its *first*
+input to the agent's action whose predicted states stay inside the lane at every predicted
+arc length and whose last state lies in a safe terminal set. The QP is the expert MPC's
+(:class:`~saferace.agents.mpc.MPCExpert`: the Frenet model with the steering servo's lag,
+linearised along the previous plan, stages discretised exactly, lane bounds looked up at
+the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern) with:
+
+- the cost ``(u_0 - u_agent)^T diag(w) (u_0 - u_agent)``, plus a faint pull of the rest of
+  the plan towards the task's reference (so the plan's tail, the fallback, drives on);
+- the lane bounds tightened by the state's uncertainty: its offset half-interval, and its
+  heading half-interval times the distance driven until the next estimate corrects it;
+- each stage's steering inside the tyres' grip at the speed the stage is linearised at;
+- the terminal set: the last stage no faster than the map's speed limit there, which is
+  braked for in time (:mod:`saferace.safety.speed_limit`), so the car can take what lies
+  beyond the horizon.
+
+The lane and terminal bounds are soft with an exact (linear) and a squared penalty: the
+QP always has a solution, and it is *certified* where no slack is needed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from saferace.agents.mpc import MPCExpert, MPCSettings
+from saferace.envs.drivetrain import DrivetrainParams
+from saferace.safety.interval_qp import IntervalQP
+from saferace.safety.models import MIN_SPEED_MPS
+from saferace.safety.vehicle_params import VehicleParams
+from saferace.track import Track
+from saferace.track.raceline import ReferenceLine
+
+#: The plan's stages: 20 of 0.05 s, 1 s ahead (5 m at 5 m/s: a kink is seen 1 s early).
+PREDICTIVE_HORIZON = 20
+#: How long a heading error of the estimate acts before the next estimate corrects it (s).
+HEADING_CORRECTION_S = 0.2
+#: How fast the car's lateral offset may drift from the model's prediction (m/s): the lane
+#: tightens by this times each stage's time, as in tube MPC (the lane margin covers the
+#: first steps). The weave agent at full lock on ``varying`` left the lane by a hair when
+#: the lane was tightened only by the margin.
+MODEL_ERROR_MPS = 0.05
+#: The terminal set's heading error: at most this at a standstill (rad), and this much more
+#: per m/s of speed (at 3 m/s 0.8 rad, the CBF's heading barrier's). A plan may not end
+#: stopped across the lane, where no way forward is left: the weave agent, braked to a
+#: stop heading 0.75 rad for the edge in a kink of Austin, stood there for good.
+TERMINAL_HEADING_RAD = 0.35
+TERMINAL_HEADING_PER_MPS = 0.15
+#: A plan that needs slack is solved again, linearised about itself, up to this many times:
+#: the last step's plan, shifted, is far from the car after a swerve, and a model linearised
+#: there judged accelerating towards the edge to be a way back (weave on Austin's kinks).
+RELINEARISATIONS = 2
+#: A plan whose slacks are at most this (m; m/s for the speeds, rad for the terminal
+#: heading), beyond its uncertainty's tightening, is certified: a fifth of the lane margin,
+#: which absorbs what the model mispredicts of the car.
+CERTIFIED_SLACK = 1e-2
+#: Weights of the plan's inputs beyond the first (per rad and per m/s^2; squared size and
+#: squared change per stage): they make the tail smooth and unique, and are far too small
+#: to bend the first input (weighed by ``1 / std^2``: 100 per rad^2 at the default spread).
+TAIL_EFFORT_WEIGHTS = (1e-2, 0.1)
+TAIL_RATE_WEIGHTS = (1.0, 1e-2)
+
+
+class PredictivePlanner(MPCExpert):
+    """The plan closest in its first input to a target action that keeps the lane (see the
+    module's docstring). Inputs and states are the model's (acceleration in m/s^2 of the
+    model, not the drivetrain's command)."""
+
+    speed_rows = True
+    terminal_heading_rad = TERMINAL_HEADING_RAD
+    terminal_heading_per_mps = TERMINAL_HEADING_PER_MPS
+
+    def __init__(
+        self,
+        track: Track,
+        reference: ReferenceLine,
+        model: str,
+        params: VehicleParams,
+        drivetrain: DrivetrainParams,
+        dt_s: float,
+        lane_margin_m: float,
+        max_lateral_accel_mps2: float,
+        speed_limit: Callable[[float, float], float] | None,
+        horizon: int = PREDICTIVE_HORIZON,
+    ) -> None:
+        self.max_lateral_accel_mps2 = max_lateral_accel_mps2
+        self.speed_limit = speed_limit
+        self.target = np.zeros(2)
+        self.target_weight = np.ones(2)
+        self.first_bounds = (np.full(2, -np.inf), np.full(2, np.inf))
+        self.offset_margin_m = self.heading_margin_rad = 0.0
+        self._replanning = False
+        self.plan_arc_lengths = np.zeros(horizon + 1)  # where the stages of the plan lie (m)
+        self.tightening_m = np.zeros(horizon)  # each stage's lane tightening for uncertainty
+        settings = MPCSettings(
+            horizon=horizon,
+            dt_s=dt_s,
+            weight_e_y=0.0,
+            weight_e_psi=0.0,
+            weight_speed=0.0,
+            weight_steer=TAIL_EFFORT_WEIGHTS[0],
+            weight_accel=TAIL_EFFORT_WEIGHTS[1],
+            weight_steer_rate=TAIL_RATE_WEIGHTS[0],
+            weight_accel_rate=TAIL_RATE_WEIGHTS[1],
+            lane_margin_m=lane_margin_m,
+        )
+        super().__init__(
+            track, reference, model=model, params=params, settings=settings, drivetrain=drivetrain
+        )
+        first = [self._layout.u(0) + j for j in range(self.model.n_control)]
+        P = self._P
+        self._first_diagonal = np.array(
+            [P.indptr[i] + int(np.flatnonzero(P.indices[P.indptr[i] : P.indptr[i + 1]] == i)[0])
+             for i in first]
+        )  # fmt: skip
+        self._p_values = P.data.copy()
+
+    def plan(
+        self,
+        x0: np.ndarray,
+        s0_m: float,
+        previous_steer_rad: float,
+        target: np.ndarray,
+        target_weight: np.ndarray,
+        first_bounds: tuple[np.ndarray, np.ndarray],
+        offset_margin_m: float,
+        heading_margin_rad: float,
+    ) -> tuple[np.ndarray, bool]:
+        """The first input of the plan from ``x0`` (the model's state and the wheels'
+        angle) at ``s0_m``, and whether the QP solved. ``target_weight`` weighs the first
+        input's squared distance to ``target``; ``first_bounds`` bound it; the margins
+        tighten the lane. :attr:`plan_inputs`, :attr:`plan_states` and :attr:`plan_slack`
+        hold the plan."""
+        self.target, self.target_weight = np.asarray(target, float), np.asarray(target_weight)
+        self.first_bounds = first_bounds
+        self.offset_margin_m, self.heading_margin_rad = offset_margin_m, heading_margin_rad
+        self._previous_u[0] = previous_steer_rad
+        failures = self.stats.failures
+        self._replanning = False
+        u = self._solve(x0, s0_m)
+        for _ in range(RELINEARISATIONS):
+            if self._plan_x is None or self.certified:
+                break
+            self._replanning = True  # linearise about this plan, not the last step's
+            u = self._solve(x0, s0_m)
+        self._previous_u = u
+        self._x0 = x0
+        return u, self.stats.failures == failures
+
+    @property
+    def certified(self) -> bool:
+        """Whether the last plan solved and keeps the lane with its margin (no more slack
+        than the uncertainty's tightening and :data:`CERTIFIED_SLACK`: the tightening is a
+        confidence's margin, not a bound) and the speed and heading of the terminal set."""
+        slack = self._plan_slack
+        return slack is not None and bool(np.all(slack <= CERTIFIED_SLACK + self.tightening_m))
+
+    def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
+        if self._replanning and self._plan_x is not None:
+            return np.vstack([x0, self._plan_x[1:]]), self._plan_u.copy()
+        return super()._linearisation_trajectory(x0, s0)
+
+    @property
+    def plan_inputs(self) -> np.ndarray:
+        return self._plan_u
+
+    @property
+    def plan_states(self) -> np.ndarray | None:
+        """The plan's states ``x_0 .. x_N`` (None after a failed solve)."""
+        return self._plan_x
+
+    @property
+    def plan_slack(self) -> np.ndarray | None:
+        """Each stage's slack on the lane and, at the last stage, the terminal speed."""
+        return self._plan_slack
+
+    def _input_weights(self) -> np.ndarray:
+        weights = super()._input_weights()
+        weights[0] = self.target_weight
+        return weights
+
+    def _rate_anchor(self) -> np.ndarray:
+        """The target: the rate penalty must not bend the first input from it (the rate
+        limit still starts from the last command)."""
+        return self.target
+
+    def _first_input_pull(self) -> np.ndarray:
+        return self.target_weight * self.target
+
+    def _build(self) -> None:
+        self._built_weight = self.target_weight.copy()
+        super()._build()
+        self._qp = IntervalQP(self._A_template, self._P)
+
+    def _solve_qp(
+        self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, a_values: np.ndarray
+    ) -> np.ndarray | None:
+        p_values = self._p_values.copy()
+        p_values[self._first_diagonal] += 2.0 * (self.target_weight - self._built_weight)
+        return self._qp.solve(p_values, q, a_values, lo, hi)
+
+    def _lane_bounds(
+        self, s_stage: np.ndarray, plan_x: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        self.plan_arc_lengths = s_stage
+        upper, lower = super()._lane_bounds(s_stage, plan_x)
+        speed = max(float(plan_x[0, self.model.speed_index]), 0.0)
+        driven_m = np.minimum(s_stage[1:] - s_stage[0], speed * HEADING_CORRECTION_S)
+        stage_times_s = self.settings.dt_s * np.arange(1, len(driven_m) + 1)
+        self.tightening_m = (
+            self.offset_margin_m
+            + np.sin(self.heading_margin_rad) * driven_m
+            + MODEL_ERROR_MPS * stage_times_s
+        )
+        return upper - self.tightening_m, lower + self.tightening_m
+
+    def _input_bounds(self, plan_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u_min, u_max = super()._input_bounds(plan_x)
+        speeds = np.maximum(plan_x[:-1, self.model.speed_index], MIN_SPEED_MPS)
+        grip = np.arctan(self.max_lateral_accel_mps2 * self.params.wheelbase_m / speeds**2)
+        u_min[:, 0], u_max[:, 0] = np.maximum(u_min[:, 0], -grip), np.minimum(u_max[:, 0], grip)
+        u_min[0] = np.maximum(u_min[0], self.first_bounds[0])
+        u_max[0] = np.maximum(np.minimum(u_max[0], self.first_bounds[1]), u_min[0])
+        return u_min, u_max
+
+    def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """The map's speed limit, and the speed at which the wheels' angle the stage is
+        linearised at reaches the tyres' grip: the models' tyres have no friction limit,
+        and a plan left free to speed up while turning hard turned harder by accelerating
+        (a weave on BrandsHatch accelerated at 4 m/s^2 towards the edge)."""
+        tangent = np.maximum(np.abs(np.tan(states[:, -1])), 1e-6)
+        caps = np.sqrt(self.max_lateral_accel_mps2 * self.params.wheelbase_m / tangent)
+        if self.speed_limit is not None:
+            limits = [self.speed_limit(s, float(x[0])) for s, x in zip(s_m, states, strict=True)]
+            caps = np.minimum(caps, limits)
+        return caps

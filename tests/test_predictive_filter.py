@@ -1,0 +1,160 @@
+"""The predictive safety filter (MPSF): it sees a turn coming, falls back on its certified
+plan, moves a stopped car on, and sits behind the same wrapper and options as the CBF."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.errors import ConfigError
+from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.safety import predictive
+from saferace.safety.predictive import PredictiveSafetyFilter
+from saferace.track.track_io import write_track_csv
+from tests.track_shapes import paperclip
+
+STRAIGHT_M = 12.0  # the paperclip's first straight ends, and its 1.5 m hairpin begins, here
+
+
+@pytest.fixture(scope="module")
+def hairpin_track(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """Straights 3 m apart joined by half circles of 1.5 m radius, in a 1.2 m lane."""
+    path = tmp_path_factory.mktemp("tracks") / "paperclip.csv"
+    write_track_csv(path, *paperclip(legs_apart_m=3.0, straight_m=STRAIGHT_M), 0.6, 0.6)
+    return str(path)
+
+
+def make_env(track: str = "lab", **kwargs) -> gym.Env:
+    return gym.make("saferace/CenterLine-v0", track=track, max_laps=1, **kwargs)
+
+
+def straight_on(env: gym.Env, start_s_m: float, speed_mps: float, steps: int) -> tuple[int, dict]:
+    """Drive ``[steer 0, accel 0]`` (straight on, coasting) from ``start_s_m``: the steps
+    spent outside the lane, and the last step's info."""
+    _, info = env.reset(seed=0, options={"start_s_m": start_s_m, "start_speed_mps": speed_mps})
+    outside = 0
+    for _ in range(steps):
+        _, _, terminated, truncated, info = env.step(np.zeros(2))
+        outside += info["cost"] > 0.0
+        if terminated or truncated:
+            break
+    return outside, info
+
+
+def test_a_turn_within_the_horizon_bends_an_action_that_is_safe_where_the_car_is(
+    hairpin_track: str,
+):
+    """Straight on at 4 m/s, coasting, towards a hairpin whose speed limit is 2.9 m/s:
+    untouched far from it; bent while the car is still on the straight, square to a lane
+    it is far inside (safe where it is), since the plan over the next second meets the
+    turn; and the car goes round inside the lane, where unfiltered it leaves."""
+    env = PredictiveSafetyFilter(make_env(hairpin_track))
+    observation, info = env.reset(seed=0, options={"start_s_m": 1.0, "start_speed_mps": 3.0})
+    far = env.certify(observation, info, np.zeros(2))
+    assert not far.intervened and far.filtered_action == pytest.approx([0.0, 0.0], abs=1e-2)
+
+    _, info = env.reset(seed=0, options={"start_s_m": STRAIGHT_M - 4.0, "start_speed_mps": 4.0})
+    first_bent, outside = None, 0
+    for _ in range(80):
+        before = info
+        _, _, terminated, truncated, info = env.step(np.zeros(2))
+        outside += info["cost"] > 0.0
+        if first_bent is None and info["safety"]["intervened"]:
+            first_bent = before, info["safety"], env.planner.plan_inputs.copy()
+        if terminated or truncated:
+            break
+    assert first_bent is not None
+    where, decision, plan = first_bent
+    assert where["s_m"] < STRAIGHT_M - 1.0 and abs(where["kappa_radpm"]) < 1e-2  # a straight
+    assert min(decision["barriers"]["lane_left"], decision["barriers"]["lane_right"]) > 0.15
+    assert decision["filtered_action"][1] < -0.05  # it brakes for what lies ahead
+    assert outside == 0 and info["s_m"] > STRAIGHT_M + np.pi * 1.5  # round the hairpin
+
+    free = make_env(hairpin_track)
+    outside_free, _ = straight_on(free, STRAIGHT_M - 4.0, 4.0, 80)
+    assert outside_free > 0  # straight on leaves the lane in the hairpin
+    env.close()
+    free.close()
+
+
+def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
+    """Where no plan keeps the lane and the speed limit (here: far too fast for the map)
+    and the car is where the last certified plan expects it, that plan's next input is
+    applied: the MPSC fallback."""
+    env = PredictiveSafetyFilter(make_env())
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    certified = env.certify(observation, info, np.array([0.0, 1.0]))
+    assert not certified.fallback and certified.status == "certified"
+    expected = env.planner.plan_states
+    tail = env._tail_inputs[0].copy()
+    at_plan = {**info, "e_y_m": float(expected[1, 0]), "e_psi_rad": float(expected[1, 1])}
+    too_fast = {**observation, "velocity": np.array([9.0, 0.0, 0.0], dtype=np.float32)}
+    decision = env.certify(too_fast, at_plan, np.array([0.0, 1.0]))
+    assert decision.fallback == "infeasible" and decision.status == "uncertified"
+    assert decision.filtered_action == pytest.approx(np.clip(tail, env.lower, env.upper))
+    elsewhere = {**at_plan, "e_y_m": at_plan["e_y_m"] + 0.15}  # not where the plan expects
+    replanned = env.certify(too_fast, elsewhere, np.array([0.0, 1.0]))
+    assert replanned.fallback == "infeasible"
+    assert replanned.filtered_action[1] < -1.0  # the least-violating plan: it brakes
+    env.close()
+
+
+def test_a_stopped_car_heading_for_the_edge_is_moved_on_and_steered_away():
+    """At a standstill near the left edge and heading out, the plan drives on and turns
+    away, certified, rather than hold the car there; a stopped car whose agent pushes for
+    the edge drives on inside the lane."""
+    env = PredictiveSafetyFilter(make_env())
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 0.0})
+    observation = {**observation, "velocity": np.zeros(3, dtype=np.float32)}
+    info = {**info, "e_y_m": 0.12, "e_psi_rad": 0.2, "steer_angle_rad": 0.0, "steer_rad": 0.0}
+    decision = env.certify(observation, info, np.array([0.1, 2.0]))
+    assert not decision.fallback and decision.filtered_action[1] > 0.5  # it drives on ...
+    assert env.planner.plan_inputs[:, 0].min() < -0.2  # ... planning to turn away ...
+    assert decision.constraints["lane_left"] >= -0.01  # ... inside the lane
+
+    _, info = env.reset(seed=0, options={"start_speed_mps": 0.0})
+    start_s_m = info["s_m"]
+    for _ in range(40):  # 2 s of an agent pushing for the left edge at full lock
+        _, _, terminated, truncated, info = env.step(np.array([0.36, 2.0]))
+        assert info["cost"] == 0.0 and not (terminated or truncated)
+    assert info["s_m"] - start_s_m > 2.0 and info["v_x_mps"] > 0.5  # moved on, not held
+    env.close()
+
+
+def test_the_filter_config_builds_the_predictive_filter_with_its_own_model():
+    env = apply_filter(make_env(), FilterConfig(kind="mpsf", state_noise=(0.05, 0.05)), seed=0)
+    assert isinstance(env, PredictiveSafetyFilter)
+    assert env.planner.model.name == "dynamic"  # auto: the family's model
+    assert FilterConfig(kind="cbf").model == "kinematic"
+    assert FilterConfig(kind="mpsf", state_noise=(0.05, 0.05)).label == "mpsf-noisy-prob"
+    with pytest.raises(ConfigError, match="slack"):
+        FilterConfig(kind="mpsf", slack="l1")
+    observation, info = env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([0.0, 0.0]))
+    safety = info["safety"]
+    assert set(safety["constraints"]) == set(predictive.PREDICTIVE_CONSTRAINTS)
+    assert safety["tightening"]["lane_left"] > 0.05  # the noisy state's interval: z * 0.05 m
+    env.close()
+
+
+def test_noisy_state_tightens_the_lane_and_the_drift_agent_stays_inside(tmp_path: Path):
+    """The drift agent on ``oval`` behind the predictive filter fed noisy state samples."""
+    from saferace.eval.runner import evaluate
+
+    (row,) = evaluate(
+        "drift",
+        "CenterLine",
+        "oval",
+        [0],
+        progress=False,
+        safety=FilterConfig(kind="mpsf", state_noise=(0.05, 0.05)),
+        env_kwargs={"max_steps": 300},
+    )
+    free = evaluate("drift", "CenterLine", "oval", [0], progress=False)[0]
+    assert free["summary"]["time_outside_lane_s"] > 0.0
+    assert row["summary"]["time_outside_lane_s"] == 0.0
+    assert row["filter_solver"]["solve_median_ms"] > 0.0
