@@ -65,7 +65,7 @@ def test_every_generated_option_defaults_to_its_field(command: str):
         a for a in parser._actions if a.option_strings and a.option_strings[0] in flags.values()
     ]
     assert len(generated) == len(set(flags.values())) > 5
-    settled = {"filter.uncertainty", "filter.gains"}  # auto: the config settles them
+    settled = {"filter.uncertainty", "filter.gains", "filter.model"}  # auto: the config settles
     for action in generated:
         if action.dest in settled:
             assert action.default == AUTO, action.dest

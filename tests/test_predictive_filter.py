@@ -64,11 +64,11 @@ def test_a_turn_within_the_horizon_bends_an_action_that_is_safe_where_the_car_is
         _, _, terminated, truncated, info = env.step(np.zeros(2))
         outside += info["cost"] > 0.0
         if first_bent is None and info["safety"]["intervened"]:
-            first_bent = before, info["safety"], env.planner.plan_inputs.copy()
+            first_bent = before, info["safety"]
         if terminated or truncated:
             break
     assert first_bent is not None
-    where, decision, plan = first_bent
+    where, decision = first_bent
     assert where["s_m"] < STRAIGHT_M - 1.0 and abs(where["kappa_radpm"]) < 1e-2  # a straight
     assert min(decision["barriers"]["lane_left"], decision["barriers"]["lane_right"]) > 0.15
     assert decision["filtered_action"][1] < -0.05  # it brakes for what lies ahead
@@ -133,7 +133,7 @@ def test_the_filter_config_builds_the_predictive_filter_with_its_own_model():
     assert FilterConfig(kind="mpsf", state_noise=(0.05, 0.05)).label == "mpsf-noisy-prob"
     with pytest.raises(ConfigError, match="slack"):
         FilterConfig(kind="mpsf", slack="l1")
-    observation, info = env.reset(seed=0)
+    env.reset(seed=0)
     _, _, _, _, info = env.step(np.array([0.0, 0.0]))
     safety = info["safety"]
     assert set(safety["constraints"]) == set(predictive.PREDICTIVE_CONSTRAINTS)

@@ -7,7 +7,10 @@ from pathlib import Path
 import pytest
 from cli_helpers import run_cli
 
+from saferace.errors import ConfigError
+from saferace.eval.leaderboard import row_filter
 from saferace.eval.runner import read_jsonl
+from saferace.experiments.filter_comparison import comparison_rows, failed
 from saferace.experiments.safety_table import (
     RANDOM_TRACK_RADIUS_M,
     RECKLESS_TASKS,
@@ -111,9 +114,59 @@ def test_an_uncalibrated_state_network_gets_no_robust_rows(
     }
 
 
+def test_filters_side_by_side_on_the_same_runs(tmp_path: Path):
+    """``--filters cbf mpsf``: each agent behind each family; the comparison sums them up
+    per filter, agent and state source, and the expert's cost is against its free lap."""
+    out = tmp_path / "compare"
+    rows = run_table(["lab"], out, laps=1, max_seconds=9.0, progress=False, filters=("cbf", "mpsf"))
+    kinds = [row_filter(row).kind for row in rows]
+    assert len(rows) == 3 * (1 + 2 * 3) + 2 * (1 + 2)  # reckless x filters; expert x tasks
+    assert kinds.count("mpsf") == kinds.count("cbf") == 3 * 3 + 2
+    lines = comparison_rows(rows, laps=1)
+    by_key = {(line[0], line[1], line[2]): line for line in lines}
+    free = {r["task"]: r["summary"]["mean_lap_time_s"] for r in rows if r["agent"] == "expert"
+            and row_filter(r).kind == "none"}  # fmt: skip
+    behind = [r for r in rows if r["agent"] == "expert" and row_filter(r).kind == "mpsf"]
+    cost = sum(100 * (r["summary"]["mean_lap_time_s"] / free[r["task"]] - 1) for r in behind) / 2
+    assert by_key[("mpsf", "expert", "true state")][7] == pytest.approx(cost)
+    assert by_key[("mpsf", "expert", "true state")][3:5] == [2, 2]  # runs, completed
+    assert by_key[("none", "drift", "none")][5] == 1  # the unfiltered drift leaves the lane
+    text = (out / "filter_comparison.md").read_text()
+    assert "mpsf, probabilistic" in text and "cbf, on the mean" in text
+    failures = [r for r in rows if row_filter(r).kind != "none" and failed(r, 1)]
+    assert (out / "failures" / "lab.png").exists() == bool(failures)
+    with pytest.raises(ConfigError, match="filters"):
+        run_table(["lab"], out, filters=("mpc",), progress=False)
+
+
 def test_table_command_refuses_bad_arguments(tmp_path: Path):
     result = run_cli("safety-table", "--samples", "1", "--out", str(tmp_path))
     assert result.returncode == 2 and "samples" in result.stderr
+
+
+@pytest.mark.slow
+def test_the_predictive_filter_keeps_every_reckless_agent_in_at_little_cost(tmp_path: Path):
+    """Issue 30's claims on the built-in tracks and two the repository has never seen:
+    behind the predictive filter, on the true and on noisy state, every reckless agent
+    stays inside its lane and laps; the expert does, at under 2% of its lap time."""
+    unseen = [
+        str(write_random_track(tmp_path / f"unseen_{s}.csv", s, RANDOM_TRACK_RADIUS_M))
+        for s in (57, 613)
+    ]
+    tracks = [*builtin_track_names(), *unseen]
+    rows = run_table(tracks, tmp_path / "table", laps=1, progress=False, filters=("mpsf",))
+    by_key = {(r["agent"], r["task"], r["track_arg"], filter_label(r)): r["summary"] for r in rows}
+    for track in tracks:
+        for agent, task in RECKLESS_TASKS.items():
+            for label in ("mpsf-oracle", "mpsf-noisy-prob"):
+                filtered = by_key[(agent, task, track, label)]
+                assert filtered["time_outside_lane_s"] == 0.0, (agent, track, label)
+                assert filtered["laps_completed"] == 1, (agent, track, label)
+        for task in ("CenterLine", "RacingLine"):
+            free = by_key[("expert", task, track, "none")]
+            filtered = by_key[("expert", task, track, "mpsf-oracle")]
+            assert filtered["time_outside_lane_s"] == 0.0 and filtered["laps_completed"] == 1
+            assert filtered["mean_lap_time_s"] < 1.02 * free["mean_lap_time_s"], (task, track)
 
 
 @pytest.mark.slow

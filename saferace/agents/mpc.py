@@ -95,7 +95,9 @@ class MPCExpert:
         self.drivetrain = drivetrain or DrivetrainParams()
         self.half_width_m = 0.5 * VehicleEnvelope().width_m
         self.stats = SolveStats()
-        self._layout = _Layout(self.model.n_state + 1, self.model.n_control, self.settings.horizon)
+        horizon = self.settings.horizon
+        extra_slacks = horizon * self.speed_rows + (self.terminal_heading_rad is not None)
+        self._layout = _Layout(self.model.n_state + 1, self.model.n_control, horizon, extra_slacks)
         self._build()
         self.reset()
 
@@ -111,7 +113,7 @@ class MPCExpert:
     def reset(self) -> None:
         """Forget the previous plan (call at the start of an episode)."""
         self._plan_x: np.ndarray | None = None
-        self._plan_slack: np.ndarray | None = None  # each stage's lane slack (m)
+        self._plan_slack: np.ndarray | None = None  # the lane's slack per stage, then any others
         self._plan_u = np.zeros((self.settings.horizon, self.model.n_control))
         self._previous_u = np.zeros(self.model.n_control)
         self._x0 = np.zeros(self._layout.n)
@@ -169,7 +171,7 @@ class MPCExpert:
         q_state = np.array([state_weights.get(name, 0.0) for name in names])
         self._q_state = q_state
         p_diag = np.concatenate(
-            [np.tile(q_state, N), np.zeros(N * m), np.full(N, s.slack_quadratic)]
+            [np.tile(q_state, N), np.zeros(N * m), np.full(L.slacks, s.slack_quadratic)]
         )
         rate = np.array([s.weight_steer_rate, s.weight_accel_rate])
         effort = self._input_weights()
@@ -221,21 +223,21 @@ class MPCExpert:
                 self._entry(row, L.eps(k), eps_sign)
                 row += 1
         self._slack_rows = row
-        for k in range(N):
+        for k in range(L.slacks):
             self._entry(row, L.eps(k), 1.0)
             row += 1
-        self._speed_rows = row
-        for k in range(N if self.speed_rows else 0):  # v_k - eps_k <= the speed cap
+        self._speed_rows = row  # each with its own slack: a speeding stage frees no lane
+        for k in range(N if self.speed_rows else 0):  # v_k - eps_{N+k} <= the speed cap
             self._entry(row, L.x(k) + self.model.speed_index, 1.0)
-            self._entry(row, L.eps(k), -1.0)
+            self._entry(row, L.eps(N + k), -1.0)
             row += 1
         self._heading_rows = row
-        if self.terminal_heading_rad is not None:  # |e_psi_N| - k v_N - eps_N <= the bound
+        if self.terminal_heading_rad is not None:  # |e_psi_N| - c v_N - eps_last <= bound
             for sign in (-1.0, 1.0):
                 self._entry(row, L.x(N - 1) + 1, 1.0)  # e_psi is the second state
                 speed_gain = sign * self.terminal_heading_per_mps
                 self._entry(row, L.x(N - 1) + self.model.speed_index, speed_gain)
-                self._entry(row, L.eps(N - 1), sign)
+                self._entry(row, L.eps(L.slacks - 1), sign)
                 row += 1
         self._n_rows = row
         nnz = len(self._A_rows)
@@ -457,11 +459,13 @@ class MPCExpert:
 
 
 class _Layout:
-    """Positions of the decision variables: states x_1..x_N, inputs u_0..u_{N-1}, slacks."""
+    """Positions of the decision variables: states x_1..x_N, inputs u_0..u_{N-1}, then a
+    lane slack per stage and ``extra_slacks`` more (the speed caps', the terminal heading's)."""
 
-    def __init__(self, n: int, m: int, horizon: int) -> None:
+    def __init__(self, n: int, m: int, horizon: int, extra_slacks: int = 0) -> None:
         self.n, self.m, self.N = n, m, horizon
-        self.size = horizon * (n + m + 1)
+        self.slacks = horizon + extra_slacks
+        self.size = horizon * (n + m) + self.slacks
 
     def x(self, k: int) -> int:
         """Index of x_{k+1} (the state after input k)."""

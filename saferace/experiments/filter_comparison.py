@@ -140,7 +140,7 @@ def plot_failures(rows: list[dict], out_dir: Path, laps: int) -> list[Path]:
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.02), fontsize=7, frameon=False)
         out_dir.mkdir(parents=True, exist_ok=True)
         path = out_dir / f"{re.sub(r'[^A-Za-z0-9_.-]+', '_', track.name)}.png"
-        figure.savefig(path, dpi=110)
+        figure.savefig(path, dpi=110, bbox_inches="tight")
         plt.close(figure)
         written.append(path)
     return written

@@ -31,7 +31,7 @@ from saferace.safety.vehicle_params import VehicleParams, load_params
 #: farther, the plan's guarantee is void and the filter replans from the car as it is.
 TAIL_TOLERANCE = np.array([0.05, 0.1])
 #: The constraints a decision reports, by name.
-PREDICTIVE_CONSTRAINTS = ("lane_left", "lane_right", "terminal_speed")
+PREDICTIVE_CONSTRAINTS = ("lane_left", "lane_right", "speed", "terminal_heading")
 
 
 class PredictiveSafetyFilter(SafetyFilter):
@@ -171,7 +171,6 @@ class PredictiveSafetyFilter(SafetyFilter):
             float(min(heading_margin, 0.5 * math.pi)),
         )
         solve_time = time.perf_counter() - solve_started
-        slack = self.planner.plan_slack
         certified = solved and self.planner.certified
         fallback = "" if certified and not estimate.alarm else "alarm" if estimate.alarm else (
             "infeasible" if solved else "solver"
@@ -208,11 +207,11 @@ class PredictiveSafetyFilter(SafetyFilter):
             nominal_action=nominal.tolist(),
             filtered_action=filtered.tolist(),
             **estimate.fields(info, float(believed[2])),
-            barriers=self._margins(s_m, believed[0], v_x),
+            barriers=self._margins(s_m, believed[0], believed[1], v_x),
             constraints=self._plan_margins(),
             tightening={"lane_left": float(offset_margin), "lane_right": float(offset_margin)}
-            | {"terminal_speed": 0.0},
-            slacks=self._slacks(slack),
+            | {"speed": 0.0, "terminal_heading": 0.0},
+            slacks=self._slacks(),
             intervened=intervened,
             monitor_score=estimate.monitor_score,
             alarm=estimate.alarm,
@@ -240,35 +239,52 @@ class PredictiveSafetyFilter(SafetyFilter):
         accel = (u[1] + self.vehicle_params.drag_per_s * speed_mps) / self.vehicle_params.accel_gain
         return np.array([u[0], accel])
 
-    def _margins(self, s_m: float, e_y_m: float, v_x: float) -> dict[str, float]:
-        """Now: the lane margins of the believed offset, and the speed limit's."""
+    def _margins(self, s_m: float, e_y_m: float, e_psi_rad: float, v_x: float) -> dict[str, float]:
+        """Now: the lane margins of the believed offset, the speed limit's and the terminal
+        set's heading bound's."""
         w_right, w_left = (float(w) for w in self.track.widths(s_m))
         limit = self.map.speed_limit(s_m, e_y_m) if self.map.speed_limit else math.inf
         return {
             "lane_left": w_left - e_y_m - self.half_width_m,
             "lane_right": w_right + e_y_m - self.half_width_m,
-            "terminal_speed": limit - v_x,
+            "speed": limit - v_x,
+            "terminal_heading": self._heading_bound(v_x) - abs(e_psi_rad),
         }
 
     def _plan_margins(self) -> dict[str, float]:
-        """Over the plan: its least lane margins and its terminal speed's margin."""
+        """Over the plan: its least lane and speed-limit margins and its last state's
+        margin to the terminal heading bound."""
         states = self.planner.plan_states
         if states is None:
             return dict.fromkeys(PREDICTIVE_CONSTRAINTS, math.nan)
-        speed_index = self.planner.model.speed_index
+        speeds = states[:, self.planner.model.speed_index]
         s_m = self.planner.plan_arc_lengths
         w_right, w_left = self.track.widths(s_m)
         e_y = states[:, 0]
-        limit = self.map.speed_limit(s_m[-1], e_y[-1]) if self.map.speed_limit else math.inf
+        limits = (
+            [self.map.speed_limit(s, e) for s, e in zip(s_m, e_y, strict=True)]
+            if self.map.speed_limit
+            else np.full(len(s_m), math.inf)
+        )
         return {
             "lane_left": float(np.min(w_left - e_y)) - self.half_width_m,
             "lane_right": float(np.min(w_right + e_y)) - self.half_width_m,
-            "terminal_speed": float(limit - states[-1, speed_index]),
+            "speed": float(np.min(np.asarray(limits) - speeds)),
+            "terminal_heading": self._heading_bound(speeds[-1]) - abs(float(states[-1, 1])),
         }
 
-    @staticmethod
-    def _slacks(slack: np.ndarray | None) -> dict[str, float]:
-        if slack is None:
+    def _heading_bound(self, speed_mps: float) -> float:
+        planner = self.planner
+        return planner.terminal_heading_rad + planner.terminal_heading_per_mps * max(speed_mps, 0.0)
+
+    def _slacks(self) -> dict[str, float]:
+        slacks = self.planner.plan_slacks
+        if slacks is None:
             return dict.fromkeys(PREDICTIVE_CONSTRAINTS, math.nan)
-        lane = float(slack.max())
-        return {"lane_left": lane, "lane_right": lane, "terminal_speed": float(slack[-1])}
+        lane = float(slacks["lane"].max())
+        return {
+            "lane_left": lane,
+            "lane_right": lane,
+            "speed": float(slacks["speed"].max()),
+            "terminal_heading": float(slacks["heading"]),
+        }

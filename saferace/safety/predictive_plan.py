@@ -133,7 +133,7 @@ class PredictivePlanner(MPCExpert):
         """The first input of the plan from ``x0`` (the model's state and the wheels'
         angle) at ``s0_m``, and whether the QP solved. ``target_weight`` weighs the first
         input's squared distance to ``target``; ``first_bounds`` bound it; the margins
-        tighten the lane. :attr:`plan_inputs`, :attr:`plan_states` and :attr:`plan_slack`
+        tighten the lane. :attr:`plan_inputs`, :attr:`plan_states` and :attr:`plan_slacks`
         hold the plan."""
         self.target, self.target_weight = np.asarray(target, float), np.asarray(target_weight)
         self.first_bounds = first_bounds
@@ -156,8 +156,13 @@ class PredictivePlanner(MPCExpert):
         """Whether the last plan solved and keeps the lane with its margin (no more slack
         than the uncertainty's tightening and :data:`CERTIFIED_SLACK`: the tightening is a
         confidence's margin, not a bound) and the speed and heading of the terminal set."""
-        slack = self._plan_slack
-        return slack is not None and bool(np.all(slack <= CERTIFIED_SLACK + self.tightening_m))
+        slacks = self.plan_slacks
+        if slacks is None:
+            return False
+        lane = slacks["lane"] <= CERTIFIED_SLACK + self.tightening_m
+        return bool(
+            np.all(lane) and max(slacks["speed"].max(), slacks["heading"]) <= CERTIFIED_SLACK
+        )
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
         if self._replanning and self._plan_x is not None:
@@ -174,9 +179,14 @@ class PredictivePlanner(MPCExpert):
         return self._plan_x
 
     @property
-    def plan_slack(self) -> np.ndarray | None:
-        """Each stage's slack on the lane and, at the last stage, the terminal speed."""
-        return self._plan_slack
+    def plan_slacks(self) -> dict[str, np.ndarray] | None:
+        """The plan's slacks (None after a failed solve): the lane's per stage (m), the
+        speed caps' per stage (m/s) and the terminal heading's (rad)."""
+        if self._plan_slack is None:
+            return None
+        N = self.settings.horizon
+        slack = self._plan_slack
+        return {"lane": slack[:N], "speed": slack[N : 2 * N], "heading": slack[2 * N]}
 
     def _input_weights(self) -> np.ndarray:
         weights = super()._input_weights()
