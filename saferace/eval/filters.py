@@ -70,24 +70,14 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         )
     if config.fuse_odometry:
         source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
+    shared = {
+        "state_source": source,
+        "model": config.model,
+        "eta": config.eta,
+        "probabilistic": config.probabilistic,
+        "map_curvature": config.map_curvature,
+        "uncertainty": config.uncertainty,
+    }
     if config.kind == "mpsf":
-        return PredictiveSafetyFilter(
-            env,
-            state_source=source,
-            model=config.model,
-            eta=config.eta,
-            probabilistic=config.probabilistic,
-            map_curvature=config.map_curvature,
-            uncertainty=config.uncertainty,
-        )
-    return SafetyFilter(
-        env,
-        state_source=source,
-        model=config.model,
-        eta=config.eta,
-        probabilistic=config.probabilistic,
-        map_curvature=config.map_curvature,
-        uncertainty=config.uncertainty,
-        slack_penalty=config.slack,
-        **GAIN_PRESETS[config.gains],
-    )
+        return PredictiveSafetyFilter(env, **shared)
+    return SafetyFilter(env, **shared, slack_penalty=config.slack, **GAIN_PRESETS[config.gains])
