@@ -171,7 +171,7 @@ class MPCExpert:
         q_state = np.array([state_weights.get(name, 0.0) for name in names])
         self._q_state = q_state
         p_diag = np.concatenate(
-            [np.tile(q_state, N), np.zeros(N * m), np.full(L.slacks, s.slack_quadratic)]
+            [np.tile(q_state, N), np.zeros(N * m), s.slack_quadratic * self._slack_weights()]
         )
         rate = np.array([s.weight_steer_rate, s.weight_accel_rate])
         effort = self._input_weights()
@@ -294,7 +294,7 @@ class MPCExpert:
         q[: N * n] = -2.0 * (reference * self._q_state).ravel()
         q[L.u(0) : L.u(0) + m] -= 2.0 * self._rate_weights * self._rate_anchor()
         q[L.u(0) : L.u(0) + m] -= 2.0 * self._first_input_pull()
-        q[L.eps(0) :] = st.slack_linear
+        q[L.eps(0) :] = st.slack_linear * self._slack_weights()
         lo = np.empty(self._n_rows)
         hi = np.empty(self._n_rows)
         dynamics_rhs = c_stages.copy()
@@ -383,6 +383,14 @@ class MPCExpert:
     #: rows ``|e_psi_N| - terminal_heading_per_mps v_N - eps_N <= terminal_heading_rad``).
     terminal_heading_rad: float | None = None
     terminal_heading_per_mps = 0.0
+    #: The speed caps' and terminal heading's slack penalties relative to the lane's.
+    other_slack_weight = 1.0
+
+    def _slack_weights(self) -> np.ndarray:
+        """Each slack's weight relative to the settings' penalties: the lane's per stage,
+        then the speed caps' and the terminal heading's, at ``other_slack_weight``."""
+        N, slacks = self.settings.horizon, self._layout.slacks
+        return np.concatenate([np.ones(N), np.full(slacks - N, self.other_slack_weight)])
 
     def _input_weights(self) -> np.ndarray:
         """Weights ``(N, m)`` of each input's squared size: the settings' effort weights."""

@@ -50,6 +50,10 @@ MODEL_ERROR_MPS = 0.05
 #: stop heading 0.75 rad for the edge in a kink of Austin, stood there for good.
 TERMINAL_HEADING_RAD = 0.35
 TERMINAL_HEADING_PER_MPS = 0.15
+#: The speed caps' and terminal heading's slack penalties, relative to the lane's: with
+#: equal ones the speeding agent on Catalunya kept its speed and steered too little, since
+#: the grip's speed cap made every hard turn cost speed slack (0.5 s outside the lane).
+OTHER_SLACK_WEIGHT = 3.0
 #: A plan that needs slack is solved again, linearised about itself, up to this many times:
 #: the last step's plan, shifted, is far from the car after a swerve, and a model linearised
 #: there judged accelerating towards the edge to be a way back (weave on Austin's kinks).
@@ -73,6 +77,7 @@ class PredictivePlanner(MPCExpert):
     speed_rows = True
     terminal_heading_rad = TERMINAL_HEADING_RAD
     terminal_heading_per_mps = TERMINAL_HEADING_PER_MPS
+    other_slack_weight = OTHER_SLACK_WEIGHT
 
     def __init__(
         self,
