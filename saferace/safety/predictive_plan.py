@@ -4,7 +4,7 @@ Model predictive safety certification (Wabersich and Zeilinger 2018; safe-contro
 MPSC): over a short horizon along the map, the control sequence closest in its *first*
 input to the agent's action whose predicted states stay inside the lane at every predicted
 arc length and whose last state lies in a safe terminal set. The QP is the expert MPC's
-(:class:`~saferace.agents.mpc.MPCExpert`: the Frenet model with the steering servo's lag,
+(:class:`~saferace.safety.ltv_mpc.FrenetMPC`: the Frenet model with the steering servo's lag,
 linearised along the previous plan, stages discretised exactly, lane bounds looked up at
 the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern) with:
 
@@ -27,9 +27,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from saferace.agents.mpc import MPCExpert, MPCSettings
 from saferace.envs.drivetrain import DrivetrainParams
 from saferace.safety.interval_qp import IntervalQP
+from saferace.safety.ltv_mpc import FrenetMPC, MPCSettings
 from saferace.safety.models import MIN_SPEED_MPS
 from saferace.safety.vehicle_params import VehicleParams
 from saferace.track import Track
@@ -69,7 +69,7 @@ TAIL_EFFORT_WEIGHTS = (1e-2, 0.1)
 TAIL_RATE_WEIGHTS = (1.0, 1e-2)
 
 
-class PredictivePlanner(MPCExpert):
+class PredictivePlanner(FrenetMPC):
     """The plan closest in its first input to a target action that keeps the lane (see the
     module's docstring). Inputs and states are the model's (acceleration in m/s^2 of the
     model, not the drivetrain's command)."""
