@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -25,6 +25,9 @@ from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2
 from saferace.safety.predictive_plan import PREDICTIVE_HORIZON, PredictivePlanner
 from saferace.safety.state_sources import StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
+
+if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
+    from saferace.envs.racing_env import RacingEnv
 
 #: How far (m, rad) the believed ``[e_y, e_psi]`` may be from where the last certified plan
 #: expects the car, beyond the state's half-interval, for its tail to still be followed:
@@ -104,7 +107,7 @@ class PredictiveSafetyFilter(SafetyFilter):
         )
         self.vehicle_params = params
         self.constraint_names = PREDICTIVE_CONSTRAINTS
-        base = env.unwrapped
+        base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
         self.planner = PredictivePlanner(
             self.track,
             base.reference,
