@@ -255,24 +255,19 @@ class PredictiveSafetyFilter(SafetyFilter):
         }
 
     def _plan_margins(self) -> dict[str, float]:
-        """Over the plan: its least lane and speed-limit margins and its last state's
-        margin to the terminal heading bound."""
+        """Over the plan: its least lane margins, its least margin to the speed caps it was
+        held to (the map's limit and the grip's) and its last state's margin to the
+        terminal heading bound."""
         states = self.planner.plan_states
         if states is None:
             return dict.fromkeys(PREDICTIVE_CONSTRAINTS, math.nan)
         speeds = states[:, self.planner.model.speed_index]
-        s_m = self.planner.plan_arc_lengths
-        w_right, w_left = self.track.widths(s_m)
+        w_right, w_left = self.track.widths(self.planner.plan_arc_lengths)
         e_y = states[:, 0]
-        limits = (
-            [self.map.speed_limit(s, e) for s, e in zip(s_m, e_y, strict=True)]
-            if self.map.speed_limit
-            else np.full(len(s_m), math.inf)
-        )
         return {
             "lane_left": float(np.min(w_left - e_y)) - self.half_width_m,
             "lane_right": float(np.min(w_right + e_y)) - self.half_width_m,
-            "speed": float(np.min(np.asarray(limits) - speeds)),
+            "speed": float(np.min(self.planner.speed_caps_mps - speeds[1:])),
             "terminal_heading": self._heading_bound(speeds[-1]) - abs(float(states[-1, 1])),
         }
 

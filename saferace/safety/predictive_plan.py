@@ -100,6 +100,7 @@ class PredictivePlanner(FrenetMPC):
         self.offset_margin_m = self.heading_margin_rad = 0.0
         self._replanning = False
         self.plan_arc_lengths = np.zeros(horizon + 1)  # where the stages of the plan lie (m)
+        self.speed_caps_mps = np.full(horizon, np.inf)  # the stages' speed caps (m/s)
         self.tightening_m = np.zeros(horizon)  # each stage's lane tightening for uncertainty
         settings = MPCSettings(
             horizon=horizon,
@@ -252,4 +253,5 @@ class PredictivePlanner(FrenetMPC):
         if self.speed_limit is not None:
             limits = [self.speed_limit(s, float(x[0])) for s, x in zip(s_m, states, strict=True)]
             caps = np.minimum(caps, limits)
+        self.speed_caps_mps = caps
         return caps
