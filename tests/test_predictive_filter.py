@@ -125,6 +125,35 @@ def test_a_stopped_car_heading_for_the_edge_is_moved_on_and_steered_away():
     env.close()
 
 
+def test_a_car_stopped_in_a_tight_turn_heading_out_is_planned_on_never_in_reverse(
+    tmp_path: Path,
+):
+    """Stopped in a 0.8 m hairpin (a circuit's kink: the lane turns about as tightly as
+    the car can), 0.4 m from the outer edge, heading 0.6 rad out, with an uncertain state
+    (0.1 m and 0.1 rad half-intervals): the plan is certified, its first input drives on,
+    no stage's speed is negative, and it ends turned back towards the lane's direction.
+
+    Linearised at a standstill, where the models raise the speed to 0.5 m/s inside, the
+    plan reversed at up to 2 m/s (which turned the car in place in the model) and held
+    the car: the weave agent on noisy state stood 90 s in a kink of Melbourne."""
+    path = tmp_path / "tight_hairpin.csv"
+    write_track_csv(path, *paperclip(legs_apart_m=1.6, straight_m=6.0), 0.6, 0.6)
+    env = PredictiveSafetyFilter(make_env(str(path)))
+    env.reset(seed=0)
+    planner = env.planner
+    mid_turn_s_m = 6.0 + np.pi * 0.4  # the hairpin turns left: its outer edge is the right
+    assert env.track.centerline.curvature_scalar(mid_turn_s_m) > 1.2
+    x0 = np.append(planner.model.state_from(-0.1, -0.6, 0.0), 0.36)
+    box = (np.array([-0.36, 0.0]), np.array([0.36, 4.0]))  # no braking at a standstill
+    weight = 1.0 / np.array(env.action_std) ** 2  # the agent's action, at the default spread
+    first, _ = planner.plan(x0, mid_turn_s_m, 0.36, np.array([0.0, 2.0]), weight, box, 0.1, 0.1)
+    speeds = planner.plan_states[:, planner.model.speed_index]
+    assert planner.certified and first[1] > 0.5
+    assert speeds.min() >= -1e-3 and speeds[-1] > 0.5
+    assert abs(planner.plan_states[-1, 1]) < 0.6 - 0.02  # turning back
+    env.close()
+
+
 def test_the_filter_config_builds_the_predictive_filter_with_its_own_model():
     env = apply_filter(make_env(), FilterConfig(kind="mpsf", state_noise=(0.05, 0.05)), seed=0)
     assert isinstance(env, PredictiveSafetyFilter)

@@ -177,7 +177,7 @@ class FrenetMPC:
             self._entry(row, L.eps(k), 1.0)
             row += 1
         self._speed_rows = row  # each with its own slack: a speeding stage frees no lane
-        for k in range(N if self.speed_rows else 0):  # v_k - eps_{N+k} <= the speed cap
+        for k in range(N if self.speed_rows else 0):  # 0 <= v_k - eps_{N+k} <= the speed cap
             self._entry(row, L.x(k) + self.model.speed_index, 1.0)
             self._entry(row, L.eps(N + k), -1.0)
             row += 1
@@ -273,7 +273,7 @@ class FrenetMPC:
         lo[self._slack_rows : self._speed_rows] = 0.0
         hi[self._slack_rows : self._speed_rows] = np.inf
         if self.speed_rows:
-            lo[self._speed_rows : self._heading_rows] = -np.inf
+            lo[self._speed_rows : self._heading_rows] = 0.0  # the models drive forward only
             hi[self._speed_rows : self._heading_rows] = self._speed_caps_mps(
                 s_stage[1:], plan_x[1:]
             )

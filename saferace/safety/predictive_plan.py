@@ -8,8 +8,9 @@ arc length and whose last state lies in a safe terminal set. The QP is the exper
 linearised along the previous plan, stages discretised exactly, lane bounds looked up at
 the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern) with:
 
-- the cost ``(u_0 - u_agent)^T diag(w) (u_0 - u_agent)``, plus a faint pull of the rest of
-  the plan towards the task's reference (so the plan's tail, the fallback, drives on);
+- the cost ``(u_0 - u_agent)^T diag(w) (u_0 - u_agent)``, plus a faint pull of the plan's
+  lateral offsets towards the task's reference line (so the plan's tail, the fallback,
+  drives on along the line);
 - the lane bounds tightened by the state's uncertainty: its offset half-interval, and its
   heading half-interval times the distance driven until the next estimate corrects it;
 - each stage's steering inside the tyres' grip at the speed the stage is linearised at;
@@ -67,6 +68,13 @@ CERTIFIED_SLACK = 1e-2
 #: to bend the first input (weighed by ``1 / std^2``: 100 per rad^2 at the default spread).
 TAIL_EFFORT_WEIGHTS = (1e-2, 0.1)
 TAIL_RATE_WEIGHTS = (1.0, 1e-2)
+#: Weight of the plan's lateral offset from the task's reference line (per m^2, each
+#: stage): a faint pull that keeps the tail on the line, where the map's speed limit is
+#: the line's. Without it the tail ran straight on in the Frenet frame, into a chicane's
+#: parallels whose limit is 3 m/s where the line's is 7.7, and the plan braked at 4 m/s^2
+#: inside it: the speeding agent left the lane at Monza's s = 165 m chicane and on four
+#: more F1TENTH circuits as given.
+TAIL_OFFSET_WEIGHT = 1.0
 
 
 class PredictivePlanner(FrenetMPC):
@@ -105,7 +113,7 @@ class PredictivePlanner(FrenetMPC):
         settings = MPCSettings(
             horizon=horizon,
             dt_s=dt_s,
-            weight_e_y=0.0,
+            weight_e_y=TAIL_OFFSET_WEIGHT,
             weight_e_psi=0.0,
             weight_speed=0.0,
             weight_steer=TAIL_EFFORT_WEIGHTS[0],
@@ -171,9 +179,23 @@ class PredictivePlanner(FrenetMPC):
         )
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
+        """The last plan (this step's, when replanning), its speeds raised to
+        :data:`~saferace.safety.models.MIN_SPEED_MPS`.
+
+        The models raise a lower speed to it inside, so linearised at a standstill they
+        predicted the car moving at 0.5 m/s whatever its speed: a stopped plan turned
+        the car in place, met the terminal heading, and was certified standing still
+        (the weave agent on noisy state stood 90 s in a kink of Melbourne). Linearised at
+        the raised speed, the terms linear in speed (the kinematics) vanish at zero: a plan
+        turns the car only by driving it.
+        """
         if self._replanning and self._plan_x is not None:
-            return np.vstack([x0, self._plan_x[1:]]), self._plan_u.copy()
-        return super()._linearisation_trajectory(x0, s0)
+            x, u = np.vstack([x0, self._plan_x[1:]]), self._plan_u.copy()
+        else:
+            x, u = super()._linearisation_trajectory(x0, s0)
+        speeds = x[:, self.model.speed_index]
+        x[:, self.model.speed_index] = np.maximum(speeds, MIN_SPEED_MPS)
+        return x, u
 
     @property
     def plan_inputs(self) -> np.ndarray:
