@@ -46,11 +46,15 @@ HEADING_CORRECTION_S = 0.2
 #: the lane was tightened only by the margin.
 MODEL_ERROR_MPS = 0.05
 #: The terminal set's heading error: at most this at a standstill (rad), and this much more
-#: per m/s of speed (at 3 m/s 0.8 rad, the CBF's heading barrier's). A plan may not end
-#: stopped across the lane, where no way forward is left: the weave agent, braked to a
-#: stop heading 0.75 rad for the edge in a kink of Austin, stood there for good.
+#: per m/s of speed (at 3 m/s 0.5 rad). A plan may not end stopped across the lane, where
+#: no way forward is left: the weave agent, braked to a stop heading 0.75 rad for the edge
+#: in a kink of Austin, stood there for good. With 0.15 rad per m/s (0.8 rad at 3 m/s, the
+#: CBF's heading barrier's) plans ended heading too far off the lane at the F1TENTH
+#: circuits' kinks of 1-1.4 1/m, where the lane turns about as fast as the car can: a few
+#: steps later no plan brought the car back, and the weave agent left the lane on 5 of 23
+#: circuits (0.15-0.7 s).
 TERMINAL_HEADING_RAD = 0.35
-TERMINAL_HEADING_PER_MPS = 0.15
+TERMINAL_HEADING_PER_MPS = 0.05
 #: The speed caps' and terminal heading's slack penalties, relative to the lane's: with
 #: equal ones the speeding agent on Catalunya kept its speed and steered too little, since
 #: the grip's speed cap made every hard turn cost speed slack (0.5 s outside the lane).
