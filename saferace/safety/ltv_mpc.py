@@ -35,7 +35,7 @@ import osqp
 import scipy.sparse as sp
 
 from saferace.envs.drivetrain import DrivetrainParams
-from saferace.safety.models import FrenetModel
+from saferace.safety.models import MIN_SPEED_MPS, FrenetModel
 from saferace.safety.vehicle_params import VehicleParams, load_params
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import ReferenceLine
@@ -224,6 +224,12 @@ class FrenetMPC:
         st, L, model = self.settings, self._layout, self.model
         n, m, N, dt = L.n, L.m, L.N, st.dt_s
         plan_x, plan_u = self._linearisation_trajectory(x0, s0)
+        # The models raise a lower speed to MIN_SPEED_MPS inside: linearised at a standstill
+        # they moved the car at that speed whatever its own, a stopped plan turned the car in
+        # place (the expert stood in Shanghai's hairpin; the predictive filter certified a
+        # car standing still in Melbourne's kink). Linearised at the raised speed, the terms
+        # linear in speed vanish at zero: a plan turns the car only by driving it.
+        plan_x[:, model.speed_index] = np.maximum(plan_x[:, model.speed_index], MIN_SPEED_MPS)
         s_stage = np.empty(N + 1)
         s_stage[0] = s0
         kappas = np.empty(N)

@@ -183,23 +183,9 @@ class PredictivePlanner(FrenetMPC):
         )
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
-        """The last plan (this step's, when replanning), its speeds raised to
-        :data:`~saferace.safety.models.MIN_SPEED_MPS`.
-
-        The models raise a lower speed to it inside, so linearised at a standstill they
-        predicted the car moving at 0.5 m/s whatever its speed: a stopped plan turned
-        the car in place, met the terminal heading, and was certified standing still
-        (the weave agent on noisy state stood 90 s in a kink of Melbourne). Linearised at
-        the raised speed, the terms linear in speed (the kinematics) vanish at zero: a plan
-        turns the car only by driving it.
-        """
         if self._replanning and self._plan_x is not None:
-            x, u = np.vstack([x0, self._plan_x[1:]]), self._plan_u.copy()
-        else:
-            x, u = super()._linearisation_trajectory(x0, s0)
-        speeds = x[:, self.model.speed_index]
-        x[:, self.model.speed_index] = np.maximum(speeds, MIN_SPEED_MPS)
-        return x, u
+            return np.vstack([x0, self._plan_x[1:]]), self._plan_u.copy()
+        return super()._linearisation_trajectory(x0, s0)
 
     @property
     def plan_inputs(self) -> np.ndarray:
