@@ -23,6 +23,7 @@ def hand_made_steps() -> dict[str, np.ndarray]:
         "deviation_m": np.array([0.1, -0.2, 0.0, 0.3, -0.1, 0.2, 0.0, -0.4, 0.1, 0.1]),
         "cost": np.array([0, 0, 0, 1, 0, 1, 1, 0, 0, 0], dtype=float),
         "steer_rad": np.array([0.0, 0.1, 0.1, 0.0, 0.0, 0.0, 0.05, 0.05, 0.05, 0.05]),
+        "v_x_mps": np.array([0.0, 0.05, 1.0, 0.05, 0.0, 0.09, 0.05, 2.0, 2.0, 0.0]),
     }
 
 
@@ -40,7 +41,11 @@ def test_lap_metrics_by_hand():
     assert not second.completed and second.lap_time_s is None
     assert second.max_abs_deviation_m == pytest.approx(0.4)
     assert second.time_outside_lane_s == pytest.approx(DT)
+    # Stopped (below 0.1 m/s) in steps 0-1 and 3-6: the lap boundary splits the second stop.
+    assert first.longest_stop_s == pytest.approx(3 * DT)
+    assert second.longest_stop_s == pytest.approx(DT)
     summary = summarize(laps)
+    assert summary["longest_stop_s"] == pytest.approx(3 * DT)
     assert summary["laps_completed"] == 1 and summary["best_lap_time_s"] == 0.27
     assert summary["time_outside_lane_s"] == pytest.approx(3 * DT)
 

@@ -128,8 +128,10 @@ def test_filters_side_by_side_on_the_same_runs(tmp_path: Path):
             and row_filter(r).kind == "none"}  # fmt: skip
     behind = [r for r in rows if r["agent"] == "expert" and row_filter(r).kind == "mpsf"]
     cost = sum(100 * (r["summary"]["mean_lap_time_s"] / free[r["task"]] - 1) for r in behind) / 2
-    assert by_key[("mpsf", "expert", "true state")][7] == pytest.approx(cost)
+    assert by_key[("mpsf", "expert", "true state")][8] == pytest.approx(cost)
     assert by_key[("mpsf", "expert", "true state")][3:5] == [2, 2]  # runs, completed
+    stops = [r["summary"]["longest_stop_s"] for r in behind]
+    assert by_key[("mpsf", "expert", "true state")][7] == max(stops) < 1.0  # never held still
     assert by_key[("none", "drift", "none")][5] == 1  # the unfiltered drift leaves the lane
     text = (out / "filter_comparison.md").read_text()
     assert "mpsf, probabilistic" in text and "cbf, on the mean" in text

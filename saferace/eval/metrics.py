@@ -39,6 +39,8 @@ SAFETY_FIELDS = (
 class LapMetrics:
     """What one lap (or the unfinished rest of an episode) achieved.
 
+    ``longest_stop_s`` is the longest stretch of consecutive steps the car spent slower than
+    :data:`STOP_SPEED_MPS` (a filter that deadlocks holds the car still for seconds).
     ``min_lane_barrier_m`` is the true lane barrier ``min(w_left - e_y, w_right + e_y) -
     half car width`` at its lowest (negative: part of the car was outside). The filter's
     fields are None for episodes driven without one: how many steps it changed the
@@ -56,6 +58,7 @@ class LapMetrics:
     time_outside_lane_s: float
     steering_rate_rms_radps: float
     steps: int = 0
+    longest_stop_s: float = 0.0
     min_lane_barrier_m: float | None = None
     interventions: int | None = None
     intervention_rate: float | None = None
@@ -103,6 +106,8 @@ def lap_metrics(
     return metrics
 
 
+#: Below this speed the car counts as standing still (:attr:`LapMetrics.longest_stop_s`).
+STOP_SPEED_MPS = 0.1
 #: About how many points of a drive's path a result row keeps (enough to draw it).
 TRAJECTORY_POINTS = 500
 
@@ -139,9 +144,18 @@ def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: f
         "time_outside_lane_s": float(np.sum(np.asarray(steps["cost"])[mask] > 0) * control_dt_s),
         "steering_rate_rms_radps": float(np.sqrt(np.mean(steer_rate[mask] ** 2))),
         "steps": int(mask.sum()),
+        "longest_stop_s": longest_run(mask & (np.asarray(steps["v_x_mps"]) < STOP_SPEED_MPS))
+        * control_dt_s,
         "min_lane_barrier_m": None if barrier is None else float(np.min(barrier[mask])),
         **safety,
     }
+
+
+def longest_run(flags: np.ndarray) -> int:
+    """The length of the longest stretch of consecutive true ``flags``."""
+    edges = np.diff(np.concatenate([[0], np.asarray(flags, dtype=int), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return int(np.max(ends - starts, initial=0))
 
 
 def _safety_metrics(steps: dict[str, np.ndarray], mask: np.ndarray) -> dict:
@@ -192,6 +206,7 @@ def summarize(laps: list[LapMetrics]) -> dict:
         "steering_rate_rms_radps": float(np.mean([lap.steering_rate_rms_radps for lap in laps]))
         if laps
         else None,
+        "longest_stop_s": max((lap.longest_stop_s for lap in laps), default=None),
         "min_lane_barrier_m": _extreme(min, [lap.min_lane_barrier_m for lap in laps]),
         **_summarize_safety(laps),
     }

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from saferace.eval.leaderboard import filter_phrase, filter_words, row_filter, state_source_words
+from saferace.eval.metrics import STOP_SPEED_MPS
 from saferace.eval.tables import markdown_table, write_csv
 
 COMPARISON_COLUMNS = [
@@ -25,6 +26,7 @@ COMPARISON_COLUMNS = [
     "completed",
     "runs outside lane",
     "outside lane [s]",
+    "longest stop [s]",
     "lap-time cost to the expert [%]",
     "interventions [%]",
     "solve median [ms]",
@@ -40,7 +42,8 @@ def failed(row: dict, laps: int) -> bool:
 
 def comparison_rows(rows: list[dict], laps: int) -> list[list]:
     """One line per filter, agent and state source over every track: runs, runs that
-    finished their ``laps``, runs that left the lane and their time outside, the expert's
+    finished their ``laps``, runs that left the lane and their time outside, the longest the
+    car stood still in any of them (a deadlocked filter holds it for seconds), the expert's
     mean lap-time cost to its unfiltered run on the same track and task, the filter's
     interventions and its median solve and whole-step times (the median of the runs')."""
     free = {
@@ -63,6 +66,7 @@ def comparison_rows(rows: list[dict], laps: int) -> list[list]:
             and summary["mean_lap_time_s"]
             and free.get((row["track"], row["task"]))
         ]
+        stops = [s["longest_stop_s"] for s in summaries if s.get("longest_stop_s") is not None]
         rates = [
             s["intervention_rate"] for s in summaries if s.get("intervention_rate") is not None
         ]
@@ -83,6 +87,7 @@ def comparison_rows(rows: list[dict], laps: int) -> list[list]:
                 sum(s["laps_completed"] >= laps for s in summaries),
                 sum(s["time_outside_lane_s"] > 0.0 for s in summaries),
                 sum(s["time_outside_lane_s"] for s in summaries),
+                max(stops, default="-"),
                 float(np.mean(costs)) if costs else "-",
                 100.0 * float(np.mean(rates)) if rates else "-",
                 float(np.median(solves)) if solves else "-",
@@ -98,7 +103,8 @@ def write_comparison(rows: list[dict], out_dir: Path, laps: int) -> None:
     tracks = list(dict.fromkeys(row["track"] for row in rows))
     (out_dir / "filter_comparison.md").write_text(
         f"# Filters compared on {len(tracks)} tracks ({', '.join(tracks)}), {laps} lap(s)\n\n"
-        "Completed: runs that finished their laps. Lap-time cost: the expert's mean over the "
+        "Completed: runs that finished their laps. Longest stop: the longest the car stood "
+        f"still (below {STOP_SPEED_MPS} m/s) in any run. Lap-time cost: the expert's mean over the "
         "tracks and tasks, against its unfiltered lap.\n\n"
         + markdown_table(COMPARISON_COLUMNS, lines)
         + "\n"
