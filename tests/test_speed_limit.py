@@ -120,6 +120,18 @@ def test_riding_the_centre_of_a_turn_the_line_cuts_is_limited_to_the_centre(cut_
     assert limit(float(tightest), offset) == float(limit.reference_limit(tightest))
 
 
+def test_a_plans_stages_get_the_limits_one_lookup_each_gives(cut_turn_limit):
+    """``along`` (every stage of a plan at once) is the pointwise limit, on the line, near
+    it, in the blend and beyond the lane, over the whole lap and past its end."""
+    track, _, limit = cut_turn_limit
+    rng = np.random.default_rng(3)
+    s = rng.uniform(-5.0, track.length_m + 5.0, 200)
+    e_y = rng.uniform(-1.5, 1.5, 200)
+    expected = [limit(float(a), float(b)) for a, b in zip(s, e_y, strict=True)]
+    assert np.ptp(expected) > 1.0  # the points span slow turns and fast straights
+    np.testing.assert_allclose(limit.along(s, e_y), expected, rtol=0, atol=1e-12)
+
+
 def test_parallel_limits_are_slower_inside_a_turn_and_braked_for(cut_turn_limit):
     track, reference, limit = cut_turn_limit
     s = np.asarray(reference.center_s_m)

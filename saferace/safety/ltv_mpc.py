@@ -27,6 +27,7 @@ perturbation's or another driver's when it only labels the frames
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -396,7 +397,7 @@ class FrenetMPC:
         if length < _MIN_STAGE_LENGTH_M:
             return kappa
         turn = centerline.heading_scalar(s_m + length) - centerline.heading_scalar(s_m)
-        return float(np.angle(np.exp(1j * turn))) / length
+        return math.remainder(turn, 2.0 * math.pi) / length
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
         """States and inputs to linearise about: the last plan shifted by one step.

@@ -24,14 +24,12 @@ QP always has a solution, and it is *certified* where no slack is needed.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from saferace.envs.drivetrain import DrivetrainParams
 from saferace.safety.interval_qp import IntervalQP
 from saferace.safety.ltv_mpc import FrenetMPC, MPCSettings
-from saferace.safety.models import MIN_SPEED_MPS
+from saferace.safety.speed_limit import LaneSpeedLimit
 from saferace.safety.vehicle_params import VehicleParams
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine
@@ -101,7 +99,7 @@ class PredictivePlanner(FrenetMPC):
         dt_s: float,
         lane_margin_m: float,
         max_lateral_accel_mps2: float,
-        speed_limit: Callable[[float, float], float] | None,
+        speed_limit: LaneSpeedLimit | None,
         horizon: int = PREDICTIVE_HORIZON,
     ) -> None:
         self.max_lateral_accel_mps2 = max_lateral_accel_mps2
@@ -248,7 +246,7 @@ class PredictivePlanner(FrenetMPC):
 
     def _input_bounds(self, plan_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u_min, u_max = super()._input_bounds(plan_x)
-        speeds = np.maximum(plan_x[:-1, self.model.speed_index], MIN_SPEED_MPS)
+        speeds = plan_x[:-1, self.model.speed_index]  # at least MIN_SPEED_MPS (_solve)
         grip = np.arctan(self.max_lateral_accel_mps2 * self.params.wheelbase_m / speeds**2)
         u_min[:, 0], u_max[:, 0] = np.maximum(u_min[:, 0], -grip), np.minimum(u_max[:, 0], grip)
         u_min[0] = np.maximum(u_min[0], self.first_bounds[0])
@@ -263,7 +261,6 @@ class PredictivePlanner(FrenetMPC):
         tangent = np.maximum(np.abs(np.tan(states[:, -1])), 1e-6)
         caps = np.sqrt(self.max_lateral_accel_mps2 * self.params.wheelbase_m / tangent)
         if self.speed_limit is not None:
-            limits = [self.speed_limit(s, float(x[0])) for s, x in zip(s_m, states, strict=True)]
-            caps = np.minimum(caps, limits)
+            caps = np.minimum(caps, self.speed_limit.along(s_m, states[:, 0]))
         self.speed_caps_mps = caps
         return caps

@@ -136,6 +136,17 @@ class LaneSpeedLimit:
                 lowest, at = blended, float(e_y)
         return lowest, at
 
+    def along(self, s_m: np.ndarray, e_y_m: np.ndarray) -> np.ndarray:
+        """The limit at each pair of ``s_m`` and ``e_y_m`` (a plan's stages) at once."""
+        s_m, e_y_m = np.asarray(s_m, dtype=float), np.asarray(e_y_m, dtype=float)
+        limits = self.reference_limit(s_m)
+        away = np.abs(e_y_m - self.reference_offset(s_m))
+        weights = np.clip((away - self.near_m) / (self.far_m - self.near_m), 0.0, 1.0)
+        for i in np.flatnonzero(weights):
+            parallel = self.parallel_limit(float(s_m[i]), float(e_y_m[i]))
+            limits[i] -= weights[i] * max(0.0, limits[i] - parallel)
+        return limits
+
     def parallel_limit(self, s_m: float, e_y_m: float) -> float:
         """The braked limit along the centre line's parallel through ``e_y_m``."""
         position = float(np.interp(e_y_m, self.offsets_m, np.arange(len(self.offsets_m))))
