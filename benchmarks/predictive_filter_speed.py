@@ -1,0 +1,63 @@
+"""The predictive safety filter's time per control step, beside the CBF's on the same drives.
+
+The expert and the weaving agent drive one lap of each built-in track behind the predictive
+filter (``--filter mpsf``) and behind the CBF (the baseline, measured in the same run). The
+table gives the median per step of the plan (linearisation, QP and any re-solve) and of
+the whole step (state, plan and decision), and the ratio of the predictive filter's step to
+the CBF's. Goal (issue 30): the predictive filter's whole step at most 1 ms.
+
+    python benchmarks/predictive_filter_speed.py [--tracks lab oval ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from saferace.eval.filters import FilterConfig
+from saferace.eval.runner import evaluate
+from saferace.eval.tables import markdown_table
+from saferace.track.track import builtin_track_names
+
+GOAL_MS = 1.0
+DRIVES = (("expert", "RacingLine"), ("weave", "CenterLine"))
+
+
+def step_times_ms(agent: str, task: str, track: str, kind: str) -> tuple[float, float]:
+    """Median plan (or QP) and whole-step times of one lap behind the filter ``kind``."""
+    (row,) = evaluate(agent, task, track, [0], laps=1, progress=False,
+                      safety=FilterConfig(kind=kind))  # fmt: skip
+    solver = row["filter_solver"]
+    return solver["solve_median_ms"], solver["step_median_ms"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tracks", nargs="+", default=builtin_track_names())
+    args = parser.parse_args()
+    rows = []
+    for track in args.tracks:
+        for agent, task in DRIVES:
+            plan_ms, step_ms = step_times_ms(agent, task, track, "mpsf")
+            cbf_solve_ms, cbf_step_ms = step_times_ms(agent, task, track, "cbf")
+            rows.append([track, agent, plan_ms, step_ms, cbf_solve_ms, cbf_step_ms,
+                         f"{step_ms / cbf_step_ms:.1f}x", f"{step_ms / GOAL_MS:.2f}x"])  # fmt: skip
+    print(
+        markdown_table(
+            [
+                "track",
+                "agent",
+                "mpsf plan median [ms]",
+                "mpsf step median [ms]",
+                "cbf QP median [ms]",
+                "cbf step median [ms]",
+                "mpsf / cbf step",
+                "mpsf step / goal",
+            ],
+            rows,
+        )
+    )
+    print(f"goal: the predictive filter's whole step at most {GOAL_MS} ms")
+
+
+if __name__ == "__main__":
+    main()
