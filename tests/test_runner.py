@@ -41,7 +41,7 @@ def test_lap_metrics_by_hand():
     assert not second.completed and second.lap_time_s is None
     assert second.max_abs_deviation_m == pytest.approx(0.4)
     assert second.time_outside_lane_s == pytest.approx(DT)
-    # Stopped (below 0.1 m/s) in steps 0-1 and 3-6: the lap boundary splits the second stop.
+    # Stopped (below 0.1 m/s) in steps 0-1, 3-6 and 9: the lap boundary splits the second stop.
     assert first.longest_stop_s == pytest.approx(3 * DT)
     assert second.longest_stop_s == pytest.approx(DT)
     summary = summarize(laps)

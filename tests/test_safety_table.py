@@ -132,6 +132,10 @@ def test_filters_side_by_side_on_the_same_runs(tmp_path: Path):
     assert by_key[("mpsf", "expert", "true state")][3:5] == [2, 2]  # runs, completed
     stops = [r["summary"]["longest_stop_s"] for r in behind]
     assert by_key[("mpsf", "expert", "true state")][7] == max(stops) < 1.0  # never held still
+    older = [{**rows[0], "summary": {k: v for k, v in rows[0]["summary"].items()
+                                     if k != "longest_stop_s"}}, *rows[1:]]  # fmt: skip
+    assert comparison_rows(older, laps=1)[0][:3] == ["none", "drift", "none"]
+    assert comparison_rows(older, laps=1)[0][7] == "-"  # not a maximum over some runs
     assert by_key[("none", "drift", "none")][5] == 1  # the unfiltered drift leaves the lane
     text = (out / "filter_comparison.md").read_text()
     assert "mpsf, probabilistic" in text and "cbf, on the mean" in text

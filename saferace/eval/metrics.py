@@ -39,8 +39,9 @@ SAFETY_FIELDS = (
 class LapMetrics:
     """What one lap (or the unfinished rest of an episode) achieved.
 
-    ``longest_stop_s`` is the longest stretch of consecutive steps the car spent slower than
-    :data:`STOP_SPEED_MPS` (a filter that deadlocks holds the car still for seconds).
+    ``longest_stop_s`` is the longest stretch of consecutive steps of the lap the car's
+    forward speed spent below :data:`STOP_SPEED_MPS` (a filter that deadlocks holds the car
+    still for seconds).
     ``min_lane_barrier_m`` is the true lane barrier ``min(w_left - e_y, w_right + e_y) -
     half car width`` at its lowest (negative: part of the car was outside). The filter's
     fields are None for episodes driven without one: how many steps it changed the
@@ -137,6 +138,7 @@ def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: f
     steer_rate = np.diff(steer, prepend=steer[:1]) / control_dt_s
     deviation = np.abs(np.asarray(steps["deviation_m"])[mask])
     barrier = steps.get("lane_barrier_m")
+    stopped = np.asarray(steps["v_x_mps"]) < STOP_SPEED_MPS
     safety = _safety_metrics(steps, mask) if "intervened" in steps else {}
     return {
         "mean_abs_deviation_m": float(deviation.mean()),
@@ -144,8 +146,7 @@ def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: f
         "time_outside_lane_s": float(np.sum(np.asarray(steps["cost"])[mask] > 0) * control_dt_s),
         "steering_rate_rms_radps": float(np.sqrt(np.mean(steer_rate[mask] ** 2))),
         "steps": int(mask.sum()),
-        "longest_stop_s": longest_run(mask & (np.asarray(steps["v_x_mps"]) < STOP_SPEED_MPS))
-        * control_dt_s,
+        "longest_stop_s": longest_run(stopped & mask) * control_dt_s,
         "min_lane_barrier_m": None if barrier is None else float(np.min(barrier[mask])),
         **safety,
     }

@@ -43,7 +43,8 @@ def failed(row: dict, laps: int) -> bool:
 def comparison_rows(rows: list[dict], laps: int) -> list[list]:
     """One line per filter, agent and state source over every track: runs, runs that
     finished their ``laps``, runs that left the lane and their time outside, the longest the
-    car stood still in any of them (a deadlocked filter holds it for seconds), the expert's
+    car stood still within a lap of any of them (a deadlocked filter holds it for seconds;
+    "-" where a row predates the metric), the expert's
     mean lap-time cost to its unfiltered run on the same track and task, the filter's
     interventions and its median solve and whole-step times (the median of the runs')."""
     free = {
@@ -87,7 +88,7 @@ def comparison_rows(rows: list[dict], laps: int) -> list[list]:
                 sum(s["laps_completed"] >= laps for s in summaries),
                 sum(s["time_outside_lane_s"] > 0.0 for s in summaries),
                 sum(s["time_outside_lane_s"] for s in summaries),
-                max(stops, default="-"),
+                max(stops) if len(stops) == len(summaries) else "-",  # rows predating it
                 float(np.mean(costs)) if costs else "-",
                 100.0 * float(np.mean(rates)) if rates else "-",
                 float(np.median(solves)) if solves else "-",
@@ -104,8 +105,8 @@ def write_comparison(rows: list[dict], out_dir: Path, laps: int) -> None:
     (out_dir / "filter_comparison.md").write_text(
         f"# Filters compared on {len(tracks)} tracks ({', '.join(tracks)}), {laps} lap(s)\n\n"
         "Completed: runs that finished their laps. Longest stop: the longest the car stood "
-        f"still (below {STOP_SPEED_MPS} m/s) in any run. Lap-time cost: the expert's mean over the "
-        "tracks and tasks, against its unfiltered lap.\n\n"
+        f"still (forward speed below {STOP_SPEED_MPS} m/s) within a lap of any run. Lap-time "
+        "cost: the expert's mean over the tracks and tasks, against its unfiltered lap.\n\n"
         + markdown_table(COMPARISON_COLUMNS, lines)
         + "\n"
     )

@@ -54,9 +54,9 @@ class IntervalQP:
             settings = clarabel.DefaultSettings()
             settings.verbose = False
             settings.presolve_enable = False  # keeps the data updatable
-            # Refining each KKT solve to 1e-13 took a third of the time; without it the
-            # first input moves by at most 4e-6 and the slacks by 1e-8 (measured on 1218 of
-            # the filter's QPs).
+            # Refining each KKT solve to 1e-13 took a third of the time; without it every
+            # one of 1218 recorded filter QPs still solved, its first input moved by at most
+            # 4e-6 and its slacks by 1e-8.
             settings.iterative_refinement_enable = False
             self._solver = clarabel.DefaultSolver(P, q, A, b, cones, settings)
             self._kinds = kinds

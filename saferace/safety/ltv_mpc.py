@@ -27,7 +27,6 @@ perturbation's or another driver's when it only labels the frames
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -38,7 +37,7 @@ import scipy.sparse as sp
 from saferace.envs.drivetrain import DrivetrainParams
 from saferace.safety.models import MIN_SPEED_MPS, FrenetModel
 from saferace.safety.vehicle_params import VehicleParams, load_params
-from saferace.track import Track, VehicleEnvelope
+from saferace.track import Track, VehicleEnvelope, wrap_angle
 from saferace.track.raceline import ReferenceLine
 
 #: Below this stretch per stage the curvature is sampled at its start (see _stage_curvature).
@@ -397,7 +396,7 @@ class FrenetMPC:
         if length < _MIN_STAGE_LENGTH_M:
             return kappa
         turn = centerline.heading_scalar(s_m + length) - centerline.heading_scalar(s_m)
-        return math.remainder(turn, 2.0 * math.pi) / length
+        return wrap_angle(turn) / length
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
         """States and inputs to linearise about: the last plan shifted by one step.

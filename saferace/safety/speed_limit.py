@@ -127,25 +127,33 @@ class LaneSpeedLimit:
     def lowest(self, s_m: float, e_y_m: np.ndarray) -> tuple[float, float]:
         """The lowest limit at ``s_m`` over the offsets ``e_y_m``, and the offset it is at."""
         limit = float(self.reference_limit(s_m))
-        away = np.abs(e_y_m - float(self.reference_offset(s_m)))
-        weights = np.clip((away - self.near_m) / (self.far_m - self.near_m), 0.0, 1.0)
+        weights = self._blend_weights(s_m, e_y_m)
         lowest, at = limit, float(e_y_m[0])
         for weight, e_y in zip(weights[weights > 0.0], e_y_m[weights > 0.0], strict=True):
-            blended = limit - weight * max(0.0, limit - self.parallel_limit(s_m, float(e_y)))
+            blended = self._blended(limit, float(weight), s_m, float(e_y))
             if blended < lowest:
                 lowest, at = blended, float(e_y)
         return lowest, at
 
     def along(self, s_m: np.ndarray, e_y_m: np.ndarray) -> np.ndarray:
-        """The limit at each pair of ``s_m`` and ``e_y_m`` (a plan's stages) at once."""
+        """The limit at each pair of ``s_m`` and ``e_y_m`` (a plan's stages), with one lookup
+        of the reference's limits for all of them."""
         s_m, e_y_m = np.asarray(s_m, dtype=float), np.asarray(e_y_m, dtype=float)
         limits = self.reference_limit(s_m)
-        away = np.abs(e_y_m - self.reference_offset(s_m))
-        weights = np.clip((away - self.near_m) / (self.far_m - self.near_m), 0.0, 1.0)
-        for i in np.flatnonzero(weights):
-            parallel = self.parallel_limit(float(s_m[i]), float(e_y_m[i]))
-            limits[i] -= weights[i] * max(0.0, limits[i] - parallel)
+        weights = self._blend_weights(s_m, e_y_m)
+        for i in np.flatnonzero(weights):  # the few stages far from the reference line
+            limits[i] = self._blended(limits[i], weights[i], float(s_m[i]), float(e_y_m[i]))
         return limits
+
+    def _blend_weights(self, s_m: float | np.ndarray, e_y_m: np.ndarray) -> np.ndarray:
+        """How far each offset has blended into its parallel's limit: 0 within ``near_m`` of
+        the reference line, 1 beyond ``far_m``."""
+        away = np.abs(e_y_m - self.reference_offset(s_m))
+        return np.clip((away - self.near_m) / (self.far_m - self.near_m), 0.0, 1.0)
+
+    def _blended(self, limit: float, weight: float, s_m: float, e_y_m: float) -> float:
+        """The reference's ``limit`` lowered by ``weight`` towards the parallel's."""
+        return limit - weight * max(0.0, limit - self.parallel_limit(s_m, e_y_m))
 
     def parallel_limit(self, s_m: float, e_y_m: float) -> float:
         """The braked limit along the centre line's parallel through ``e_y_m``."""
