@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 from cli_helpers import run_cli
 
 from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
+from saferace.eval import runner
 from saferace.eval.metrics import lap_metrics, summarize, thinned_trajectory
 from saferace.eval.track_plots import plot_path, plt
 
@@ -65,6 +67,28 @@ def test_a_thinned_path_keeps_a_one_step_exit_and_the_plot_marks_it():
     assert cross.get_marker() == "x" and cross.get_color() == path.get_color()
     assert cross.get_xdata().tolist() == [502.0]
     plt.close(figure)
+
+
+@pytest.mark.parametrize(("status", "expected"), [("", "abc123"), (" M x.py\n", "abc123+dirty")])
+def test_the_git_revision_is_read_once_per_process_and_marks_a_dirty_tree(
+    monkeypatch, status: str, expected: str
+):
+    """A commit made while a long table runs must not relabel the rows of code loaded
+    before it; rows of uncommitted code say so."""
+    calls = []
+
+    def fake_git(args: list[str], **_) -> subprocess.CompletedProcess:
+        calls.append(args[1])
+        out = {"rev-parse": "abc123\n", "status": status}[args[1]]
+        return subprocess.CompletedProcess(args, 0, out, "")
+
+    runner.git_revision.cache_clear()
+    monkeypatch.setattr(runner.subprocess, "run", fake_git)
+    try:
+        assert runner.git_revision() == runner.git_revision() == expected
+        assert calls == ["rev-parse", "status"]
+    finally:
+        runner.git_revision.cache_clear()
 
 
 def test_no_steps_no_laps():

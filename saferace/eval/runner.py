@@ -8,6 +8,7 @@ import platform
 import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cache
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -317,11 +318,25 @@ def read_jsonl(path: str | Path) -> list[dict]:
         return [json.loads(line) for line in handle if line.strip()]
 
 
+@cache
 def git_revision() -> str | None:
-    """The source's git revision, if SafeRace runs from a git checkout."""
+    """The source's git revision, if SafeRace runs from a git checkout, with ``+dirty`` where
+    its tracked files differ from it. Read once per process, when its first row is written
+    (its code is loaded by then): a commit made while a long table runs does not change the
+    code its workers run, and their rows say so."""
+    revision = _git("rev-parse", "HEAD")
+    if revision is None:
+        return None
+    return (
+        f"{revision}+dirty" if _git("status", "--porcelain", "--untracked-files=no") else revision
+    )
+
+
+def _git(*args: str) -> str | None:
+    """A git command's output in the package's folder (None where it fails or prints nothing)."""
     try:
         result = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
+            ["git", *args],
             cwd=Path(__file__).resolve().parent,
             capture_output=True,
             text=True,
