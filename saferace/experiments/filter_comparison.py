@@ -44,9 +44,9 @@ def comparison_rows(rows: list[dict], laps: int) -> list[list]:
     """One line per filter, agent and state source over every track: runs, runs that
     finished their ``laps``, runs that left the lane and their time outside, the longest the
     car stood still within a lap of any of them (a deadlocked filter holds it for seconds;
-    "-" where a row predates the metric), the expert's
-    mean lap-time cost to its unfiltered run on the same track and task, the filter's
-    interventions and its median solve and whole-step times (the median of the runs')."""
+    "-" where a row predates the metric), the expert's mean lap-time cost to its unfiltered
+    run on the same track and task, the filter's interventions and its median solve and
+    whole-step times (the median of the runs')."""
     free = {
         (row["track"], row["task"]): row["summary"]["mean_lap_time_s"]
         for row in rows
