@@ -234,7 +234,7 @@ class PredictivePlanner(FrenetMPC):
     ) -> tuple[np.ndarray, np.ndarray]:
         self.plan_arc_lengths = s_stage
         upper, lower = super()._lane_bounds(s_stage, plan_x)
-        speed = max(float(plan_x[0, self.model.speed_index]), 0.0)
+        speed = float(plan_x[0, self.model.speed_index])  # at least MIN_SPEED_MPS (_solve)
         driven_m = np.minimum(s_stage[1:] - s_stage[0], speed * HEADING_CORRECTION_S)
         stage_times_s = self.settings.dt_s * np.arange(1, len(driven_m) + 1)
         self.tightening_m = (
