@@ -162,7 +162,7 @@ class FrenetModel:
         self.n_control = len(self.symbolic.control)
         self.speed_index = self.symbolic.speed_index
         self._param_values = param_values(params)
-        self._f, self._a, self._b, self._s_dot = _lambdified(name)
+        self._f, self._a, self._b, self._s_dot, self._linearised = _lambdified(name)
 
     def state_from(
         self, e_y: float, e_psi: float, v_x: float, v_y: float = 0.0, r: float = 0.0
@@ -239,19 +239,19 @@ class FrenetModel:
         xs, us = np.asarray(xs, dtype=float), np.asarray(us, dtype=float)
         stages = len(xs)
         rate = 1.0 / steer_time_constant_s
+        rows = []  # per stage: f, then df/dx and df/du row by row
+        stage_values = (xs[:, :n], xs[:, n], us[:, 1], np.asarray(kappas, dtype=float))
+        for state, delta, accel, kappa in zip(*(v.tolist() for v in stage_values), strict=True):
+            state[self.speed_index] = max(state[self.speed_index], MIN_SPEED_MPS)
+            rows.append(self._linearised(*state, delta, accel, kappa, *self._param_values))
+        linearised = np.array(rows)
+        a = linearised[:, n : n + n * n].reshape(stages, n, n)
+        b = linearised[:, n + n * n :].reshape(stages, n, m)
         a_lag = np.zeros((stages, n + 1, n + 1))
         b_lag = np.zeros((stages, n + 1, m))
-        x_dot = np.empty((stages, n + 1))
-        for k in range(stages):
-            state, delta = xs[k, :n], xs[k, n]
-            applied = np.array([delta, us[k, 1]])
-            args = self._args(state, applied, kappas[k])
-            a, b = np.asarray(self._a(*args)), np.asarray(self._b(*args))
-            a_lag[k, :n, :n], a_lag[k, :n, n] = a, b[:, 0]
-            b_lag[k, :n, 1] = b[:, 1]
-            x_dot[k, :n] = np.asarray(self._f(*args)).ravel()
-            x_dot[k, n] = rate * (us[k][0] - delta)
+        a_lag[:, :n, :n], a_lag[:, :n, n], b_lag[:, :n, 1] = a, b[:, :, 0], b[:, :, 1]
         a_lag[:, n, n], b_lag[:, n, 0] = -rate, rate
+        x_dot = np.column_stack([linearised[:, :n], rate * (us[:, 0] - xs[:, n])])
         c = x_dot - np.einsum("kij,kj->ki", a_lag, xs) - np.einsum("kij,kj->ki", b_lag, us)
         return _zero_order_hold(a_lag, b_lag, c, dt_s)
 
@@ -278,14 +278,18 @@ def symbolic_model(name: str) -> SymbolicModel:
 
 
 @cache
-def _lambdified(name: str) -> tuple[Callable, Callable, Callable, Callable]:
+def _lambdified(name: str) -> tuple[Callable, Callable, Callable, Callable, Callable]:
+    """``f``, ``df/dx``, ``df/du``, ``s_dot``, and ``f`` with both Jacobians in one flat
+    list (one call per stage of a plan's linearisation)."""
     model = symbolic_model(name)
     args = (*model.state, *model.control, model.kappa, *model.params)
     state, control = sp.Matrix(model.state), sp.Matrix(model.control)
+    jac_x, jac_u = model.x_dot.jacobian(state), model.x_dot.jacobian(control)
     # Plain (nested) lists lambdify to pure-Python ``math`` code: microseconds per call.
     return (
         sp.lambdify(args, list(model.x_dot), "math"),
-        sp.lambdify(args, model.x_dot.jacobian(state).tolist(), "math"),
-        sp.lambdify(args, model.x_dot.jacobian(control).tolist(), "math"),
+        sp.lambdify(args, jac_x.tolist(), "math"),
+        sp.lambdify(args, jac_u.tolist(), "math"),
         sp.lambdify(args, model.s_dot, "math"),
+        sp.lambdify(args, [*model.x_dot, *jac_x, *jac_u], "math"),
     )
