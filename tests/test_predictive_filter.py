@@ -103,35 +103,6 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
     env.close()
 
 
-class _SlopedLimit:
-    """A map speed limit that falls by ``slope`` m/s per m of lateral offset (to the left)."""
-
-    def __init__(self, at_centre_mps: float, slope: float) -> None:
-        self.at_centre_mps, self.slope = at_centre_mps, slope
-
-    def along(self, s_m: np.ndarray, e_y_m: np.ndarray) -> np.ndarray:
-        return self.at_centre_mps + self.slope * np.asarray(e_y_m, dtype=float)
-
-
-def test_each_stage_keeps_the_speed_limit_at_its_own_offset_not_the_linearisations():
-    """A limit of 3 m/s on the centre line that falls by 6 m/s per m to the left, and a car
-    heading left: the plan's stages move left of where it was first linearised (its
-    roll-out from the centre line), and each keeps the limit at its own offset (linear
-    here, so the first-order cap is exact); with the cap taken at the linearisation's
-    offset they could keep 3 m/s, a third above the limit 0.17 m to the left."""
-    env = PredictiveSafetyFilter(make_env())
-    env.planner.speed_limit = _SlopedLimit(3.0, -6.0)
-    observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
-    env.certify(observation, {**info, "e_y_m": 0.0, "e_psi_rad": 0.3}, np.array([0.3, 1.0]))
-    states, slacks = env.planner.plan_states, env.planner.plan_slacks
-    e_y, speeds = states[1:, 0], states[1:, env.planner.model.speed_index]
-    assert e_y.max() > 0.1  # left of the centre line, where it was first linearised
-    limit = 3.0 - 6.0 * e_y
-    assert np.all(speeds - slacks["speed"] <= limit + 1e-6)
-    assert np.all(speeds >= -1e-6)  # and forward only
-    env.close()
-
-
 def test_a_stopped_car_heading_for_the_edge_is_moved_on_and_steered_away():
     """At a standstill near the left edge and heading out, the plan drives on and turns
     away, certified, rather than hold the car there; a stopped car whose agent pushes for
