@@ -177,15 +177,9 @@ class FrenetMPC:
             self._entry(row, L.eps(k), 1.0)
             row += 1
         self._speed_rows = row  # each with its own slack: a speeding stage frees no lane
-        slope_entries = []  # v_k - eps_{N+k} - slope_k e_y,k <= cap_k - slope_k e_y_lin,k
-        for k in range(N if self.speed_rows else 0):
+        for k in range(N if self.speed_rows else 0):  # 0 <= v_k - eps_{N+k} <= the speed cap
             self._entry(row, L.x(k) + self.model.speed_index, 1.0)
             self._entry(row, L.eps(N + k), -1.0)
-            slope_entries.append(self._entry(row, L.x(k)))  # e_y is the first state
-            row += 1
-        self._forward_rows = row
-        for k in range(N if self.speed_rows else 0):  # v_k >= 0: the models drive forward only
-            self._entry(row, L.x(k) + self.model.speed_index, 1.0)
             row += 1
         self._heading_rows = row
         if self.terminal_heading_rad is not None:  # |e_psi_N| - c v_N - eps_last <= bound
@@ -206,7 +200,6 @@ class FrenetMPC:
         slot_of_entry[csc_order] = np.arange(nnz)
         self._constant_values = np.asarray(self._A_constants)[csc_order]
         self._b_slots, self._a_slots = slot_of_entry[b_entries], slot_of_entry[a_entries]
-        self._slope_slots = slot_of_entry[np.asarray(slope_entries, dtype=int)]
         self._A_template = pattern
         self._solver: osqp.OSQP | None = None
 
@@ -218,16 +211,13 @@ class FrenetMPC:
         self._A_constants.append(constant)
         return len(self._A_rows) - 1
 
-    def _constraint_values(
-        self, A_stages: np.ndarray, B_stages: np.ndarray, cap_slopes: np.ndarray
-    ) -> np.ndarray:
+    def _constraint_values(self, A_stages: np.ndarray, B_stages: np.ndarray) -> np.ndarray:
         """Values of every constraint entry, in the CSC order of the constraint matrix: the
-        constants of the pattern with the stages' ``-B_k`` and ``-A_k`` and the speed caps'
-        ``-slope_k`` written into their slots."""
+        constants of the pattern with the stages' ``-B_k`` and ``-A_k`` written into their
+        slots."""
         values = self._constant_values.copy()
         values[self._b_slots] = -B_stages
         values[self._a_slots] = -A_stages[1:]
-        values[self._slope_slots] = -cap_slopes
         return values
 
     def _solve(self, x0: np.ndarray, s0: float) -> np.ndarray:
@@ -288,18 +278,16 @@ class FrenetMPC:
         )
         lo[self._slack_rows : self._speed_rows] = 0.0
         hi[self._slack_rows : self._speed_rows] = np.inf
-        cap_slopes = np.zeros(N if self.speed_rows else 0)
-        if self.speed_rows:  # each cap follows the stage's offset to first order
-            caps, cap_slopes = self._speed_caps_mps(s_stage[1:], plan_x[1:])
-            lo[self._speed_rows : self._forward_rows] = -np.inf
-            hi[self._speed_rows : self._forward_rows] = caps - cap_slopes * plan_x[1:, 0]
-            lo[self._forward_rows : self._heading_rows] = 0.0
-            hi[self._forward_rows : self._heading_rows] = np.inf
+        if self.speed_rows:
+            lo[self._speed_rows : self._heading_rows] = 0.0  # the models drive forward only
+            hi[self._speed_rows : self._heading_rows] = self._speed_caps_mps(
+                s_stage[1:], plan_x[1:]
+            )
         if self.terminal_heading_rad is not None:
             bound = self.terminal_heading_rad
             lo[self._heading_rows :] = [-np.inf, -bound]
             hi[self._heading_rows :] = [bound, np.inf]
-        a_values = self._constraint_values(A_stages, B_stages, cap_slopes)
+        a_values = self._constraint_values(A_stages, B_stages)
 
         start = time.perf_counter()
         z = self._solve_qp(q, lo, hi, a_values)
@@ -345,8 +333,7 @@ class FrenetMPC:
         return result.x if result.info.status_val in solved else None
 
     # ------------------------------------------------ what a planner on this QP changes
-    #: Whether the QP caps each stage's speed (rows ``v_k - eps_k <= cap_k``, the cap's
-    #: slope in the lateral offset linearised, and ``v_k >= 0``).
+    #: Whether the QP caps each stage's speed (rows ``v_k - eps_k <= cap_k``).
     speed_rows = False
     #: A bound on the last stage's heading error, growing with its speed (rad, rad per m/s;
     #: rows ``|e_psi_N| - terminal_heading_per_mps v_N - eps_N <= terminal_heading_rad``).
@@ -391,10 +378,9 @@ class FrenetMPC:
             np.tile([p.max_steer_rad, p.max_accel_mps2], (N, 1)),
         )
 
-    def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Each stage's speed cap at its arc length and state (with ``speed_rows``), and its
-        slope in the stage's lateral offset (m/s per m)."""
-        return np.full(len(s_m), np.inf), np.zeros(len(s_m))
+    def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """Each stage's speed cap at its arc length and state (with ``speed_rows``)."""
+        return np.full(len(s_m), np.inf)
 
     def _stage_curvature(self, x: np.ndarray, s_m: float, dt_s: float) -> float:
         """The centre line's mean curvature over the stretch a stage covers from ``s_m``.

@@ -16,8 +16,7 @@ the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern
 - each stage's steering inside the tyres' grip at the speed the stage is linearised at;
 - the terminal set: the last stage no faster than the map's speed limit there, which is
   braked for in time (:mod:`saferace.safety.speed_limit`), so the car can take what lies
-  beyond the horizon; each stage's cap, the map's limit at its offset, is linearised in
-  the offset, since off the racing line the limit falls within metres.
+  beyond the horizon.
 
 The lane and terminal bounds are soft with an exact (linear) and a squared penalty: the
 QP always has a solution, and it is *certified* where no slack is needed.
@@ -78,16 +77,6 @@ TAIL_RATE_WEIGHTS = (1.0, 1e-2)
 #: inside it: the speeding agent left the lane at Monza's s = 165 m chicane and on four
 #: more F1TENTH circuits as given.
 TAIL_OFFSET_WEIGHT = 1.0
-
-
-#: The offset step of the map limit's slope in each stage's speed cap (m). The limit off the
-#: racing line is the centre line's parallel's, blended in from 0.3 to 0.6 m off the line
-#: (:class:`~saferace.safety.speed_limit.LaneSpeedLimit`); with each stage's cap taken at
-#: the linearisation's offset alone, plans stayed certified along the line while the car
-#: drifted off it under the agent's steering, and at a kink the caps then fell by 2 m/s
-#: in one step: the speeding agent on noisy state left Shanghai (as given, seed 2) for
-#: 0.3 s at the 1.03 1/m kink of s = 473 m.
-CAP_SLOPE_STEP_M = 0.05
 
 
 class PredictivePlanner(FrenetMPC):
@@ -264,23 +253,14 @@ class PredictivePlanner(FrenetMPC):
         u_max[0] = np.maximum(np.minimum(u_max[0], self.first_bounds[1]), u_min[0])
         return u_min, u_max
 
-    def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
         """The map's speed limit, and the speed at which the wheels' angle the stage is
         linearised at reaches the tyres' grip: the models' tyres have no friction limit,
         and a plan left free to speed up while turning hard turned harder by accelerating
-        (a weave on BrandsHatch accelerated at 4 m/s^2 towards the edge). Where the map's
-        limit caps a stage, its slope in the lateral offset (central differences over
-        :data:`CAP_SLOPE_STEP_M`) goes with it, so that a plan sees what leaving the racing
-        line costs."""
+        (a weave on BrandsHatch accelerated at 4 m/s^2 towards the edge)."""
         tangent = np.maximum(np.abs(np.tan(states[:, -1])), 1e-6)
         caps = np.sqrt(self.max_lateral_accel_mps2 * self.params.wheelbase_m / tangent)
-        slopes = np.zeros(len(s_m))
         if self.speed_limit is not None:
-            e_y = states[:, 0]
-            limit = self.speed_limit.along(s_m, e_y)
-            step = CAP_SLOPE_STEP_M
-            rise = self.speed_limit.along(s_m, e_y + step) - self.speed_limit.along(s_m, e_y - step)
-            slopes = np.where(limit < caps, rise / (2.0 * step), 0.0)
-            caps = np.minimum(caps, limit)
+            caps = np.minimum(caps, self.speed_limit.along(s_m, states[:, 0]))
         self.speed_caps_mps = caps
-        return caps, slopes
+        return caps
