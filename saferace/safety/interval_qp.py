@@ -23,7 +23,8 @@ class IntervalQP:
     one up otherwise."""
 
     def __init__(self, a_template: sp.csc_matrix, p_template: sp.csc_matrix) -> None:
-        self.a_template = a_template
+        self._tracer = a_template.copy()  # each entry's index (from 1) in A's data
+        self._tracer.data = np.arange(1, a_template.nnz + 1, dtype=float)
         self._P = p_template.copy()
         self._solver: piqp.SparseSolver | None = None
         self._equal = np.empty(0, dtype=bool)
@@ -42,31 +43,31 @@ class IntervalQP:
         are the templates' data."""
         equal = lo == hi
         interval = ~equal
-        new_rows = self._solver is None or not np.array_equal(equal, self._equal)
+        new_rows = not np.array_equal(equal, self._equal)
         if new_rows:
             self._A_equal, self._equal_entries = self._rows(equal)
             self._A_interval, self._interval_entries = self._rows(interval)
         self._P.data = p_values
         self._A_equal.data = a_values[self._equal_entries]
         self._A_interval.data = a_values[self._interval_entries]
-        data = (self._P, q, self._A_equal, hi[equal], self._A_interval, lo[interval], hi[interval])
+        data = {
+            "P": self._P, "c": q, "A": self._A_equal, "b": hi[equal],
+            "G": self._A_interval, "h_l": lo[interval], "h_u": hi[interval],
+        }  # fmt: skip
         solver = self._solver
         if solver is None or new_rows:
             solver = self._solver = piqp.SparseSolver()
             solver.settings.verbose = False
-            solver.setup(*data)
+            solver.setup(**data)
             self._equal = equal
         else:
-            P, c, A, b, G, h_l, h_u = data
-            solver.update(P=P, c=c, A=A, b=b, G=G, h_l=h_l, h_u=h_u)
+            solver.update(**data)
         solved = solver.solve() == piqp.PIQP_SOLVED
         return np.array(solver.result.x) if solved else None
 
     def _rows(self, rows: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray]:
         """The pattern of ``A[rows]``, and where each of its entries comes from in ``A``'s
         data."""
-        tracer = self.a_template.copy()
-        tracer.data = np.arange(1, tracer.nnz + 1, dtype=float)
-        picked = tracer[np.flatnonzero(rows)].tocsc()
+        picked = self._tracer[np.flatnonzero(rows)].tocsc()
         picked.sort_indices()
         return picked, picked.data.astype(int) - 1

@@ -162,7 +162,7 @@ class FrenetModel:
         self.n_control = len(self.symbolic.control)
         self.speed_index = self.symbolic.speed_index
         self._param_values = param_values(params)
-        self._f, self._a, self._b, self._s_dot, self._linearised = _lambdified(name)
+        self._f, self._s_dot, self._linearised = _lambdified(name)
 
     def state_from(
         self, e_y: float, e_psi: float, v_x: float, v_y: float = 0.0, r: float = 0.0
@@ -184,8 +184,15 @@ class FrenetModel:
         self, x: np.ndarray, u: np.ndarray, kappa: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(df/dx, df/du)`` at ``(x, u)``."""
-        args = self._args(x, u, kappa)
-        return np.asarray(self._a(*args), dtype=float), np.asarray(self._b(*args), dtype=float)
+        _, a, b = self._split(np.array(self._linearised(*self._args(x, u, kappa))))
+        return a, b
+
+    def _split(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(f, df/dx, df/du)`` of the generated function's flat output (a leading axis
+        of stages is kept)."""
+        n, m, lead = self.n_state, self.n_control, flat.shape[:-1]
+        jac_x = flat[..., n : n + n * n].reshape(*lead, n, n)
+        return flat[..., :n], jac_x, flat[..., n + n * n :].reshape(*lead, n, m)
 
     def s_dot(self, x: np.ndarray, kappa: float) -> float:
         """Rate of the centerline arc length."""
@@ -244,14 +251,12 @@ class FrenetModel:
         for state, delta, accel, kappa in zip(*(v.tolist() for v in stage_values), strict=True):
             state[self.speed_index] = max(state[self.speed_index], MIN_SPEED_MPS)
             rows.append(self._linearised(*state, delta, accel, kappa, *self._param_values))
-        linearised = np.array(rows)
-        a = linearised[:, n : n + n * n].reshape(stages, n, n)
-        b = linearised[:, n + n * n :].reshape(stages, n, m)
+        f, a, b = self._split(np.array(rows))
         a_lag = np.zeros((stages, n + 1, n + 1))
         b_lag = np.zeros((stages, n + 1, m))
         a_lag[:, :n, :n], a_lag[:, :n, n], b_lag[:, :n, 1] = a, b[:, :, 0], b[:, :, 1]
         a_lag[:, n, n], b_lag[:, n, 0] = -rate, rate
-        x_dot = np.column_stack([linearised[:, :n], rate * (us[:, 0] - xs[:, n])])
+        x_dot = np.column_stack([f, rate * (us[:, 0] - xs[:, n])])
         c = x_dot - np.einsum("kij,kj->ki", a_lag, xs) - np.einsum("kij,kj->ki", b_lag, us)
         return _zero_order_hold(a_lag, b_lag, c, dt_s)
 
@@ -278,9 +283,9 @@ def symbolic_model(name: str) -> SymbolicModel:
 
 
 @cache
-def _lambdified(name: str) -> tuple[Callable, Callable, Callable, Callable, Callable]:
-    """``f``, ``df/dx``, ``df/du``, ``s_dot``, and ``f`` with both Jacobians in one flat
-    list (one call per stage of a plan's linearisation)."""
+def _lambdified(name: str) -> tuple[Callable, Callable, Callable]:
+    """``f``, ``s_dot``, and ``f`` with both Jacobians in one flat list (one call per
+    stage of a plan's linearisation)."""
     model = symbolic_model(name)
     args = (*model.state, *model.control, model.kappa, *model.params)
     state, control = sp.Matrix(model.state), sp.Matrix(model.control)
@@ -288,8 +293,6 @@ def _lambdified(name: str) -> tuple[Callable, Callable, Callable, Callable, Call
     # Plain (nested) lists lambdify to pure-Python ``math`` code: microseconds per call.
     return (
         sp.lambdify(args, list(model.x_dot), "math"),
-        sp.lambdify(args, jac_x.tolist(), "math"),
-        sp.lambdify(args, jac_u.tolist(), "math"),
         sp.lambdify(args, model.s_dot, "math"),
         sp.lambdify(args, [*model.x_dot, *jac_x, *jac_u], "math"),
     )
