@@ -70,6 +70,20 @@ def test_straight_line_at_constant_speed_is_an_equilibrium(name: str):
     assert np.count_nonzero(derivative) == 1
 
 
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_along_track_speeds_over_one_less_kappa_e_y_are_s_dot(name: str):
+    """The vectorised numerator of ``s_dot`` (many stages in one call) gives ``s_dot`` at
+    any curvature, the raised speed of a car below ``MIN_SPEED_MPS`` included."""
+    model = FrenetModel(name, PARAMS)
+    rng = np.random.default_rng(4)
+    states = np.array([random_state(model, rng) for _ in range(8)])
+    states[0, model.speed_index] = 0.1
+    speeds = model.along_track_speeds_mps(states)
+    for x, speed in zip(states, speeds, strict=True):
+        kappa = rng.uniform(-1.0, 1.0)
+        assert speed / (1.0 - kappa * x[0]) == pytest.approx(model.s_dot(x, kappa), rel=1e-12)
+
+
 def test_kinematic_steady_circle():
     model = FrenetModel("kinematic", PARAMS)
     kappa, v = 0.5, 2.0

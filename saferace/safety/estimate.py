@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from saferace.safety.intervals import MonitoredStateSource, state_interval
+from saferace.safety.intervals import has_monitor, interval_about
 from saferace.safety.state_sources import StateSource
 
 
@@ -31,20 +31,20 @@ def checked_action(
 
 @dataclass(frozen=True)
 class StateEstimate:
-    """One step's belief of the lane state ``[e_y, e_psi, kappa]``: the source's samples,
-    the interval it holds the state to, the monitor's score (None without a monitor) and
-    whether it raised or the interval is unbounded (``alarm``: the source is in doubt)."""
+    """One step's belief of the lane state ``[e_y, e_psi, kappa]``: the source's samples
+    (with their mean and standard deviation), the interval it holds the state to and
+    whether that is ``bounded``, the monitor's score (None without a monitor) and whether
+    it raised or the interval is unbounded (``alarm``: the source is in doubt)."""
 
     samples: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
     monitor_score: float | None
     alarm: bool
     map_curvature: bool
-
-    @property
-    def bounded(self) -> bool:
-        return bool(np.all(np.isfinite(self.lower)) and np.all(np.isfinite(self.upper)))
+    bounded: bool
 
     def fields(self, info: dict[str, Any], kappa_mean: float) -> dict[str, Any]:
         """The decision's record of the state: the simulator's truth, the belief and
@@ -53,13 +53,11 @@ class StateEstimate:
         truth = np.array([info[name] for name in ("e_y_m", "e_psi_rad", "kappa_radpm")], float)
         checked = slice(0, 2 if self.map_curvature else 3)
         lower, upper = self.lower, self.upper
+        mean, std = self.mean.tolist(), self.std.tolist()
         return {
             "state_true": truth.tolist(),
-            "state_mean": [*self.samples[:, :2].mean(axis=0), kappa_mean],
-            "state_std": [
-                *self.samples[:, :2].std(axis=0),
-                0.0 if self.map_curvature else float(self.samples[:, 2].std()),
-            ],
+            "state_mean": [*mean[:2], kappa_mean],
+            "state_std": [*std[:2], 0.0 if self.map_curvature else std[2]],
             "state_lower": lower.tolist(),
             "state_upper": upper.tolist(),
             "covered": bool(
@@ -79,13 +77,20 @@ def estimate_state(
     """``source``'s belief this step, its interval ``mean +- z std`` where it has no own
     (its curvature pinned to ``map_curvature_radpm`` where given)."""
     samples = np.atleast_2d(source.samples(observation, info))
-    lower, upper = state_interval(source, samples, z)
+    mean, std = samples.mean(axis=0), samples.std(axis=0)
+    lower, upper = interval_about(source, samples, mean, std, z)
     if map_curvature_radpm is not None:
         lower[2] = upper[2] = map_curvature_radpm
-    score, alarm = (
-        source.monitor(samples) if isinstance(source, MonitoredStateSource) else (None, False)
+    score, alarm = source.monitor(samples) if has_monitor(source) else (None, False)
+    bounded = bool(np.isfinite(lower).all() and np.isfinite(upper).all())
+    return StateEstimate(
+        samples,
+        mean,
+        std,
+        lower,
+        upper,
+        score,
+        alarm or not bounded,  # an unbounded interval rules out no state at all
+        map_curvature_radpm is not None,
+        bounded,
     )
-    estimate = StateEstimate(samples, lower, upper, score, alarm, map_curvature_radpm is not None)
-    if not estimate.bounded:  # an unbounded interval rules out no state at all
-        return StateEstimate(samples, lower, upper, score, True, estimate.map_curvature)
-    return estimate

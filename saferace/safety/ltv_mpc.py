@@ -40,7 +40,7 @@ from saferace.safety.vehicle_params import VehicleParams, load_params
 from saferace.track import Track, VehicleEnvelope, wrap_angle
 from saferace.track.raceline import ReferenceLine
 
-#: Below this stretch per stage the curvature is sampled at its start (see _stage_curvature).
+#: Below this stretch per stage the curvature is sampled at its start (_stages_along_map).
 _MIN_STAGE_LENGTH_M = 1e-3
 
 
@@ -120,8 +120,10 @@ class FrenetMPC:
         names = (*self.model.state_names, "steer_angle")
         q_state = np.array([state_weights.get(name, 0.0) for name in names])
         self._q_state = q_state
+        slack_weights = self._slack_weights()
+        self._slack_costs = s.slack_linear * slack_weights  # the slacks' linear costs
         p_diag = np.concatenate(
-            [np.tile(q_state, N), np.zeros(N * m), s.slack_quadratic * self._slack_weights()]
+            [np.tile(q_state, N), np.zeros(N * m), s.slack_quadratic * slack_weights]
         )
         rate = np.array([s.weight_steer_rate, s.weight_accel_rate])
         effort = self._input_weights()
@@ -135,6 +137,11 @@ class FrenetMPC:
                     cols.append(i)
                     vals.append(-rate[j])
         self._rate_weights = rate
+        p = self.drivetrain
+        self._drivetrain_bounds = (
+            np.tile([-p.max_steer_rad, -p.max_brake_mps2], (N, 1)),
+            np.tile([p.max_steer_rad, p.max_accel_mps2], (N, 1)),
+        )
         P = sp.coo_matrix((2.0 * np.asarray(vals), (rows, cols)), shape=(L.size, L.size))
         self._P = sp.triu(P + sp.triu(P, 1).T, format="csc")
 
@@ -230,12 +237,7 @@ class FrenetMPC:
         # car standing still in Melbourne's kink). Linearised at the raised speed, the terms
         # linear in speed vanish at zero: a plan turns the car only by driving it.
         plan_x[:, model.speed_index] = np.maximum(plan_x[:, model.speed_index], MIN_SPEED_MPS)
-        s_stage = np.empty(N + 1)
-        s_stage[0] = s0
-        kappas = np.empty(N)
-        for k in range(N):
-            kappas[k] = self._stage_curvature(plan_x[k, : model.n_state], s_stage[k], dt)
-            s_stage[k + 1] = s_stage[k] + model.s_dot(plan_x[k, : model.n_state], kappas[k]) * dt
+        s_stage, kappas = self._stages_along_map(plan_x[:N, : model.n_state], s0, dt)
         A_stages, B_stages, c_stages = model.discretize_stages_with_steering_lag(
             plan_x[:N], plan_u, kappas, dt, self.params.steer_time_constant_s
         )
@@ -250,7 +252,7 @@ class FrenetMPC:
         q[: N * n] = -2.0 * (reference * self._q_state).ravel()
         q[L.u(0) : L.u(0) + m] -= 2.0 * self._rate_weights * self._rate_anchor()
         q[L.u(0) : L.u(0) + m] -= 2.0 * self._first_input_pull()
-        q[L.eps(0) :] = st.slack_linear * self._slack_weights()
+        q[L.eps(0) :] = self._slack_costs
         lo = np.empty(self._n_rows)
         hi = np.empty(self._n_rows)
         dynamics_rhs = c_stages.copy()
@@ -371,32 +373,40 @@ class FrenetMPC:
         return w_left - clearance, -(w_right - clearance)
 
     def _input_bounds(self, plan_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(u_min, u_max)`` of each stage ``(N, m)``: the drivetrain's limits."""
-        p, N = self.drivetrain, self.settings.horizon
-        return (
-            np.tile([-p.max_steer_rad, -p.max_brake_mps2], (N, 1)),
-            np.tile([p.max_steer_rad, p.max_accel_mps2], (N, 1)),
-        )
+        """``(u_min, u_max)`` of each stage ``(N, m)``: the drivetrain's limits (copies, for
+        a planner to narrow)."""
+        return self._drivetrain_bounds[0].copy(), self._drivetrain_bounds[1].copy()
 
     def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
         """Each stage's speed cap at its arc length and state (with ``speed_rows``)."""
         return np.full(len(s_m), np.inf)
 
-    def _stage_curvature(self, x: np.ndarray, s_m: float, dt_s: float) -> float:
-        """The centre line's mean curvature over the stretch a stage covers from ``s_m``.
+    def _stages_along_map(
+        self, states: np.ndarray, s0_m: float, dt_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The arc length each stage starts at (and the last ends at), and the centre
+        line's mean curvature over the stretch each stage covers.
 
-        Its heading change over the stretch divided by its length: a kink shorter than a
-        stage (real circuits' centre lines have some, 1-2 m of 1/m curvature) turns the
-        Frenet frame by what it really turns, where a point sample could miss it or see
-        only its peak. The stretch is the model's ``s_dot`` at the point's curvature.
+        The mean curvature is the centre line's heading change over the stretch divided
+        by its length: a kink shorter than a stage (real circuits' centre lines have some,
+        1-2 m of 1/m curvature) turns the Frenet frame by what it really turns, where a
+        point sample could miss it or see only its peak. The stretch is the model's
+        ``s_dot`` at the curvature where the stage starts; the stage then moves on by
+        ``s_dot`` at the mean curvature.
         """
         centerline = self.track.centerline
-        kappa = centerline.curvature_scalar(s_m)
-        length = self.model.s_dot(x, kappa) * dt_s
-        if length < _MIN_STAGE_LENGTH_M:
-            return kappa
-        turn = centerline.heading_scalar(s_m + length) - centerline.heading_scalar(s_m)
-        return wrap_angle(turn) / length
+        travels_m = (self.model.along_track_speeds_mps(states) * dt_s).tolist()
+        s_stage = np.empty(len(states) + 1)
+        kappas = np.empty(len(states))
+        s_m = s_stage[0] = s0_m
+        for k, (travel_m, e_y) in enumerate(zip(travels_m, states[:, 0].tolist(), strict=True)):
+            kappa, heading = centerline.curvature_and_heading_scalar(s_m)
+            length = travel_m / (1.0 - kappa * e_y)
+            if length >= _MIN_STAGE_LENGTH_M:
+                kappa = wrap_angle(centerline.heading_scalar(s_m + length) - heading) / length
+            kappas[k] = kappa
+            s_m = s_stage[k + 1] = s_m + travel_m / (1.0 - kappa * e_y)
+        return s_stage, kappas
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
         """States and inputs to linearise about: the last plan shifted by one step.

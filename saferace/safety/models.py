@@ -32,6 +32,7 @@ from functools import cache
 import numpy as np
 import sympy as sp
 
+from saferace.safety.matrix_exponential import expm_batch
 from saferace.safety.vehicle_params import VehicleParams
 
 MIN_SPEED_MPS = 0.5
@@ -198,6 +199,14 @@ class FrenetModel:
         """Rate of the centerline arc length."""
         return float(self._s_dot(*self._args(x, np.zeros(2), kappa)))
 
+    def along_track_speeds_mps(self, xs: np.ndarray) -> np.ndarray:
+        """``v_x cos e_psi - v_y sin e_psi`` of each state in ``xs`` (leading axes kept):
+        :meth:`s_dot` is this over ``1 - kappa e_y``, so many stages' rates cost one
+        vectorised call and a division each."""
+        e_psi, v_y = xs[..., 1], xs[..., 3]  # v_y is the fourth state of every model
+        v_x = np.maximum(xs[..., self.speed_index], MIN_SPEED_MPS)
+        return v_x * np.cos(e_psi) - v_y * np.sin(e_psi)
+
     def step(self, x: np.ndarray, u: np.ndarray, kappa: float, dt_s: float) -> np.ndarray:
         """Integrate the nonlinear model over ``dt_s`` with ``u`` and ``kappa`` held.
 
@@ -223,7 +232,10 @@ class FrenetModel:
         by one matrix exponential.
         """
         a, b = self.jacobians(x, u, kappa)
-        return _zero_order_hold(a, b, self.f(x, u, kappa) - a @ x - b @ u, dt_s)
+        n, m = b.shape
+        block = np.zeros((n + m + 1, n + m + 1))
+        block[:n, :n], block[:n, n:-1], block[:n, -1] = a, b, self.f(x, u, kappa) - a @ x - b @ u
+        return _zero_order_hold(block, n, dt_s)
 
     def discretize_stages_with_steering_lag(
         self,
@@ -246,34 +258,33 @@ class FrenetModel:
         xs, us = np.asarray(xs, dtype=float), np.asarray(us, dtype=float)
         stages = len(xs)
         rate = 1.0 / steer_time_constant_s
-        rows = []  # per stage: f, then df/dx and df/du row by row
-        stage_values = (xs[:, :n], xs[:, n], us[:, 1], np.asarray(kappas, dtype=float))
-        for state, delta, accel, kappa in zip(*(v.tolist() for v in stage_values), strict=True):
-            state[self.speed_index] = max(state[self.speed_index], MIN_SPEED_MPS)
-            rows.append(self._linearised(*state, delta, accel, kappa, *self._param_values))
-        f, a, b = self._split(np.array(rows))
-        a_lag = np.zeros((stages, n + 1, n + 1))
-        b_lag = np.zeros((stages, n + 1, m))
-        a_lag[:, :n, :n], a_lag[:, :n, n], b_lag[:, :n, 1] = a, b[:, :, 0], b[:, :, 1]
-        a_lag[:, n, n], b_lag[:, n, 0] = -rate, rate
+        states = xs[:, :n].copy()
+        states[:, self.speed_index] = np.maximum(states[:, self.speed_index], MIN_SPEED_MPS)
+        values = self._linearised(
+            *states.T, xs[:, n], us[:, 1], np.asarray(kappas, dtype=float), *self._param_values
+        )  # per stage: f, then df/dx and df/du row by row (constants as scalars)
+        flat = np.empty((stages, len(values)))
+        for column, value in enumerate(values):
+            flat[:, column] = value
+        f, a, b = self._split(flat)
+        size = n + 1  # the lagged system's state
+        block = np.zeros((stages, size + m + 1, size + m + 1))  # [[A, B, c], [0, 0, 0]]
+        block[:, :n, :n], block[:, :n, n], block[:, :n, size + 1] = a, b[:, :, 0], b[:, :, 1]
+        block[:, n, n], block[:, n, size] = -rate, rate
         x_dot = np.column_stack([f, rate * (us[:, 0] - xs[:, n])])
-        c = x_dot - np.einsum("kij,kj->ki", a_lag, xs) - np.einsum("kij,kj->ki", b_lag, us)
-        return _zero_order_hold(a_lag, b_lag, c, dt_s)
+        linear = np.einsum("kij,kj->ki", block[:, :size, : size + m], np.hstack([xs, us]))
+        block[:, :size, -1] = x_dot - linear
+        return _zero_order_hold(block, size, dt_s)
 
 
 def _zero_order_hold(
-    a: np.ndarray, b: np.ndarray, c: np.ndarray, dt_s: float
+    block: np.ndarray, n: int, dt_s: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``x' = a x + b u + c`` with ``u`` held over ``dt_s``, discretised exactly by one
-    matrix exponential: ``(A_d, B_d, c_d)``; leading axes of ``a``, ``b``, ``c`` are a batch
-    of systems, exponentiated in one call."""
-    from scipy.linalg import expm
-
-    n, m = b.shape[-2:]
-    block = np.zeros((*a.shape[:-2], n + m + 1, n + m + 1))
-    block[..., :n, :n], block[..., :n, n : n + m], block[..., :n, -1] = a, b, c
-    exp = expm(block * dt_s)
-    return exp[..., :n, :n], exp[..., :n, n : n + m], exp[..., :n, -1]
+    matrix exponential of ``block = [[a, b, c], [0, 0, 0]]`` (``n`` states): ``(A_d, B_d,
+    c_d)``. Leading axes of ``block`` are a batch of systems, exponentiated together."""
+    exp = expm_batch(block * dt_s)
+    return exp[..., :n, :n], exp[..., :n, n:-1], exp[..., :n, -1]
 
 
 @cache
@@ -284,15 +295,15 @@ def symbolic_model(name: str) -> SymbolicModel:
 
 @cache
 def _lambdified(name: str) -> tuple[Callable, Callable, Callable]:
-    """``f``, ``s_dot``, and ``f`` with both Jacobians in one flat list (one call per
-    stage of a plan's linearisation)."""
+    """``f``, ``s_dot``, and ``f`` with both Jacobians in one flat list (numpy code with
+    common subexpressions shared: one call linearises all stages of a plan, given arrays)."""
     model = symbolic_model(name)
     args = (*model.state, *model.control, model.kappa, *model.params)
     state, control = sp.Matrix(model.state), sp.Matrix(model.control)
     jac_x, jac_u = model.x_dot.jacobian(state), model.x_dot.jacobian(control)
-    # Plain (nested) lists lambdify to pure-Python ``math`` code: microseconds per call.
+    # Plain lists lambdify to pure-Python ``math`` code: microseconds per call on floats.
     return (
         sp.lambdify(args, list(model.x_dot), "math"),
         sp.lambdify(args, model.s_dot, "math"),
-        sp.lambdify(args, [*model.x_dot, *jac_x, *jac_u], "math"),
+        sp.lambdify(args, [*model.x_dot, *jac_x, *jac_u], "numpy", cse=True),
     )

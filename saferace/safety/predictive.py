@@ -147,7 +147,7 @@ class PredictiveSafetyFilter(SafetyFilter):
         if self.robust and estimate.bounded:
             believed = 0.5 * (estimate.lower + estimate.upper)
         else:
-            believed = estimate.samples.mean(axis=0)
+            believed = estimate.mean
         half_interval = 0.5 * (estimate.upper - estimate.lower)
         tightened = estimate.bounded and (self.probabilistic or self.robust)
         offset_margin, heading_margin = half_interval[:2] if tightened else (0.0, 0.0)
@@ -232,15 +232,16 @@ class PredictiveSafetyFilter(SafetyFilter):
         states = self.planner.plan_states
         assert states is not None  # a certified plan solved
         speeds = states[1:-1, self.planner.model.speed_index]
-        self._tail_inputs = np.array(
-            [self._command(u, v) for u, v in zip(self.planner.plan_inputs[1:], speeds, strict=True)]
-        )
+        self._tail_inputs = self._command(self.planner.plan_inputs[1:], speeds)
         self._tail_states = states[1:-1, :2]
 
-    def _command(self, u: np.ndarray, speed_mps: float) -> np.ndarray:
-        """The drivetrain's command for the model's input ``u`` at ``speed_mps``."""
-        accel = (u[1] + self.vehicle_params.drag_per_s * speed_mps) / self.vehicle_params.accel_gain
-        return np.array([u[0], accel])
+    def _command(self, u: np.ndarray, speed_mps: float | np.ndarray) -> np.ndarray:
+        """The drivetrain's commands for the model's inputs ``u`` (``(..., 2)``) at
+        ``speed_mps``."""
+        params = self.vehicle_params
+        command = np.array(u, dtype=float)
+        command[..., 1] = (command[..., 1] + params.drag_per_s * speed_mps) / params.accel_gain
+        return command
 
     def _margins(self, s_m: float, e_y_m: float, e_psi_rad: float, v_x: float) -> dict[str, float]:
         """Now: the lane margins of the believed offset, the speed limit's and the terminal

@@ -135,6 +135,11 @@ class ClosedPath:
         _, _, dx, dy, _, _ = self.eval_scalar(s)
         return math.atan2(dy, dx)
 
+    def curvature_and_heading_scalar(self, s: float) -> tuple[float, float]:
+        """:meth:`curvature_scalar` and :meth:`heading_scalar` from one evaluation."""
+        _, _, dx, dy, ddx, ddy = self.eval_scalar(s)
+        return (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5, math.atan2(dy, dx)
+
 
 def _chord_spline(points: np.ndarray) -> tuple[CubicSpline, np.ndarray]:
     """Periodic spline through ``points`` parameterised by cumulative chord length."""
