@@ -103,6 +103,34 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
     env.close()
 
 
+def test_a_plans_last_stage_is_held_to_the_maps_invariant_limit(hairpin_track: str):
+    """Every stage's speed cap is the map's limit where the stage is linearised (and the
+    grip's), but the last stage's, the terminal set's, is the invariant limit: off the
+    racing line in the hairpin, below the blended one."""
+    env = PredictiveSafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=hairpin_track, max_laps=1)
+    )
+    env.reset(seed=0)
+    planner, limit = env.planner, env.planner.speed_limit
+    assert limit is not None
+    s_m = np.linspace(STRAIGHT_M - 2.0, STRAIGHT_M + 3.0, planner.settings.horizon)
+    line = planner.reference.offset_at(s_m)
+    candidates = [line[-1] + d for d in np.linspace(-0.55, 0.55, 23)]
+    gaps = [limit.along(s_m[-1:], np.array([e]))[0] - limit.invariant_limit(s_m[-1], e)
+            for e in candidates]  # fmt: skip
+    assert max(gaps) > 0.3  # an offset where the blend is well above the invariant limit
+    states = np.zeros((len(s_m), planner.model.n_state + 1))
+    states[:, 0] = line
+    states[-1, 0] = candidates[int(np.argmax(gaps))]
+    states[:, planner.model.speed_index] = 3.0
+    caps = planner._speed_caps_mps(s_m, states)
+    grip = np.sqrt(planner.max_lateral_accel_mps2 * planner.params.wheelbase_m / 1e-6)
+    expected = np.minimum(grip, limit.along(s_m, states[:, 0]))
+    expected[-1] = min(grip, limit.invariant_limit(s_m[-1], states[-1, 0]))
+    np.testing.assert_allclose(caps, expected, rtol=0, atol=1e-12)
+    env.close()
+
+
 def test_a_stopped_car_heading_for_the_edge_is_moved_on_and_steered_away():
     """At a standstill near the left edge and heading out, the plan drives on and turns
     away, certified, rather than hold the car there; a stopped car whose agent pushes for

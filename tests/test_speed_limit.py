@@ -148,6 +148,52 @@ def test_parallel_limits_are_slower_inside_a_turn_and_braked_for(cut_turn_limit)
         assert np.all(v**2 <= np.roll(v, -1) ** 2 + 2 * 2.0 * stretch * gaps + 1e-9)
 
 
+def test_the_invariant_limit_is_the_lines_near_it_and_the_lowest_blend_beyond(cut_turn_limit):
+    """Within ``near_m`` of the line the invariant limit is the line's; beyond, the lower of
+    the line's and the parallel's: never above the blended limit, and below it in the blend
+    where the parallel is slower, so that a plan's last stage held to it is not caught by
+    the blend's drop a few metres on."""
+    track, reference, limit = cut_turn_limit
+    rng = np.random.default_rng(7)
+    s = rng.uniform(0.0, track.length_m, 300)
+    e_y = rng.uniform(-1.1, 1.1, 300)
+    pairs = list(zip(s.tolist(), e_y.tolist(), strict=True))
+    invariant = np.array([limit.invariant_limit(a, b) for a, b in pairs])
+    blended = limit.along(s, e_y)
+    assert np.all(invariant <= blended + 1e-12)
+    away = np.abs(e_y - reference.offset_at(s))
+    near = away <= limit.near_m
+    np.testing.assert_allclose(invariant[near], limit.reference_limit(s[near]), atol=1e-12)
+    off_line = [pair for pair, close in zip(pairs, near, strict=True) if not close]
+    lowest = [min(float(limit.reference_limit(a)), limit.parallel_limit(a, b)) for a, b in off_line]
+    np.testing.assert_allclose(invariant[~near], lowest, atol=1e-12)
+    in_blend = (away > limit.near_m) & (away < limit.far_m)
+    assert np.any(invariant[in_blend] < blended[in_blend] - 0.1)
+
+
+def test_along_an_offset_the_lower_of_the_lines_and_the_parallels_limit_is_braked_for(
+    cut_turn_limit,
+):
+    """What makes the invariant limit invariant off the line: the minimum of two profiles
+    that each fall no faster than braking at 2 m/s^2 allows (the line's per metre of the
+    centre line, the parallel's per metre of itself) falls no faster either, where the
+    blend at the same offset drops far faster."""
+    track, reference, limit = cut_turn_limit
+    s = np.asarray(reference.center_s_m)
+    kappa = track.centerline.curvature(s)
+    gaps = np.diff(np.append(s, s[0] + track.length_m))
+    steepest_blend_drop_mps2 = 0.0
+    for offset in (-0.8, -0.4, 0.0, 0.4, 0.8):
+        parallel = np.array([limit.parallel_limit(float(x), offset) for x in s])
+        lowest = np.minimum(limit.reference_limit(s), parallel)
+        step_m = np.maximum(1.0, np.maximum(1.0 - offset * kappa, 0.05)) * gaps
+        assert np.all(lowest**2 - np.roll(lowest, -1) ** 2 <= 2 * 2.0 * step_m + 1e-9)
+        blend = limit.along(s, np.full(len(s), offset))
+        drop_mps2 = np.max((blend**2 - np.roll(blend, -1) ** 2) / (2 * step_m))
+        steepest_blend_drop_mps2 = max(steepest_blend_drop_mps2, drop_mps2)
+    assert steepest_blend_drop_mps2 > 3.0  # the blend alone asks for more than 2 m/s^2
+
+
 def test_lane_limit_settings_are_checked(cut_turn_limit):
     track, reference, _ = cut_turn_limit
     with pytest.raises(ValueError, match="positive"):

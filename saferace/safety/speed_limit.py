@@ -87,7 +87,7 @@ class LaneSpeedLimit:
     for more braking than the car has. Braking each offset's blended limit along the track
     would mend that, but would slow a car on its line wherever the line leaves that offset
     downstream: to 0.92-0.94 of the reference's limit on the built-in tracks and 0.43-0.63
-    on the F1TENTH circuits.
+    on the F1TENTH circuits. :meth:`invariant_limit` is a lower bound that is braked for.
     """
 
     def __init__(
@@ -144,6 +144,18 @@ class LaneSpeedLimit:
         for i in np.flatnonzero(weights):  # the few stages far from the reference line
             limits[i] = self._blended(limits[i], weights[i], float(s_m[i]), float(e_y_m[i]))
         return limits
+
+    def invariant_limit(self, s_m: float, e_y_m: float) -> float:
+        """A limit at ``(s_m, e_y_m)`` that the limit ahead never falls faster than braking
+        allows, for a car that follows the reference line from within ``near_m`` of it or
+        else keeps its offset: the reference's limit near the line, and beyond it the lower
+        of that and the parallel's, the most the blend can lower it to. Both profiles are
+        braked for along their paths, and so is their minimum; the blend in between is not
+        (a predictive plan's last stage is held to this, its other stages to the blend)."""
+        limit = float(self.reference_limit(s_m))
+        if self._blend_weights(s_m, np.array([e_y_m]))[0] <= 0.0:
+            return limit
+        return min(limit, self.parallel_limit(s_m, e_y_m))
 
     def _blend_weights(self, s_m: float | np.ndarray, e_y_m: np.ndarray) -> np.ndarray:
         """How far each offset has blended into its parallel's limit: 0 within ``near_m`` of
