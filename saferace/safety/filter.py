@@ -259,7 +259,7 @@ class SafetyFilter(gym.Wrapper):
         if self.robust and bounded:
             lane = interval_points(state_lower, state_upper)
         else:
-            lane = samples if chance else samples.mean(axis=0, keepdims=True)
+            lane = samples if chance else estimate.mean[None]
             if self.map_curvature:
                 lane = np.column_stack([lane[:, :2], np.full(len(lane), state_lower[2])])
         v_x = float(observation["velocity"][0])

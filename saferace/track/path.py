@@ -127,8 +127,7 @@ class ClosedPath:
 
     def curvature_scalar(self, s: float) -> float:
         """Signed curvature at one arc length, without numpy overhead (per-step use)."""
-        _, _, dx, dy, ddx, ddy = self.eval_scalar(s)
-        return (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5
+        return self.curvature_and_heading_scalar(s)[0]
 
     def heading_scalar(self, s: float) -> float:
         """:meth:`heading` at one arc length, without numpy overhead (per-step use)."""
@@ -136,7 +135,7 @@ class ClosedPath:
         return math.atan2(dy, dx)
 
     def curvature_and_heading_scalar(self, s: float) -> tuple[float, float]:
-        """:meth:`curvature_scalar` and :meth:`heading_scalar` from one evaluation."""
+        """Signed curvature and heading at one arc length from one evaluation."""
         _, _, dx, dy, ddx, ddy = self.eval_scalar(s)
         return (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5, math.atan2(dy, dx)
 
