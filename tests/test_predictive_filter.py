@@ -131,6 +131,36 @@ def test_a_plans_last_stage_is_held_to_the_maps_invariant_limit(hairpin_track: s
     env.close()
 
 
+def test_a_stages_map_limit_holds_what_the_last_steps_plan_held_it_to(hairpin_track: str):
+    """A plan moved off the racing line does not meet map limits below those the last
+    step's plan met at the same arc lengths (the blend falls by metres per second over
+    tenths of a metre): the shifted certified plan stays feasible. The last stage is still
+    held to the invariant limit where it now lies, and a lap's wrap changes nothing."""
+    env = PredictiveSafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=hairpin_track, max_laps=1)
+    )
+    env.reset(seed=0, options={"start_s_m": STRAIGHT_M - 2.0, "start_speed_mps": 3.0})
+    env.step(np.array([0.0, 0.0]))
+    planner, limit = env.planner, env.planner.speed_limit
+    assert limit is not None
+    held_s_m, held = planner._held_limits
+    s_m = np.append(held_s_m[2:], held_s_m[-1] + np.diff(held_s_m[-2:])) + 0.05
+    states = np.zeros((len(s_m), planner.model.n_state + 1))
+    states[:, 0] = planner.reference.offset_at(s_m) + 0.55  # off the line, towards the edge
+    states[:, planner.model.speed_index] = 3.0
+    caps = planner._speed_caps_mps(s_m, states)
+    blend = limit.along(s_m, states[:, 0])
+    grip = np.sqrt(planner.max_lateral_accel_mps2 * planner.params.wheelbase_m / 1e-6)
+    held_there = np.interp(s_m, held_s_m, held, left=-np.inf, right=-np.inf)
+    expected = np.minimum(grip, np.maximum(blend, held_there))
+    expected[-1] = min(grip, limit.invariant_limit(s_m[-1], states[-1, 0]))
+    np.testing.assert_allclose(caps, expected, rtol=0, atol=1e-12)
+    assert np.max(caps[:-1] - blend[:-1]) > 0.3  # the held limit is well above the blend
+    wrapped = planner._speed_caps_mps(s_m - planner.track.length_m, states)
+    np.testing.assert_allclose(wrapped, caps, rtol=0, atol=1e-9)
+    env.close()
+
+
 def test_a_stopped_car_heading_for_the_edge_is_moved_on_and_steered_away():
     """At a standstill near the left edge and heading out, the plan drives on and turns
     away, certified, rather than hold the car there; a stopped car whose agent pushes for

@@ -17,6 +17,8 @@ the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern
 - the terminal set: the last stage no faster than the map's speed limit there (off the
   racing line, the lower of the line's and the parallel's), which is braked for in time
   (:mod:`saferace.safety.speed_limit`), so the car can take what lies beyond the horizon.
+  The other stages are held to the map's limit where they lie, but never below what the
+  last step's plan held the same arc lengths to, so that plan's tail stays feasible.
 
 The lane and terminal bounds are soft with an exact (linear) and a squared penalty: the
 QP always has a solution, and it is *certified* where no slack is needed.
@@ -135,6 +137,11 @@ class PredictivePlanner(FrenetMPC):
         )  # fmt: skip
         self._p_values = P.data.copy()
 
+    def reset(self) -> None:
+        super().reset()
+        self._stage_limits: tuple[np.ndarray, np.ndarray] | None = None  # this solve's
+        self._held_limits: tuple[np.ndarray, np.ndarray] | None = None  # the last step's
+
     def plan(
         self,
         x0: np.ndarray,
@@ -165,6 +172,7 @@ class PredictivePlanner(FrenetMPC):
             u = self._solve(x0, s0_m)
         self._previous_u = u
         self._x0 = x0
+        self._held_limits = self._stage_limits
         return u, self.stats.failures == failures
 
     @property
@@ -266,12 +274,32 @@ class PredictivePlanner(FrenetMPC):
         while the agent steered the car further off, met limits 2-3 m/s lower a few steps
         later, where the line moves away from the car's offset, and the speeding agent on
         noisy state left the lane (Melbourne as given, seed 0, 0.55 s and 29 cm; Shanghai
-        as given, seed 2, 0.3 s)."""
+        as given, seed 2, 0.3 s).
+
+        The other stages' map limits are at least what the last step's plan held the same
+        arc lengths to (:meth:`_held_limit`), so the last plan, shifted by a step, stays
+        feasible (MPSC's recursive feasibility). Each stage's limit is looked up where the
+        last plan put it, and a few tenths of a metre off the line the blend falls by
+        2-3 m/s: at a kink, a plan whose far end swung off the line met limits no plan could
+        brake for, and the speeding agent left the lane (Shanghai as given at s = 474 m,
+        0.25-0.35 s, on the true or the noisy state as the last digits of the plans fell)."""
         tangent = np.maximum(np.abs(np.tan(states[:, -1])), 1e-6)
         caps = np.sqrt(self.max_lateral_accel_mps2 * self.params.wheelbase_m / tangent)
         if self.speed_limit is not None:
             limits = self.speed_limit.along(s_m, states[:, 0])
+            limits[:-1] = np.maximum(limits[:-1], self._held_limit(s_m[:-1]))
             limits[-1] = self.speed_limit.invariant_limit(float(s_m[-1]), float(states[-1, 0]))
             caps = np.minimum(caps, limits)
+            self._stage_limits = (s_m, limits)
         self.speed_caps_mps = caps
         return caps
+
+    def _held_limit(self, s_m: np.ndarray) -> np.ndarray:
+        """The map's limit the last step's plan held its stages to, at ``s_m`` (-inf beyond
+        that plan's stages)."""
+        if self._held_limits is None:
+            return np.full(len(s_m), -np.inf)
+        held_s_m, held = self._held_limits
+        length = self.track.length_m
+        s_m = s_m + length * np.round((held_s_m[0] - s_m[0]) / length)
+        return np.interp(s_m, held_s_m, held, left=-np.inf, right=-np.inf)
