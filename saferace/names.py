@@ -10,6 +10,8 @@ from __future__ import annotations
 #: The tasks by short name, and their gymnasium ids.
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
 TASKS: tuple[str, ...] = tuple(TASK_IDS)
+#: Tasks in traffic (``saferace.envs.traffic``): they start among opponents.
+TRAFFIC_TASK_IDS = {"Overtake": "saferace/Overtake-v0"}
 
 #: Vehicle models of the expert MPC and the safety filter (``saferace.safety.models``).
 VEHICLE_MODELS = ("kinematic", "dynamic", "dynamic-paper")

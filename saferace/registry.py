@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from saferace.names import TASK_IDS
+from saferace.names import TASK_IDS, TRAFFIC_TASK_IDS
 
-#: Task id -> entry point. Both tasks share the car and scene; they differ in reference line.
-TASKS = {task_id: f"saferace.envs.racing_env:{task}Env" for task, task_id in TASK_IDS.items()}
+#: Task id -> entry point. The tasks share the car and scene; they differ in reference line
+#: and in the opponents they start among.
+TASKS = {
+    **{task_id: f"saferace.envs.racing_env:{task}Env" for task, task_id in TASK_IDS.items()},
+    **{task_id: f"saferace.envs.overtake:{task}Env" for task, task_id in TRAFFIC_TASK_IDS.items()},
+}
 
 
 def register_tasks() -> None:

@@ -16,7 +16,7 @@ FLOORS = {
     "track": 1,
     "envs": 2,
     "safety": 3, "agents": 3,
-    "eval": 4, "sysid": 4,
+    "eval": 4, "sysid": 4, "multi": 4,
     "learning": 5,
     "experiments": 6,
     "cli": 7, "__main__": 7, "__init__": 7,

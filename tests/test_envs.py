@@ -11,6 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 import saferace  # noqa: F401  - registers the tasks
 from saferace.errors import SafeRaceError
+from saferace.names import TRAFFIC_TASK_IDS
 from saferace.registry import TASKS
 from saferace.track import Track, builtin_track_names
 
@@ -63,18 +64,44 @@ def test_different_seeds_differ_with_random_start():
     env.close()
 
 
-@pytest.mark.parametrize("task_id", TASK_IDS)
-def test_pickle_round_trip_continues_identically(task_id: str):
-    env = gym.make(task_id, track="varying").unwrapped
+#: Opponents whose drivers a pickle restores to the bit (the expert's QP warm start is not).
+RESTORABLE_OPPONENTS = [
+    "pure-pursuit:gap_m=2",
+    "lane-changer:gap_m=5",
+    "blocker:gap_m=8",
+    "braking",
+]
+
+
+def pickled_and_stepped(task_id: str, **kwargs):
+    """An env stepped 20 times and its pickled clone, both stepped 30 more: their results."""
+    env = gym.make(task_id, track="varying", **kwargs).unwrapped
     env.reset(seed=1)
     for _ in range(20):
         env.step(np.array([0.05, 1.0]))
     clone = pickle.loads(pickle.dumps(env))
+    results = []
     for step in range(30):
         action = np.array([0.1 * np.sin(step / 5.0), 0.5])
-        assert_same(env.step(action), clone.step(action))
+        results.append((env.step(action), clone.step(action)))
     env.close()
     clone.close()
+    return results
+
+
+@pytest.mark.parametrize("task_id", TASK_IDS)
+def test_pickle_round_trip_continues_identically(task_id: str):
+    kwargs = {"opponents": RESTORABLE_OPPONENTS} if task_id in TRAFFIC_TASK_IDS.values() else {}
+    for original, clone in pickled_and_stepped(task_id, **kwargs):
+        assert_same(original, clone)
+
+
+def test_pickled_expert_opponent_continues_to_the_solvers_tolerance():
+    for original, clone in pickled_and_stepped("saferace/Overtake-v0"):
+        opponents = zip(original[4]["opponents"], clone[4]["opponents"], strict=True)
+        cars = [(original[4], clone[4]), *opponents]
+        for mine, theirs in cars:
+            assert np.hypot(mine["x_m"] - theirs["x_m"], mine["y_m"] - theirs["y_m"]) < 0.01
 
 
 @pytest.mark.parametrize("track", [*builtin_track_names(), "unseen"])

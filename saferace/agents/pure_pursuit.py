@@ -53,9 +53,8 @@ class PurePursuit:
         lookahead = settings.lookahead_m + settings.lookahead_per_speed_s * max(speed, 0.0)
         s_target = info["s_m"] + lookahead
         center = self.track.centerline
-        target = center.position(s_target) + self.reference.offset_at(s_target) * center.normal(
-            s_target
-        )
+        offset = self.target_offset_m(s_target, info)
+        target = center.position(s_target) + offset * center.normal(s_target)
         dx, dy = target[0] - info["x_m"], target[1] - info["y_m"]
         yaw = info["yaw_rad"]
         local_x = math.cos(yaw) * dx + math.sin(yaw) * dy
@@ -64,6 +63,11 @@ class PurePursuit:
         steer = math.atan(2.0 * settings.wheelbase_m * local_y / max(distance_sq, 1e-6))
         accel = settings.speed_gain_per_s * (self.target_speed(info["s_m"], speed) - speed)
         return np.array([steer, accel], dtype=np.float32)
+
+    def target_offset_m(self, s_m: float, info: dict[str, Any]) -> float:
+        """The lateral offset (m, positive left) of the point steered to at ``s_m``: the
+        reference line's (drivers that leave it override this)."""
+        return float(self.reference.offset_at(s_m))
 
     def target_speed(self, s_m: float, speed_mps: float) -> float:
         """The fastest speed now from which every scaled reference speed ahead can be reached."""

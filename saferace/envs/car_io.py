@@ -4,6 +4,7 @@ state through them (placing it, its controls, a control step of physics, its pos
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import mujoco
 import numpy as np
@@ -17,38 +18,50 @@ class CarIO:
     """Addresses of the named model elements the env reads and writes every step, and the
     reads and writes themselves."""
 
-    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
-        self.model, self.data = model, data
-        self.chassis = model.body("chassis").id
-        root = model.joint("root")
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, prefix: str = "") -> None:
+        """The car whose element names start with ``prefix`` (``""`` for the ego car)."""
+        self.model, self.data, self.prefix = model, data, prefix
+        self.chassis = model.body(prefix + "chassis").id
+        root = model.joint(prefix + "root")
         self.root_qpos, self.root_qvel = int(root.qposadr[0]), int(root.dofadr[0])
         self.wheel_qvel = [
-            int(model.joint(f"{wheel}_spin").dofadr[0])
+            int(model.joint(f"{prefix}{wheel}_spin").dofadr[0])
             for wheel in ("front_left", "front_right", "rear_left", "rear_right")
         ]
         self.steer_joints_qpos = [
-            int(model.joint(f"front_{side}_steer").qposadr[0]) for side in ("left", "right")
+            int(model.joint(f"{prefix}front_{side}_steer").qposadr[0]) for side in ("left", "right")
         ]
-        self.steer_left = model.actuator("front_left_steering_servo").id
-        self.steer_right = model.actuator("front_right_steering_servo").id
-        self.motors = [model.actuator("rear_left_motor").id, model.actuator("rear_right_motor").id]
+        self.steer_left = model.actuator(prefix + "front_left_steering_servo").id
+        self.steer_right = model.actuator(prefix + "front_right_steering_servo").id
+        self.motors = [
+            model.actuator(prefix + "rear_left_motor").id,
+            model.actuator(prefix + "rear_right_motor").id,
+        ]
         self.brakes = [
-            model.actuator("front_left_brake").id,
-            model.actuator("front_right_brake").id,
+            model.actuator(prefix + "front_left_brake").id,
+            model.actuator(prefix + "front_right_brake").id,
         ]
-        self.velocimeter = int(model.sensor("imu_velocimeter").adr[0])
-        self.gyro = int(model.sensor("imu_gyro").adr[0])
+        self.velocimeter = int(model.sensor(prefix + "imu_velocimeter").adr[0])
+        self.gyro = int(model.sensor(prefix + "imu_gyro").adr[0])
         self.rear_wheel_speed = [
-            int(model.sensor("rear_left_wheel_speed").adr[0]),
-            int(model.sensor("rear_right_wheel_speed").adr[0]),
+            int(model.sensor(prefix + "rear_left_wheel_speed").adr[0]),
+            int(model.sensor(prefix + "rear_right_wheel_speed").adr[0]),
         ]
 
     def place(
         self, pose: tuple[float, float, float], speed_mps: float, wheel_radius_m: float
     ) -> None:
         """Reset the physics with the car at ``(x, y, yaw)`` rolling at ``speed_mps``."""
-        model, data = self.model, self.data
-        mujoco.mj_resetData(model, data)
+        mujoco.mj_resetData(self.model, self.data)
+        self.set_pose(pose, speed_mps, wheel_radius_m)
+        mujoco.mj_forward(self.model, self.data)
+
+    def set_pose(
+        self, pose: tuple[float, float, float], speed_mps: float, wheel_radius_m: float
+    ) -> None:
+        """Put the car at ``(x, y, yaw)`` rolling at ``speed_mps`` (positions and velocities
+        only: the caller runs ``mj_forward`` once every car is placed)."""
+        data = self.data
         x, y, yaw = pose
         data.qpos[self.root_qpos : self.root_qpos + 7] = [
             x,
@@ -66,7 +79,6 @@ class CarIO:
         ]
         for address in self.wheel_qvel:
             data.qvel[address] = speed_mps / wheel_radius_m
-        mujoco.mj_forward(model, data)
 
     def set_controls(
         self, steer_rad: tuple[float, float], rear_torque_nm: float, front_torque_nm: float
@@ -85,22 +97,30 @@ class CarIO:
         rear = 0.5 * sum(float(data.sensordata[a]) for a in self.rear_wheel_speed)
         return float(data.sensordata[self.velocimeter]), rear
 
-    def step(self, substeps: int) -> None:
+    def step(self, substeps: int, after_substep: Callable[[], None] | None = None) -> None:
         """One control step of physics, leaving positions, velocities and sensors current.
 
         ``mj_step`` computes positions and sensors *before* it integrates, so after it they
         lag the state by a substep. As dm_control does, each control step finishes the
         pending step (``mj_step2``, which applies the new controls), runs the other
         substeps, and ends with ``mj_step1`` for the new state. Sensors are only read
-        then, so they are computed only then.
+        then, so they are computed only then. ``after_substep`` (a scene with several cars:
+        their contacts) runs after every substep, with the contacts of its positions.
         """
         model, data, opt = self.model, self.data, self.model.opt
         opt.disableflags |= _SENSORS_OFF
         mujoco.mj_step2(model, data)
-        if substeps > 1:
-            mujoco.mj_step(model, data, nstep=substeps - 1)
+        if after_substep is None:
+            if substeps > 1:
+                mujoco.mj_step(model, data, nstep=substeps - 1)
+        else:
+            for _ in range(substeps - 1):
+                mujoco.mj_step(model, data)
+                after_substep()
         opt.disableflags &= ~_SENSORS_OFF
         mujoco.mj_step1(model, data)
+        if after_substep is not None:
+            after_substep()
 
     def pose(self) -> tuple[float, float, float]:
         """``(x_m, y_m, yaw_rad)`` of the chassis."""

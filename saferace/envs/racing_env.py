@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import atexit
 import dataclasses
-import functools
 import math
-import weakref
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -14,6 +12,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
+from saferace.envs.arguments import check_task_arguments
 from saferace.envs.car_io import CarIO
 from saferace.envs.car_variation import CarVariation
 from saferace.envs.drivetrain import (
@@ -22,7 +21,6 @@ from saferace.envs.drivetrain import (
     rate_limited,
     wheel_torques,
 )
-from saferace.envs.gl_backend import check_gl_process, note_gl_process, renderer_error
 from saferace.envs.randomization import (
     PhysicsRandomization,
     VisualRandomization,
@@ -32,6 +30,8 @@ from saferace.envs.randomization import (
 from saferace.envs.reference_lines import reference_line
 from saferace.envs.scene import SceneOptions, build_model
 from saferace.envs.scene_look import SceneLook
+from saferace.envs.traffic import OpponentSpec, Traffic, opponent_specs
+from saferace.envs.views import Views
 from saferace.errors import SafeRaceError
 from saferace.track import Track, VehicleEnvelope
 from saferace.track.frenet import wrap_arc
@@ -39,23 +39,7 @@ from saferace.track.frenet import wrap_arc
 #: Bounds of ``[v_x, v_y, r]`` (m/s, m/s, rad/s): far beyond the car's 7 m/s, but finite.
 VELOCITY_BOUND = np.array([30.0, 30.0, 100.0], np.float32)
 DEFAULT_CONTROL_HZ = 20.0
-CAR_GEOM_GROUP = 2  # the car's own visual geoms: hidden from the onboard cameras
 _STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
-
-#: Envs whose renderers must be closed at exit if their owner never called close().
-_LIVE_ENVS: weakref.WeakSet[RacingEnv] = weakref.WeakSet()
-
-
-def _close_live_envs() -> None:
-    for env in list(_LIVE_ENVS):
-        env.close()
-
-
-@functools.cache
-def _close_renderers_at_exit() -> None:
-    """Register the exit hook once, after the first GL context exists: mujoco's EGL backend
-    registers the display's teardown then, and exit hooks run last-registered first."""
-    atexit.register(_close_live_envs)
 
 
 class RacingEnv(gym.Env):
@@ -73,13 +57,11 @@ class RacingEnv(gym.Env):
     and the longitudinal acceleration command in ``[-4, 4]`` m/s^2, which the motor turns
     into rear-wheel torque (saturating with wheel speed, top speed about 7 m/s).
 
-    ## Observation space
-    ``Dict``:
+    ## Observation space (``Dict``)
     - ``image``: uint8 ``(H, W, 3)`` from ``front_camera``, or ``(H, W, 6)`` with
       ``stereo=True`` (``stereo_left`` then ``stereo_right``, 0.12 m apart).
     - ``velocity``: float32 ``[v_x, v_y, r]``: body-frame forward and leftward speed
       (m/s) and yaw rate (rad/s), as an IMU and wheel encoders would measure them.
-
     Ground truth never enters the observation; it is in ``info`` (below).
 
     ## Rewards
@@ -89,8 +71,16 @@ class RacingEnv(gym.Env):
     ``reward_progress`` and ``reward_deviation``.
 
     ## Cost
-    ``info["cost"]`` is 1.0 while any part of the car (its 0.30 m width) is outside the
-    lane, else 0.0.
+    ``info["cost"]`` is 1.0 while any part of the car (0.30 m wide) is outside the lane.
+
+    ## Traffic
+    ``opponents``: other rc10s, each an :class:`~saferace.envs.traffic.OpponentSpec`, a dict
+    of its fields or ``"POLICY[:FIELD=VALUE,...]"`` (``expert``, ``pure-pursuit``,
+    ``lane-changer``, ``blocker``, ``braking``; seeded, driven from ground truth), seen by the
+    onboard camera. ``info`` then has ``opponents`` (pose, Frenet state, speed, ``gap_m``),
+    ``collisions`` (started this step: cars, time, relative speed, the car at fault; the ego
+    is ``car0``) and ``at_fault_collisions``; each costs ``collision_penalty`` of reward
+    (``reward_collision``) and ends the episode with ``terminate_on_collision``.
 
     ## Starting state
     On the reference line at centerline arc length ``start_s_m`` (default 0, the
@@ -114,8 +104,8 @@ class RacingEnv(gym.Env):
     ``reward_progress``, ``reward_deviation``.
 
     ## Arguments
-    ``track``: built-in name or CSV path or :class:`~saferace.track.Track` (default
-    ``"technical"``); ``image_size=(64, 64)`` (H, W); ``stereo=False``; ``control_hz=20``;
+    ``track``: built-in name, CSV path or :class:`~saferace.track.Track` (``"technical"``);
+    ``image_size=(64, 64)`` (H, W); ``stereo=False``; ``control_hz=20``;
     ``physics_dt_s=0.005``; ``max_laps=1``; ``max_steps=None``; ``render_mode=None`` or
     ``"rgb_array"`` (chase view of ``render_size=(240, 320)``); ``start_s_m=0.0``;
     ``random_start=False``; ``deviation_weight=1.0``; ``scene_options``; ``randomize``: visual
@@ -136,6 +126,9 @@ class RacingEnv(gym.Env):
     action_space: spaces.Box
     observation_space: spaces.Dict
     reference_kind = "center"
+    default_opponents: tuple[OpponentSpec, ...] = ()
+    default_collision_penalty = 0.0
+    default_terminate_on_collision = False
 
     def __init__(
         self,
@@ -154,8 +147,13 @@ class RacingEnv(gym.Env):
         scene_options: SceneOptions | None = None,
         randomize: str | VisualRandomization | None = None,
         physics_randomize: str | PhysicsRandomization | None = None,
+        opponents: Sequence[OpponentSpec | dict | str] | None = None,
+        collision_penalty: float | None = None,
+        terminate_on_collision: bool | None = None,
     ) -> None:
-        _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode, self.metadata)
+        check_task_arguments(
+            image_size, control_hz, physics_dt_s, max_laps, render_mode, self.metadata
+        )
         self._init_kwargs = dict(
             track=track,
             image_size=tuple(image_size),
@@ -172,6 +170,9 @@ class RacingEnv(gym.Env):
             scene_options=scene_options,
             randomize=randomize,
             physics_randomize=physics_randomize,
+            opponents=opponents,
+            collision_penalty=collision_penalty,
+            terminate_on_collision=terminate_on_collision,
         )
         self.randomize = visual_randomization(randomize)
         self.physics_randomize = physics_randomization(physics_randomize)
@@ -196,7 +197,16 @@ class RacingEnv(gym.Env):
         options = scene_options or SceneOptions()
         if not self.randomize.is_identity:
             options = dataclasses.replace(options, randomizable=True)
-        self.model = build_model(self.track, options)
+        self.opponents = opponent_specs(self.default_opponents if opponents is None else opponents)
+        self.collision_penalty = float(
+            self.default_collision_penalty if collision_penalty is None else collision_penalty
+        )
+        self.terminate_on_collision = bool(
+            self.default_terminate_on_collision
+            if terminate_on_collision is None
+            else terminate_on_collision
+        )
+        self.model = build_model(self.track, options, len(self.opponents))
         self.model.opt.timestep = physics_dt_s
         self.data = mujoco.MjData(self.model)
         self._look = (
@@ -211,13 +221,12 @@ class RacingEnv(gym.Env):
         )
         self._car_io = CarIO(self.model, self.data)
         self._projector = self.track.projector()
-        self._cameras = ("stereo_left", "stereo_right") if stereo else ("front_camera",)
-        self._onboard_option = mujoco.MjvOption()
-        self._onboard_option.geomgroup[CAR_GEOM_GROUP] = 0
-        self._renderers: dict[str, mujoco.Renderer] = {}  # by purpose, created on first use
-        _LIVE_ENVS.add(self)
+        self._traffic = Traffic(self, self.opponents) if self.opponents else None
+        cameras = ("stereo_left", "stereo_right") if stereo else ("front_camera",)
+        cars = 1 + len(self.opponents)
+        self._views = Views(self.model, self.data, self.image_size, cameras, cars, self._look)
 
-        channels = 3 * len(self._cameras)
+        channels = 3 * len(cameras)
         self.observation_space = spaces.Dict(
             image=spaces.Box(0, 255, (*self.image_size, channels), np.uint8),
             velocity=spaces.Box(-VELOCITY_BOUND, VELOCITY_BOUND, (3,), np.float32),
@@ -247,7 +256,13 @@ class RacingEnv(gym.Env):
         variations = self._vary()
         start = start_s % self.track.length_m
         speed = self.reference.speed_at(start) if start_speed is None else start_speed
-        self._car_io.place(self.reference.pose_at(start), float(speed), self.params.wheel_radius_m)
+        mujoco.mj_resetData(self.model, self.data)
+        self._car_io.set_pose(
+            self.reference.pose_at(start), float(speed), self.params.wheel_radius_m
+        )
+        if self._traffic is not None:
+            self._traffic.place(start, self.np_random)
+        mujoco.mj_forward(self.model, self.data)
         self._projector.reset(start)
         self._steer_target = 0.0
         pose = self._car_io.pose()
@@ -263,6 +278,9 @@ class RacingEnv(gym.Env):
         )
         velocity = self._car_io.velocity()
         info = self._info(pose, frenet, velocity, progress_m=0.0, lap_completed=False)
+        if self._traffic is not None:
+            self._traffic.observe(info, first=True)
+            info = self._traffic.ego_info(info, [], self.collision_penalty)
         return self._observation(velocity), {**info, **variations}
 
     def step(self, action):
@@ -276,7 +294,13 @@ class RacingEnv(gym.Env):
             ackermann_angles(self._steer_target, params), torques.rear_nm, torques.front_nm
         )
         time_before = self.data.time
-        self._car_io.step(self.substeps)
+        traffic = self._traffic
+        if traffic is None:
+            self._car_io.step(self.substeps)
+        else:
+            traffic.drive()
+            near = traffic.monitor.may_touch(self.control_dt_s)
+            self._car_io.step(self.substeps, traffic.monitor.check if near else None)
 
         episode = self._episode
         pose = self._car_io.pose()
@@ -291,22 +315,38 @@ class RacingEnv(gym.Env):
 
         velocity = self._car_io.velocity()
         info = self._info(pose, frenet, velocity, progress_m=progress, lap_completed=lap_completed)
-        reward = info["reward_progress"] + info["reward_deviation"]
-        terminated = bool(info["fully_outside_lane"] or self._car_io.flipped())
+        if traffic is not None:
+            info = traffic.ego_info(info, traffic.observe(info), self.collision_penalty)
+        reward = (
+            info["reward_progress"] + info["reward_deviation"] + info.get("reward_collision", 0.0)
+        )
+        terminated = bool(
+            info["fully_outside_lane"] or self._car_io.flipped() or self._ends_on_collision(info)
+        )
         truncated = bool(episode["lap"] >= self.max_laps or episode["steps"] >= self.max_steps)
         return self._observation(velocity), reward, terminated, truncated, info
 
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        renderer = self._renderer("chase", self.render_size)
-        renderer.update_scene(self.data, camera="chase_camera")
-        return renderer.render()
+        return self._views.chase(self.render_size)
 
     def close(self) -> None:
-        for renderer in self._renderers.values():
-            renderer.close()
-        self._renderers.clear()
+        self._views.close()
+
+    @property
+    def traffic(self) -> Traffic | None:
+        """The opponents (None without)."""
+        return self._traffic
+
+    def car_observation(self, car: int) -> dict[str, np.ndarray]:
+        """What car ``car`` (0: the ego car, 1...: the opponents) sees now: its onboard
+        image(s) and its velocity, as the observation space defines them."""
+        if car == 0:
+            return self._observation(self._car_io.velocity())
+        if self._traffic is None or not 0 < car <= len(self._traffic.cars):
+            raise SafeRaceError(f"no car {car}: this env has {len(self.opponents)} opponents")
+        return self._observation(self._traffic.cars[car - 1].io.velocity(), car)
 
     @property
     def drivetrain(self) -> DrivetrainParams:
@@ -327,6 +367,7 @@ class RacingEnv(gym.Env):
             np_random=self._np_random,
             variation_rng=self._variation_rng,
             noise_index=self._look.noise_index if self._look else 0,
+            traffic=self._traffic.get_state() if self._traffic else None,
         )
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -345,8 +386,13 @@ class RacingEnv(gym.Env):
         self._episode = state["episode"]
         self._projector.set_state(state["projector"])
         self._np_random = state["np_random"]
+        if self._traffic is not None:
+            self._traffic.set_state(state["traffic"])
 
     # ------------------------------------------------------------- internals
+    def _ends_on_collision(self, info: dict[str, Any]) -> bool:
+        return self.terminate_on_collision and info.get("at_fault_collisions", 0) > 0
+
     def _vary(self) -> dict[str, dict[str, Any]]:
         """Draw this episode's look and car, apply them, and return the values drawn."""
         variations: dict[str, dict[str, Any]] = {}
@@ -355,8 +401,7 @@ class RacingEnv(gym.Env):
         self._variation_rng = dict(self.np_random.bit_generator.state)  # a copy
         if self._look is not None:
             variations["look"] = self._look.apply(self.np_random)
-            for renderer in self._renderers.values():
-                self._look.upload(renderer)
+            self._views.upload_look()
         if self._car is not None:
             self._drivetrain, variations["car"] = self._car.apply(self.np_random)
             mujoco.mj_setConst(self.model, self.data)  # what MuJoCo derives from the masses
@@ -388,33 +433,8 @@ class RacingEnv(gym.Env):
             max(-p.max_brake_mps2, min(p.max_accel_mps2, accel)),
         )
 
-    def _observation(self, velocity: np.ndarray) -> dict[str, np.ndarray]:
-        renderer = self._renderer("onboard", self.image_size)
-        images = []
-        for camera in self._cameras:
-            renderer.update_scene(self.data, camera=camera, scene_option=self._onboard_option)
-            image = renderer.render()
-            if self._look is not None:
-                image = self._look.postprocess(image)
-            images.append(image)
-        image = images[0] if len(images) == 1 else np.concatenate(images, axis=2)
-        return {"image": image, "velocity": velocity}
-
-    def _renderer(self, purpose: str, size: tuple[int, int]) -> mujoco.Renderer:
-        """The renderer for ``purpose`` (onboard or chase), created on first use."""
-        renderer = self._renderers.get(purpose)
-        if renderer is None:
-            check_gl_process()
-            try:
-                renderer = mujoco.Renderer(self.model, *size)
-            except Exception as exc:  # any GL failure gets the same advice
-                raise renderer_error(exc) from exc
-            note_gl_process()
-            if self._look is not None:  # its sky is a bank entry, not the model's
-                self._look.upload(renderer)
-            self._renderers[purpose] = renderer
-            _close_renderers_at_exit()
-        return renderer
+    def _observation(self, velocity: np.ndarray, car: int = 0) -> dict[str, np.ndarray]:
+        return {"image": self._views.onboard(car), "velocity": velocity}
 
     def _info(
         self,
@@ -478,23 +498,3 @@ class RacingLineEnv(RacingEnv):
     """``saferace/RacingLine-v0``: follow the minimum-curvature racing line (:class:`RacingEnv`)."""
 
     reference_kind = "racing"
-
-
-def _check_arguments(image_size, control_hz, physics_dt_s, max_laps, render_mode, metadata) -> None:
-    if len(image_size) != 2 or min(image_size) < 8 or max(image_size) > 480:
-        raise SafeRaceError(
-            f"image_size must be (height, width) between 8 and 480, got {image_size}"
-        )
-    if not 1.0 <= control_hz <= 1.0 / physics_dt_s:
-        raise SafeRaceError(
-            f"control_hz must be between 1 and the physics rate {1.0 / physics_dt_s:g}, "
-            f"got {control_hz}"
-        )
-    if not 1e-4 <= physics_dt_s <= 0.01:
-        raise SafeRaceError(f"physics_dt_s must be between 1e-4 and 0.01 s, got {physics_dt_s}")
-    if max_laps < 1:
-        raise SafeRaceError(f"max_laps must be at least 1, got {max_laps}")
-    if render_mode is not None and render_mode not in metadata["render_modes"]:
-        raise SafeRaceError(
-            f"render_mode must be None or one of {metadata['render_modes']}, got {render_mode!r}"
-        )

@@ -5,10 +5,12 @@ one asphalt ribbon mesh, two white boundary-line meshes (what the networks look 
 so they are emissive and crisp even at 64x64), a start/finish line, a grass ground
 plane with a coarse grid, and some roadside cones and boxes for visual structure.
 Shadows and multisampling are off. Only the car's tyres and chassis collide, with the
-ground plane; every other scene element is visual. A ``randomizable`` scene gives the
-asphalt a plain white texture and adds hidden dashed lines, which domain randomisation
-repaints, moves and shows in place (:mod:`saferace.envs.scene_look`); its lines are not
-emissive, so that they dim with the randomised light. The texture costs a
+ground plane; every other scene element is visual. A scene with opponents attaches the
+car's spec once more per opponent, prefixed ``car1/``, ``car2/``..., in its own colour;
+the cars' bumpers collide with each other's, never with the scenery. A ``randomizable``
+scene gives the asphalt a plain white texture and adds hidden dashed lines, which domain
+randomisation repaints, moves and shows in place (:mod:`saferace.envs.scene_look`); its
+lines are not emissive, so that they dim with the randomised light. The texture costs a
 software rasteriser about 8% of a 64x64 step; every mesh vertex drawn costs too, so the
 dashed lines are drawn only when shown.
 """
@@ -30,6 +32,19 @@ ASPHALT_RGBA = (0.32, 0.32, 0.34, 1.0)
 LINE_RGBA = (1.0, 1.0, 1.0, 1.0)
 GRASS_RGBA = (0.30, 0.50, 0.22, 1.0)
 START_RGBA = (0.85, 0.10, 0.10, 1.0)
+#: The opponents' body colours, in turn (the ego car is red).
+OPPONENT_RGBA = (
+    (0.10, 0.35, 0.85, 1.0),
+    (0.95, 0.75, 0.10, 1.0),
+    (0.10, 0.65, 0.30, 1.0),
+    (0.60, 0.20, 0.75, 1.0),
+)
+#: The geom group of the ego car's own visual geoms (hidden from its onboard cameras) and of
+#: every other car's (shown).
+OWN_CAR_GROUP = 2
+OTHER_CAR_GROUP = 1
+HIDDEN_GROUP = 3  # collision geoms, and what is not worth drawing
+SHELL_GEOMS = ("shell", "wing")
 ROADSIDE_RGBA = ((1.0, 0.45, 0.0, 1.0), (0.15, 0.35, 0.85, 1.0), (0.95, 0.85, 0.10, 1.0))
 
 _SURFACE_Z_M = {"asphalt": 0.002, "lines": 0.004, "start": 0.005}
@@ -63,10 +78,19 @@ class SceneOptions:
     randomizable: bool = False
 
 
-def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjSpec:
-    """The MjSpec of ``track`` with the rc10 car at the origin."""
+def car_prefix(index: int) -> str:
+    """The name prefix of car ``index`` (0 is the ego car, whose names have none)."""
+    return "" if index == 0 else f"car{index}/"
+
+
+def build_scene(
+    track: Track, options: SceneOptions | None = None, opponents: int = 0
+) -> mujoco.MjSpec:
+    """The MjSpec of ``track`` with the rc10 car and ``opponents`` more at the origin."""
     options = options or SceneOptions()
     spec = mujoco.MjSpec.from_file(str(CAR_XML))
+    for index in range(1, opponents + 1):
+        _attach_opponent(spec, index)
     spec.modelname = f"saferace_{track.name}"
     _configure_visual(spec, track, options)
     _add_ground_and_light(spec, track)
@@ -98,9 +122,30 @@ def build_scene(track: Track, options: SceneOptions | None = None) -> mujoco.MjS
     return spec
 
 
-def build_model(track: Track, options: SceneOptions | None = None) -> mujoco.MjModel:
-    """The compiled scene of ``track``."""
-    return build_scene(track, options).compile()
+def build_model(
+    track: Track, options: SceneOptions | None = None, opponents: int = 0
+) -> mujoco.MjModel:
+    """The compiled scene of ``track`` with ``opponents`` cars besides the ego car."""
+    return build_scene(track, options, opponents).compile()
+
+
+def _attach_opponent(spec: mujoco.MjSpec, index: int) -> None:
+    """Attach another rc10 as ``car{index}/``: its visual geoms shown to the onboard cameras
+    (its steering knuckles hidden, its tyres drawn as boxes, 40 us less a 64x64 image), its
+    body in the next opponent colour."""
+    car = mujoco.MjSpec.from_file(str(CAR_XML))
+    for geom in car.geoms:
+        if geom.name.endswith("_knuckle_geom"):  # 2 cm, behind the wheels: not worth drawing
+            geom.group = HIDDEN_GROUP
+        elif geom.group == OWN_CAR_GROUP:
+            geom.group = OTHER_CAR_GROUP
+        if geom.name.endswith("_tyre_visual"):  # a cylinder costs a CPU rasteriser 4 boxes
+            radius, half_width = geom.size[0], geom.size[1]
+            geom.type = mujoco.mjtGeom.mjGEOM_BOX
+            geom.size = [radius, radius, half_width]
+        if geom.name in SHELL_GEOMS:
+            geom.rgba = OPPONENT_RGBA[(index - 1) % len(OPPONENT_RGBA)]
+    spec.worldbody.add_frame().attach_body(car.body("chassis"), car_prefix(index), "")
 
 
 def _configure_visual(spec: mujoco.MjSpec, track: Track, options: SceneOptions) -> None:

@@ -37,6 +37,7 @@ from saferace.envs.scene import (
     ASPHALT_TEXTURE,
     LINE_MESHES,
     ROADSIDE_RGBA,
+    SHELL_GEOMS,
     SKY_TEXTURE,
     TEXTURE_BANK_SIZE,
     bank_texture,
@@ -93,6 +94,13 @@ class SceneLook:
             if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, f"roadside_{kind}") >= 0
         ]
         self._roadside_rgba = model.geom_rgba[self._roadside].copy()
+        self._opponent_shells = [
+            geom
+            for geom in range(model.ngeom)
+            if model.geom(geom).name.startswith("car")
+            and model.geom(geom).name.split("/")[-1] in SHELL_GEOMS
+        ]
+        self._opponent_rgba = model.geom_rgba[self._opponent_shells].copy()
         self._cameras = [model.camera(name).id for name in ONBOARD_CAMERAS]
         self._camera_pos = model.cam_pos[self._cameras].copy()
         self._camera_quat = model.cam_quat[self._cameras].copy()
@@ -148,6 +156,8 @@ class SceneLook:
         self._noise_bank, self.noise_index = None, 0
         if noise_std > 0.0:
             self._noise_bank = self._scaled_noise(noise_std, int(rng.integers(UNIT_NOISE_IMAGES)))
+        if self._opponent_shells:  # drawn last: a scene without opponents looks as before
+            self._paint_opponents(uniform("opponent_tint"), rng)
         return drawn
 
     def upload(self, renderer: mujoco.Renderer) -> None:
@@ -278,6 +288,15 @@ class SceneLook:
         for k, geom in enumerate(self._roadside):
             colour = self._roadside_rgba[k, :3] * (1.0 + rng.uniform(-spread, spread, 3))
             self.model.geom_rgba[geom] = [*np.clip(colour, 0.0, 1.0), 0.0 if hidden[k] else 1.0]
+
+    def _paint_opponents(self, spread: float, rng: np.random.Generator) -> None:
+        """Tint each opponent's body (its shell and wing alike)."""
+        cars = sorted({self.model.geom(geom).name.split("/")[0] for geom in self._opponent_shells})
+        tints = {car: 1.0 + rng.uniform(-spread, spread, 3) for car in cars}
+        for k, geom in enumerate(self._opponent_shells):
+            tint = tints[self.model.geom(geom).name.split("/")[0]]
+            colour = np.clip(self._opponent_rgba[k, :3] * tint, 0.0, 1.0)
+            self.model.geom_rgba[geom, :3] = colour
 
     def _camera(self, height_m: float, pitch_rad: float, fovy_deg: float) -> None:
         """Raise, pitch down (about each camera's own x axis) and widen the onboard cameras."""

@@ -31,12 +31,14 @@ from saferace.eval.metrics import (
     summarize,
     thinned_trajectory,
 )
+from saferace.names import TASK_IDS as LANE_TASK_IDS
+from saferace.names import TRAFFIC_TASK_IDS
 from saferace.safety.decision import nominal_parts
 from saferace.safety.filter import SafetyFilter
 from saferace.track import Track, builtin_track_names
 from saferace.version import __version__
 
-TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
+TASK_IDS = {**LANE_TASK_IDS, **TRAFFIC_TASK_IDS}
 RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch", "torchvision")
 
 
@@ -56,7 +58,7 @@ class EpisodeResult:
 
 
 def task_id(task: str) -> str:
-    """Gymnasium id of ``CenterLine``/``RacingLine`` (or a full id)."""
+    """Gymnasium id of ``CenterLine``, ``RacingLine`` or ``Overtake`` (or a full id)."""
     if task in TASK_IDS.values():
         return task
     if task not in TASK_IDS:

@@ -1,0 +1,12 @@
+"""Several learners in one race: the PettingZoo parallel env (``pip install 'saferace[multi]'``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def parallel_env(**kwargs: Any):
+    """A :class:`saferace.multi.parallel.RacingParallelEnv` (PettingZoo ``ParallelEnv``)."""
+    from saferace.multi.parallel import RacingParallelEnv
+
+    return RacingParallelEnv(**kwargs)

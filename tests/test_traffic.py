@@ -1,0 +1,299 @@
+"""Racing in traffic: scenes with several cars, collisions and fault, opponents that drive,
+the Overtake task and the PettingZoo parallel env."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+import saferace  # noqa: F401  - registers the tasks
+from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
+from saferace.envs.collisions import CarMotion, attribute_fault
+from saferace.envs.reference_lines import reference_line
+from saferace.envs.traffic import OpponentSpec, opponent_specs
+from saferace.errors import SafeRaceError
+from saferace.multi import parallel_env
+from saferace.track import Track
+
+STRAIGHT_TRACK = "technical"  # straight from s = 0 to 12 m, lane 1 m wide
+BRAKE = np.array([0.0, -4.0])
+
+
+def drive(env, ego_action, opponent_actions=None, steps=60):
+    """Step with fixed actions (the opponents' for ``external`` ones); every collision."""
+    collisions, infos = [], []
+    for _ in range(steps):
+        if opponent_actions is not None:
+            env.unwrapped.traffic.set_external_actions(opponent_actions)
+        _, _, terminated, _, info = env.step(ego_action)
+        collisions += info["collisions"]
+        infos.append(info)
+        if terminated:
+            break
+    return collisions, infos
+
+
+def external(gap_m: float, offset_m: float = 0.0, speed_factor: float = 1.0) -> OpponentSpec:
+    return OpponentSpec("external", gap_m=gap_m, start_offset_m=offset_m, speed_factor=speed_factor)
+
+
+def test_a_rear_end_is_reported_once_and_is_the_following_cars_fault():
+    env = gym.make(
+        "saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(1.5, 0.0, 0.5)]
+    )
+    env.reset(seed=0, options={"start_speed_mps": 2.5})
+    collisions, _ = drive(env, np.array([0.0, 1.0]), {"car1": BRAKE})
+    assert len(collisions) == 1, collisions  # pushing on keeps it one collision
+    (collision,) = collisions
+    assert set(collision["cars"]) == {"car0", "car1"}
+    assert collision["at_fault"] == "car0" and collision["kind"] == "rear-end"
+    assert collision["relative_speed_mps"] > 1.0
+    assert 0.0 < collision["time_s"] < 3.0
+
+    behind = gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(-1.5)])
+    behind.reset(seed=0, options={"start_speed_mps": 1.0, "start_s_m": 5.0})
+    collisions, _ = drive(behind, BRAKE, {"car1": np.array([0.0, 3.0])})
+    assert [c["at_fault"] for c in collisions] == ["car1"]
+    assert collisions[0]["kind"] == "rear-end"
+
+
+@pytest.mark.parametrize("swiper", ["car0", "car1"])
+def test_a_side_swipe_is_the_fault_of_the_car_that_moved_across(swiper: str):
+    env = gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(0.0, 0.34)])
+    env.reset(seed=0, options={"start_speed_mps": 2.0})
+    hold = np.array([0.0, 0.0])
+    ego = np.array([0.12, 0.0]) if swiper == "car0" else hold  # left, into car1
+    other = np.array([-0.12, 0.0]) if swiper == "car1" else hold  # right, into car0
+    collisions, _ = drive(env, ego, {"car1": other}, steps=30)
+    assert [c["at_fault"] for c in collisions] == [swiper]
+    assert collisions[0]["kind"] == "side"
+
+
+def test_fault_rule_on_given_motions():
+    ahead = np.array([1.0, 0.0])
+    behind_fast = CarMotion(np.array([0.0, 0.0]), np.array([3.0, 0.0]))
+    ahead_slow = CarMotion(np.array([0.46, 0.05]), np.array([1.0, 0.0]))
+    assert attribute_fault(behind_fast, ahead_slow, ahead) == (0, "rear-end")
+    assert attribute_fault(ahead_slow, behind_fast, ahead) == (1, "rear-end")
+    assert attribute_fault(ahead_slow, behind_fast, -ahead) == (0, "rear-end")  # driving west
+    left_still = CarMotion(np.array([0.1, 0.32]), np.array([2.0, 0.0]))
+    right_moving_left = CarMotion(np.array([0.0, 0.0]), np.array([2.0, 0.4]))
+    assert attribute_fault(left_still, right_moving_left, ahead) == (1, "side")
+    assert attribute_fault(right_moving_left, left_still, ahead) == (0, "side")
+
+
+def ego_states(infos):
+    return np.array(
+        [[i["x_m"], i["y_m"], i["yaw_rad"], i["v_x_mps"], i["steer_angle_rad"]] for i in infos]
+    )
+
+
+def test_a_far_away_second_car_leaves_the_first_cars_motion_unchanged():
+    runs = []
+    for opponents in ([], ["pure-pursuit:gap_m=28,speed_factor=0.7,lateral_offset_m=0"]):
+        env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=opponents)
+        observation, info = env.reset(seed=0)
+        driver = PurePursuit.for_env(env)
+        infos = []
+        for _ in range(200):
+            observation, _, _, _, info = env.step(driver.act(observation, info))
+            infos.append(info)
+        runs.append(infos)
+    np.testing.assert_array_equal(ego_states(runs[0]), ego_states(runs[1]))
+    gaps = [info["opponents"][0]["gap_m"] for info in runs[1]]
+    assert min(abs(gap) for gap in gaps) > 10.0
+    assert runs[1][-1]["opponents"][0]["s_m"] != runs[1][0]["opponents"][0]["s_m"]  # it drove
+
+
+def opponent_alone(track: str, opponent: str, steps: int = 180) -> list[dict]:
+    """The opponent's states over ``steps`` steps, ahead of an ego car at rest at the start."""
+    env = gym.make("saferace/CenterLine-v0", track=track, opponents=[opponent])
+    env.reset(seed=4, options={"start_speed_mps": 0.0})
+    _, infos = drive(env, np.zeros(2), steps=steps)
+    assert len(infos) == steps
+    assert not any(info["collisions"] for info in infos)
+    return [info["opponents"][0] for info in infos]
+
+
+@pytest.mark.parametrize("track", ["technical", "varying"])
+@pytest.mark.parametrize(
+    "opponent", ["expert", "pure-pursuit", "lane-changer", "blocker", "braking"]
+)
+def test_every_opponent_policy_drives_inside_its_lane(track: str, opponent: str):
+    states = opponent_alone(track, f"{opponent}:lateral_offset_m=0.25")
+    assert not any(state["outside_lane"] for state in states)
+    assert states[-1]["progress_m"] > 10.0
+
+
+def test_the_opponents_drive_as_they_say():
+    track = Track.load(STRAIGHT_TRACK)
+    expert = opponent_alone(STRAIGHT_TRACK, "expert:speed_factor=0.8")
+    racing = reference_line(track, "racing")
+    speeds = np.array([state["speed_mps"] for state in expert[60:]])
+    wanted = 0.8 * racing.speed_at(np.array([state["s_m"] for state in expert[60:]]))
+    assert np.mean(speeds) == pytest.approx(np.mean(wanted), rel=0.15)
+    pursuit = opponent_alone(STRAIGHT_TRACK, "pure-pursuit:lateral_offset_m=-0.2")
+    on_straights = [
+        state["e_y_m"]
+        for state in pursuit[40:]
+        if abs(track.centerline.curvature_scalar(state["s_m"])) < 0.05
+    ]
+    assert np.median(on_straights) == pytest.approx(-0.2, abs=0.05)
+    changer = np.array([state["e_y_m"] for state in opponent_alone(STRAIGHT_TRACK, "lane-changer")])
+    assert changer.max() > 0.15 and changer.min() < -0.15  # both lanes
+    blocker = opponent_alone(STRAIGHT_TRACK, "blocker:lateral_offset_m=0.25")
+    turn_here = [track.centerline.curvature_scalar(state["s_m"]) for state in blocker]
+    inside = [
+        np.sign(state["e_y_m"]) == np.sign(kappa)
+        for state, kappa in zip(blocker, turn_here, strict=True)
+        if abs(kappa) > 0.3 and abs(state["e_y_m"]) > 0.05
+    ]
+    assert len(inside) > 20 and np.mean(inside) > 0.8
+    braking = [state["speed_mps"] for state in opponent_alone(STRAIGHT_TRACK, "braking")]
+    assert max(braking) > 1.5 and min(braking[40:]) < 0.5 * max(braking)
+
+
+def test_the_blocker_covers_the_line_of_a_car_close_behind():
+    env = gym.make(
+        "saferace/CenterLine-v0",
+        track=STRAIGHT_TRACK,
+        opponents=["blocker:gap_m=1.5,lateral_offset_m=0.3,speed_factor=0.6"],
+    )
+    driver = PurePursuit.for_env(env)
+    observation, info = env.reset(seed=0)
+    offsets = []
+    for _ in range(40):  # the ego holds 0.2 m left of the centre line, 1-2 m behind
+        action = driver.act(observation, info)
+        action[0] += 0.8 * (0.2 - info["e_y_m"])
+        observation, _, _, _, info = env.step(action)
+        offsets.append(info["opponents"][0]["e_y_m"])
+    assert offsets[-1] > 0.1
+
+
+def test_overtake_task_penalises_and_ends_on_an_at_fault_collision():
+    env = gym.make("saferace/Overtake-v0", track=STRAIGHT_TRACK)
+    _, info = env.reset(seed=0)
+    (opponent,) = info["opponents"]
+    assert opponent["policy"] == "expert" and opponent["gap_m"] == pytest.approx(2.0, abs=0.05)
+    rammer = PurePursuit.for_env(env, PurePursuitSettings(speed_scale=1.5, max_speed_mps=8.0))
+    observation, rewards, terminated = None, [], False
+    for _ in range(200):
+        observation, reward, terminated, _, info = env.step(rammer.act(observation, info))
+        rewards.append(reward)
+        if terminated:
+            break
+    assert terminated and info["at_fault_collisions"] == 1
+    assert rewards[-1] < -9.0 and info["reward_collision"] == -10.0
+
+    lenient = gym.make("saferace/Overtake-v0", track=STRAIGHT_TRACK, terminate_on_collision=False)
+    _, info = lenient.reset(seed=0)
+    collisions = 0
+    for _ in range(len(rewards) + 20):
+        _, _, terminated, _, info = lenient.step(rammer.act(None, info))
+        collisions += info["at_fault_collisions"]
+        assert not terminated
+    assert collisions >= 1
+
+
+def red_pixels(image: np.ndarray) -> int:
+    r, g, b = (image[..., k].astype(int) for k in range(3))
+    return int(np.sum((r > 150) & (g < 80) & (b < 80)))
+
+
+def test_every_car_sees_the_others_but_not_itself():
+    env = parallel_env(cars=2, track=STRAIGHT_TRACK, start_gaps_m=[-1.2], image_size=(64, 96))
+    observations, _ = env.reset(seed=0, options={"start_s_m": 4.0})
+    assert red_pixels(observations["car1"]["image"]) > 10  # car0's red body ahead
+    assert red_pixels(observations["car0"]["image"]) == 0  # its own body hidden
+    alone = gym.make(
+        "saferace/CenterLine-v0",
+        track=STRAIGHT_TRACK,
+        image_size=(64, 96),
+        opponents=[external(1.2)],
+    )
+    image = alone.reset(seed=0, options={"start_s_m": 4.0})[0]["image"]
+    blue = (image[..., 2].astype(int) - image[..., 0] > 100).sum()
+    assert blue > 20  # the opponent's blue body ahead of the ego
+
+
+def test_stereo_and_chase_views_show_the_opponent():
+    env = gym.make(
+        "saferace/RacingLine-v0",
+        track=STRAIGHT_TRACK,
+        stereo=True,
+        render_mode="rgb_array",
+        opponents=[external(1.2)],
+    )
+    observation, _ = env.reset(seed=0, options={"start_s_m": 4.0})
+    for view in (observation["image"][..., :3], observation["image"][..., 3:], env.render()):
+        assert (view[..., 2].astype(int) - view[..., 0] > 100).sum() > 10
+
+
+def test_randomised_looks_vary_the_opponents_colours():
+    env = gym.make(
+        "saferace/RacingLine-v0", track="lab", randomize="strong", opponents=["external:gap_m=2"]
+    )
+    model = env.unwrapped.model
+    shell = model.geom("car1/shell").id
+    colours = []
+    for seed in range(3):
+        env.reset(seed=seed)
+        colours.append(model.geom_rgba[shell].copy())
+    assert np.ptp(np.array(colours)[:, :3], axis=0).max() > 0.05
+    assert model.geom_rgba[model.geom("shell").id][0] == pytest.approx(0.8)  # the ego stays red
+
+
+def test_pettingzoo_parallel_api():
+    parallel_api_test(parallel_env(cars=3, track="oval", max_steps=80), num_cycles=100)
+
+
+def two_car_race(seed: int) -> list[tuple]:
+    """Two cars from a random start (drawn from ``seed``), driven by the same random actions."""
+    env = parallel_env(cars=2, track=STRAIGHT_TRACK, random_start=True)
+    env.reset(seed=seed)
+    rng = np.random.default_rng(0)
+    trace = []
+    for _ in range(40):
+        actions = {
+            agent: rng.uniform([-0.1, -1.0], [0.1, 2.0]).astype(np.float32) for agent in env.agents
+        }
+        observations, rewards, _, _, infos = env.step(actions)
+        trace += [
+            (
+                agent,
+                infos[agent]["x_m"],
+                infos[agent]["y_m"],
+                rewards[agent],
+                observations[agent]["image"].tobytes(),
+            )
+            for agent in sorted(infos)
+        ]
+    return trace
+
+
+def test_two_cars_driven_through_pettingzoo_are_deterministic_per_seed():
+    assert two_car_race(3) == two_car_race(3)
+    assert two_car_race(3) != two_car_race(4)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("kart", "unknown opponent policy"),
+        ("expert:speed=2", "unknown opponent field"),
+        ("expert:gap_m=far", "are numbers"),
+        ("expert:speed_factor=3", "speed_factor"),
+        ("expert:gap_m", "POLICY"),
+        (42, "OpponentSpec, a dict or a string"),
+    ],
+)
+def test_bad_opponents_raise_clear_errors(value, message: str):
+    with pytest.raises(SafeRaceError, match=message):
+        opponent_specs([value])
+
+
+def test_opponents_start_three_metres_apart_unless_told():
+    specs = opponent_specs(["blocker", {"policy": "braking", "gap_m": -2}, "expert"])
+    assert [spec.gap_m for spec in specs] == [3.0, -2.0, 9.0]
