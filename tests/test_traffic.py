@@ -10,11 +10,17 @@ from pettingzoo.test import parallel_api_test
 
 import saferace  # noqa: F401  - registers the tasks
 from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
+from saferace.agents.traffic_expert import TrafficExpert, passing_side
 from saferace.envs.collisions import CarMotion, attribute_fault
 from saferace.envs.reference_lines import reference_line
 from saferace.envs.traffic import OpponentSpec, opponent_specs
 from saferace.errors import SafeRaceError
+from saferace.eval.agents import make_agent
 from saferace.multi import parallel_env
+from saferace.safety.car_barriers import CAR_GAINS, car_rows, opponent_predictions
+from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.models import param_values
+from saferace.safety.vehicle_params import load_params
 from saferace.track import Track
 
 STRAIGHT_TRACK = "technical"  # straight from s = 0 to 12 m, lane 1 m wide
@@ -77,7 +83,12 @@ def test_fault_rule_on_given_motions():
     ahead_slow = CarMotion(np.array([0.46, 0.05]), np.array([1.0, 0.0]))
     assert attribute_fault(behind_fast, ahead_slow, ahead) == (0, "rear-end")
     assert attribute_fault(ahead_slow, behind_fast, ahead) == (1, "rear-end")
-    assert attribute_fault(ahead_slow, behind_fast, -ahead) == (0, "rear-end")  # driving west
+    west_behind = CarMotion(np.array([0.46, 0.05]), np.array([-3.0, 0.0]))
+    west_ahead = CarMotion(np.zeros(2), np.array([-1.0, 0.0]))
+    assert attribute_fault(west_ahead, west_behind, -ahead) == (1, "rear-end")
+    backing = CarMotion(ahead_slow.position_m, np.array([-1.0, 0.0]))
+    stopped = CarMotion(behind_fast.position_m, np.zeros(2))
+    assert attribute_fault(stopped, backing, ahead) == (1, "rear-end")
     left_still = CarMotion(np.array([0.1, 0.32]), np.array([2.0, 0.0]))
     right_moving_left = CarMotion(np.array([0.0, 0.0]), np.array([2.0, 0.4]))
     assert attribute_fault(left_still, right_moving_left, ahead) == (1, "side")
@@ -297,3 +308,99 @@ def test_bad_opponents_raise_clear_errors(value, message: str):
 def test_opponents_start_three_metres_apart_unless_told():
     specs = opponent_specs(["blocker", {"policy": "braking", "gap_m": -2}, "expert"])
     assert [spec.gap_m for spec in specs] == [3.0, -2.0, 9.0]
+
+
+def braking_ahead(filtered: bool):
+    """The ego at 3 m/s, full throttle, 1.5 m behind a car braking as hard as it can."""
+    env = gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(1.5)])
+    if filtered:
+        env = SafetyFilter(env, **GAIN_PRESETS["grip"])
+    env.reset(seed=0, options={"start_speed_mps": 3.0})
+    return drive(env, np.array([0.0, 4.0]), {"car1": BRAKE}, steps=40)
+
+
+def test_the_car_barrier_brakes_for_a_car_braking_hard_ahead():
+    unfiltered, _ = braking_ahead(filtered=False)
+    assert [c["at_fault"] for c in unfiltered] == ["car0"]
+    collisions, infos = braking_ahead(filtered=True)
+    assert collisions == []
+    decisions = [info["safety"] for info in infos]
+    assert min(decision["filtered_action"][1] for decision in decisions) < -3.0  # braked
+    assert min(decision["barriers"]["car1"] for decision in decisions) > 0.0
+    assert not any(info["outside_lane"] for info in infos)
+
+
+def test_the_car_barrier_steers_away_from_a_car_alongside():
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(0.0, 0.4)]),
+        **GAIN_PRESETS["grip"],
+    )
+    env.reset(seed=0, options={"start_speed_mps": 2.0})
+    collisions, infos = drive(env, np.array([0.2, 0.0]), {"car1": np.zeros(2)}, steps=30)
+    assert collisions == []
+    assert infos[0]["safety"]["filtered_action"][0] < 0.18  # steered less to the left
+
+
+def test_opponent_predictions_wrap_the_lap_and_take_the_speed_along_the_track():
+    track = Track.load(STRAIGHT_TRACK)
+    opponent = {"s_m": 0.5, "e_y_m": 0.1, "e_psi_rad": 0.3, "speed_mps": 2.0}
+    ((ds, e_y_o, v_o),) = opponent_predictions([opponent], track, track.length_m - 0.5)
+    assert ds == pytest.approx(-1.0) and e_y_o == 0.1
+    assert v_o == pytest.approx(2.0 * np.cos(0.3), rel=1e-3)  # on the straight
+    noisy = opponent_predictions([opponent] * 200, track, 0.0, 0.05, np.random.default_rng(0))
+    assert np.std([p[0] for p in noisy]) == pytest.approx(0.05, rel=0.2)
+
+
+def test_a_car_row_weighs_more_than_a_lane_row_and_vanishes_far_away():
+    params = param_values(load_params())
+    state = np.array([0.0, 0.0, 3.0, 0.0])
+    near = car_rows("kinematic", params, state, 0.0, np.zeros(2), [(-2.0, 0.0, 1.0)], CAR_GAINS)
+    far = car_rows("kinematic", params, state, 0.0, np.zeros(2), [(-20.0, 0.0, 1.0)], CAR_GAINS)
+    (a_near,), (b_near,), _ = near
+    assert a_near[1] > 0.0 and b_near / a_near[1] < -3.0  # 2 m behind, closing at 2 m/s: brake
+    (a_far,), (b_far,), (h_far,) = far
+    assert h_far > 100.0 and b_far / a_far[1] > 4.0  # any acceleration the car has
+
+
+@pytest.mark.parametrize("side", [-0.25, 0.25])
+def test_the_expert_in_traffic_passes_a_slow_car_on_the_side_with_room(side: float):
+    env = gym.make(
+        "saferace/RacingLine-v0",
+        track=STRAIGHT_TRACK,
+        opponents=[f"pure-pursuit:gap_m=2,speed_factor=0.5,lateral_offset_m={side}"],
+    )
+    expert = make_agent("expert", env)
+    assert isinstance(expert, TrafficExpert)
+    observation, info = env.reset(seed=0)
+    offsets = []
+    for _ in range(60):
+        observation, _, terminated, _, info = env.step(expert.act(observation, info))
+        assert not terminated and not info["collisions"] and not info["outside_lane"]
+        (opponent,) = info["opponents"]
+        if abs(opponent["gap_m"]) < 0.3:  # alongside
+            offsets.append(info["e_y_m"] - opponent["e_y_m"])
+    assert opponent["gap_m"] < -1.0  # passed
+    assert offsets and np.sign(np.mean(offsets)) == -np.sign(side)  # on the other side
+
+
+def test_the_expert_in_traffic_follows_where_the_lane_has_no_room():
+    env = gym.make(
+        "saferace/RacingLine-v0",
+        track=STRAIGHT_TRACK,
+        opponents=["pure-pursuit:gap_m=2,speed_factor=0.5,lateral_offset_m=0"],
+    )
+    expert = make_agent("expert", env)
+    observation, info = env.reset(seed=0)
+    for _ in range(80):
+        observation, _, _, _, info = env.step(expert.act(observation, info))
+        assert not info["collisions"]
+    (opponent,) = info["opponents"]
+    assert 0.6 < opponent["gap_m"] < 2.0  # behind it, at about the following gap
+    assert abs(info["v_x_mps"] - opponent["speed_mps"]) < 0.5
+
+
+def test_thepassing_side_is_the_ego_cars_own_if_it_has_room():
+    assert passing_side(0.1, left_room_m=0.05, right_room_m=0.2) == 1
+    assert passing_side(-0.1, left_room_m=0.05, right_room_m=0.2) == -1
+    assert passing_side(0.1, left_room_m=-0.01, right_room_m=0.2) == -1
+    assert passing_side(0.1, left_room_m=-0.01, right_room_m=-0.2) == 0

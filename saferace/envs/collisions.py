@@ -7,7 +7,8 @@ reported once, with both cars, the time, their relative speed and
 the car at fault under the usual racing rule:
 
 - one car behind the other (their centres more than ``ALONGSIDE_M`` apart along the
-  track): the car behind, which ran into the car ahead, is at fault;
+  track): the car behind, which ran into the car ahead, is at fault (unless the car ahead
+  backed into it faster);
 - alongside: the car that moved sideways into the other (the larger lateral speed toward
   it) is at fault.
 """
@@ -72,8 +73,12 @@ def attribute_fault(
     normal = np.array([-tangent[1], tangent[0]])
     offset = second.position_m - first.position_m
     along = float(offset @ tangent)
-    if abs(along) > ALONGSIDE_M:
-        return (0 if along > 0.0 else 1), "rear-end"
+    if abs(along) > ALONGSIDE_M:  # the one closing the gap: the car behind, unless the car
+        behind, ahead = (0, 1) if along > 0.0 else (1, 0)  # ahead backs into it
+        motions = (first, second)
+        closing_behind = float(motions[behind].velocity_mps @ tangent)
+        closing_ahead = -float(motions[ahead].velocity_mps @ tangent)
+        return (behind if closing_behind >= closing_ahead else ahead), "rear-end"
     side = 1.0 if offset @ normal >= 0.0 else -1.0  # where the second car is, seen by the first
     first_toward = float(first.velocity_mps @ normal) * side
     second_toward = -float(second.velocity_mps @ normal) * side

@@ -191,7 +191,8 @@ class Traffic:
         self._external = {name: np.asarray(action, float) for name, action in actions.items()}
 
     def drive(self) -> None:
-        """Set every opponent's controls for the next step from its policy's action."""
+        """Set every opponent's controls for the next step from its policy's action (its
+        braking no harder than stops the car within the step)."""
         env = self.env
         params = env.params
         for car in self.cars:
@@ -200,7 +201,9 @@ class Traffic:
             else:
                 action = car.policy.act(None, car.state)
             steer = min(max(float(action[0]), -params.max_steer_rad), params.max_steer_rad)
-            accel = min(max(float(action[1]), -params.max_brake_mps2), params.max_accel_mps2)
+            forward, _ = car.io.speeds()  # braking stops the car, never backs it up
+            brake = min(params.max_brake_mps2, max(forward, 0.0) / env.control_dt_s)
+            accel = min(max(float(action[1]), -brake), params.max_accel_mps2)
             car.action = (steer, accel)
             car.steer_target = rate_limited(
                 steer, car.steer_target, params.max_steer_rate_radps, env.control_dt_s

@@ -32,7 +32,11 @@ def make_agent(
     ``weave``, ``speeding``), ``learned:CHECKPOINT`` (the control network, ``mc_samples``
     MC-dropout samples per step, masks drawn from the episode ``seed``), or
     ``MODULE:FACTORY`` with ``FACTORY(env) -> agent``."""
-    if spec == "expert":
+    if spec == "expert":  # in traffic, the expert that passes or follows the opponents
+        if getattr(env.unwrapped, "traffic", None) is not None:
+            from saferace.agents.traffic_expert import TrafficExpert
+
+            return TrafficExpert.for_env(env, model=model)
         from saferace.agents.mpc import MPCExpert
 
         return MPCExpert.for_env(env, model=model)

@@ -17,6 +17,12 @@ from saferace.safety.barriers import (
     class_k_gains,
     linearised_constraints,
 )
+from saferace.safety.car_barriers import (
+    CAR_GAINS,
+    car_close_ahead,
+    opponent_predictions,
+    with_car_rows,
+)
 from saferace.safety.chance import (
     ConstraintStatistics,
     confidence_quantile,
@@ -36,7 +42,12 @@ from saferace.safety.fallback import (
 )
 from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
 from saferace.safety.intervals import interval_points
-from saferace.safety.models import MIN_SPEED_MPS, param_values, symbolic_model
+from saferace.safety.models import (
+    MIN_SPEED_MPS,
+    lane_model_states,
+    param_values,
+    symbolic_model,
+)
 from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.state_sources import OracleStateSource, StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
@@ -84,10 +95,9 @@ class SafetyFilter(gym.Wrapper):
 
     within the actuator limits (:mod:`saferace.safety.qp`), never braking the car backwards.
     With one sample, or ``probabilistic=False``, it is the deterministic HOCBF filter on the
-    samples' mean. ``info["safety"]`` holds a
-    :class:`~saferace.safety.decision.SafetyDecision` every step; a failed solve brakes at
-    ``FALLBACK_BRAKE_MPS2`` while steering the lane's curvature and toward the centre line,
-    and is counted in ``failures``.
+    samples' mean. ``info["safety"]`` holds a ``SafetyDecision`` every step; a failed solve
+    brakes at ``FALLBACK_BRAKE_MPS2``, steering the lane's curvature and toward the centre
+    line, and is counted in ``failures``.
 
     ``uncertainty="robust"`` replaces the chance constraints by barrier conditions that must
     hold at every point of the state's interval (its corners and centre, see
@@ -132,8 +142,10 @@ class SafetyFilter(gym.Wrapper):
     ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`; ``slack_penalty``:
     the QP's squared slack (the paper's) or the exact L1 one
     (:mod:`~saferace.safety.exact_penalty`). ``GAIN_PRESETS`` names the settings the command
-    line offers.
-    """
+    line offers. In traffic a barrier per opponent joins the QP, where the car is kept
+    clear before the lane (:mod:`~saferace.safety.car_barriers`; where it cannot be, the
+    filter brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise on their
+    positions (else the truth, as ``s`` is)."""
 
     def __init__(
         self,
@@ -158,6 +170,7 @@ class SafetyFilter(gym.Wrapper):
         params: VehicleParams | None = None,
         uncertainty: str = "chance",
         slack_penalty: str = SQUARED_SLACK,
+        opponent_noise_m: float = 0.0,
     ) -> None:
         super().__init__(env)
         if uncertainty not in UNCERTAINTY_MODES:
@@ -213,7 +226,14 @@ class SafetyFilter(gym.Wrapper):
         self.map = FilterMap(
             self.track, base.reference, width_preview_s, speed_limit_factor, self.speed_gain
         )
-        self.constraint_names = BARRIER_NAMES + (("speed",) if self.map.speed_limit else ())
+        if opponent_noise_m < 0.0:
+            raise ValueError(f"opponent_noise_m must be non-negative, got {opponent_noise_m}")
+        self.opponent_noise_m = opponent_noise_m
+        self.opponents = tuple(base.traffic.names) if base.traffic is not None else ()
+        self._noise_rng = np.random.default_rng()
+        self.constraint_names = (
+            BARRIER_NAMES + (("speed",) if self.map.speed_limit else ()) + self.opponents
+        )
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
@@ -222,6 +242,7 @@ class SafetyFilter(gym.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
         self.state_source.reset(seed)
+        self._noise_rng = np.random.default_rng(seed)
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         return observation, info
@@ -267,13 +288,17 @@ class SafetyFilter(gym.Wrapper):
             s_m, v_x, self.half_width_m, self.theta_max, self.lam, self.lateral_decel_mps2
         )
         speed = self.map.speed_constraint(s_m, v_x, lane[:, 0])
-        states = self._model_states(lane, observation["velocity"])
+        states = lane_model_states(self.symbolic, lane, observation["velocity"])
+        cars = opponent_predictions(
+            info.get("opponents", ()), self.track, s_m, self.opponent_noise_m, self._noise_rng
+        )
+        creep = -math.inf if car_close_ahead(cars, float(lane[:, 0].mean())) else float(u0[1])
         problem, statistics, h, solution, solve_time = self._solve(
-            states, lane[:, 2], u0, context, speed, nominal, spread, chance,
-            *self._action_box(v_x, float(u0[1])),
+            states, lane[:, 2], u0, context, speed, cars, nominal, spread, chance,
+            *self._action_box(v_x, creep),
         )  # fmt: skip
         fallback = "alarm" if alarm and self.robust else "" if solution.solved else "solver"
-        barrier_rows = len(problem.b) - (speed is not None)
+        barrier_rows = len(problem.b) - (speed is not None) - len(cars)
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
             fallback = "infeasible"
         self.last_problem = problem
@@ -289,6 +314,13 @@ class SafetyFilter(gym.Wrapper):
                 box = self._fallback_box(v_x, float(u0[1]), interval, context, speed)
                 accel = float(u0[1])
             filtered = np.clip(np.array([steer, accel]), *box)
+        elif cars and solution.slack[len(problem.b) - len(cars) :].max() > INFEASIBLE_SLACK:
+            fallback = "car"  # no room for the car: brake in the lane, not around the car
+            lower, upper = self._action_box(v_x, -math.inf)
+            upper[1] = lower[1]
+            filtered = self._solve(
+                states, lane[:, 2], u0, context, speed, [], nominal, spread, chance, lower, upper
+            )[3].u
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         count = len(self.constraint_names)
         spread_at_u = np.zeros(count)
@@ -327,6 +359,7 @@ class SafetyFilter(gym.Wrapper):
         u0: np.ndarray,
         context: BarrierContext,
         speed: tuple[np.ndarray, float, float] | None,
+        cars: list[tuple[float, float, float]],
         nominal: np.ndarray,
         spread: np.ndarray,
         chance: bool,
@@ -343,6 +376,12 @@ class SafetyFilter(gym.Wrapper):
             problem, statistics, h = self._problem(
                 states, kappa, linearised_at, context, speed, nominal, spread, lower, upper, chance
             )
+            if cars:
+                problem, h = with_car_rows(
+                    problem, h, self.model_name, self.param_values, states.mean(axis=0),
+                    float(kappa.mean()), linearised_at, cars, CAR_GAINS,
+                    self.z * self.opponent_noise_m,
+                )  # fmt: skip
             solve_started = time.perf_counter()
             solution = self.solve(problem)
             solve_time += time.perf_counter() - solve_started
@@ -437,21 +476,6 @@ class SafetyFilter(gym.Wrapper):
         barrier_rows = len(rows) - (len(self.constraint_names) - len(BARRIER_NAMES))
         per_point = np.asarray(rows[:barrier_rows]).reshape(-1, len(BARRIER_NAMES))
         return np.concatenate([reduce(per_point, axis=0), rows[barrier_rows:]])
-
-    def _model_states(self, lane: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-        """The model's state for each lane-state sample and the measured velocities."""
-        v_x = max(float(velocity[0]), MIN_SPEED_MPS)
-        columns: dict[str, np.ndarray | float] = {
-            "e_y": lane[:, 0],
-            "e_psi": lane[:, 1],
-            "v": v_x,
-            "v_x": v_x,
-            "v_y": float(velocity[1]),
-            "r": float(velocity[2]),
-        }
-        return np.column_stack(
-            [np.broadcast_to(columns[str(x)], len(lane)) for x in self.symbolic.state]
-        )
 
     def _action_box(self, v_x: float, agent_accel: float) -> tuple[np.ndarray, np.ndarray]:
         """The actuator box, less braking than stops the car within one control step, and

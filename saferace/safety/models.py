@@ -287,6 +287,21 @@ def _zero_order_hold(
     return exp[..., :n, :n], exp[..., :n, n:-1], exp[..., :n, -1]
 
 
+def lane_model_states(model: SymbolicModel, lane: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """The model's state for each lane-state sample ``(e_y, e_psi, ...)`` and the measured
+    velocities ``[v_x, v_y, r]`` (the forward speed at least ``MIN_SPEED_MPS``)."""
+    v_x = max(float(velocity[0]), MIN_SPEED_MPS)
+    columns: dict[str, np.ndarray | float] = {
+        "e_y": lane[:, 0],
+        "e_psi": lane[:, 1],
+        "v": v_x,
+        "v_x": v_x,
+        "v_y": float(velocity[1]),
+        "r": float(velocity[2]),
+    }
+    return np.column_stack([np.broadcast_to(columns[str(x)], len(lane)) for x in model.state])
+
+
 @cache
 def symbolic_model(name: str) -> SymbolicModel:
     """The sympy form of a model (built once per process)."""

@@ -1,0 +1,178 @@
+"""Barriers that keep the car clear of other cars, in the same HOCBF form as the lane's.
+
+For an opponent at arc length ``s_o`` and lateral offset ``e_y_o``, predicted to go on
+along its current line (``e_y_o`` held) from its speed along the track ``v_o``, braking as
+hard as a car can if it is ahead (``OPPONENT_ACCEL_MPS2``, so that a car braking hard ahead
+is braked for in time) or accelerating as hard if it is behind, the barrier is an ellipse
+in the Frenet frame around it, a superellipse of power ``p = POWER``:
+
+    h = (ds / A)^p + ((e_y - e_y_o) / B)^p - 1,    ds = s - s_o,  d(ds)/dt = s_dot - v_o
+
+``A`` and ``B`` are the semi-axes: ``2^(1/p)`` times the half extents of the two cars'
+bumpers side by side (so that the curve holds the rectangle where the bumpers would
+touch), plus a margin. The condition is derived as the lane's are
+(:func:`saferace.safety.barriers.time_derivative`, linear class-K functions with the gains
+``CAR_GAINS``), to the order at which the steering appears, and linearised in the
+steering around the nominal control. Its rows go into the filter's QP scaled by
+``CAR_ROW_WEIGHT``: a squared slack on them costs that factor squared more than on a lane
+row, so that where lane and car conditions cannot both hold the car is the one kept clear,
+mostly by braking.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from functools import cache
+from typing import Any
+
+import numpy as np
+import sympy as sp
+
+from saferace.safety.barriers import MAX_ORDER, class_k_gains, time_derivative
+from saferace.safety.models import symbolic_model
+from saferace.safety.qp import FilterProblem
+
+#: The bumpers' half length and half width (m, the rc10's ``bumper`` geom).
+BUMPER_HALF_LENGTH_M = 0.225
+BUMPER_HALF_WIDTH_M = 0.155
+#: Added to each semi-axis of the ellipse (m).
+CAR_MARGIN_M = 0.05
+#: The power of the superellipse: 2 is an ellipse; 4 hugs the two bumpers' rectangle closer,
+#: leaving room to pass a car alongside in a 1 m lane.
+POWER = 4
+#: Its semi-axes along the track and across it (m): the rectangle's corners on the curve.
+SEMI_AXIS_S_M = 2.0 ** (1.0 / POWER) * 2.0 * BUMPER_HALF_LENGTH_M + CAR_MARGIN_M
+SEMI_AXIS_Y_M = 2.0 ** (1.0 / POWER) * 2.0 * BUMPER_HALF_WIDTH_M + CAR_MARGIN_M
+#: The opponent's acceleration the barrier assumes, the worst for the ego (m/s^2): braking
+#: as hard as the car can when ahead of the ego, accelerating as hard when behind it.
+OPPONENT_ACCEL_MPS2 = 4.0
+#: A car closer ahead than this (m, along the track) stops the filter's creep rule.
+CLOSE_AHEAD_M = 2.0
+#: The car barrier's class-K gains (1/s), whatever the lane barriers' are.
+CAR_GAINS = class_k_gains(2.5)
+#: How much heavier a car row's slack weighs than a lane row's (its row is scaled by it).
+CAR_ROW_WEIGHT = 10.0
+
+_DS, _E_Y_O, _V_O, _A_O = sp.symbols("ds e_y_o v_o a_o", real=True)
+_AXIS_S, _AXIS_Y = sp.symbols("axis_s axis_y", positive=True)
+_LAMS = sp.symbols(f"car_lam_1:{MAX_ORDER + 1}", real=True)
+
+
+@cache
+def car_condition(model_name: str) -> tuple[sp.Expr, ...]:
+    """``psi_0 .. psi_m`` of the car barrier for ``model_name``."""
+    model = symbolic_model(model_name)
+    e_y = model.state[0]
+    steer = model.control[0]
+    state = (*model.state, _DS, _V_O)
+    rates = model.x_dot.col_join(sp.Matrix([model.s_dot - _V_O, _A_O]))
+    psi = [(_DS / _AXIS_S) ** POWER + ((e_y - _E_Y_O) / _AXIS_Y) ** POWER - 1]
+    for lam in _LAMS:
+        derivative = time_derivative(psi[-1], state, rates)
+        psi.append(derivative + lam * psi[-1])
+        if derivative.has(steer):
+            return tuple(psi)
+    raise ValueError(f"steering never reaches the car barrier of model {model_name}")
+
+
+@cache
+def _car_function(model_name: str) -> Callable[..., list[float]]:
+    """``psi_m``, ``d psi_m / du`` and ``h`` of the car barrier, in pure Python."""
+    model = symbolic_model(model_name)
+    psi = car_condition(model_name)
+    args = (
+        *model.state, *model.control, model.kappa, *model.params,
+        _DS, _E_Y_O, _V_O, _A_O, _AXIS_S, _AXIS_Y, *_LAMS,
+    )  # fmt: skip
+    final = psi[-1]
+    outputs = [final, *(sp.diff(final, c) for c in model.control), psi[0]]
+    return sp.lambdify(args, outputs, "math", cse=True)
+
+
+def opponent_predictions(
+    opponents: Sequence[dict[str, Any]],
+    track,
+    ego_s_m: float,
+    noise_m: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> list[tuple[float, float, float]]:
+    """Each opponent's ``(ds, e_y_o, v_o)`` from its info: the ego's arc length less its
+    (within half a lap), its offset, and its speed along the centre line; with ``noise_m``
+    the first two get Gaussian noise of that deviation (a perceived opponent)."""
+    length = track.length_m
+    predictions = []
+    for opponent in opponents:
+        s_o, e_y_o, e_psi_o = opponent["s_m"], opponent["e_y_m"], opponent["e_psi_rad"]
+        stretch = 1.0 - track.centerline.curvature_scalar(s_o) * e_y_o
+        v_o = opponent["speed_mps"] * math.cos(e_psi_o) / max(stretch, 0.1)
+        ds = (ego_s_m - s_o + 0.5 * length) % length - 0.5 * length
+        if noise_m > 0.0:
+            noise = (rng or np.random.default_rng()).normal(0.0, noise_m, 2)
+            ds, e_y_o = ds + noise[0], e_y_o + noise[1]
+        predictions.append((ds, e_y_o, v_o))
+    return predictions
+
+
+def car_close_ahead(predictions: Sequence[tuple[float, float, float]], e_y_m: float) -> bool:
+    """Whether a car is ahead within ``CLOSE_AHEAD_M`` in the ego's path (its ellipse's
+    width): the filter's creep rule, which makes a car at a standstill move off, must not
+    push it into a car stopped ahead."""
+    return any(
+        -CLOSE_AHEAD_M < ds < 0.0 and abs(e_y_m - e_y_o) < SEMI_AXIS_Y_M
+        for ds, e_y_o, _ in predictions
+    )
+
+
+def car_rows(
+    model_name: str,
+    params: tuple[float, ...],
+    state: np.ndarray,
+    kappa_radpm: float,
+    u0: np.ndarray,
+    predictions: Sequence[tuple[float, float, float]],
+    gains: tuple[float, ...],
+    widening_m: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``a u <= b`` rows (scaled by ``CAR_ROW_WEIGHT``) and ``h`` of each opponent's car
+    barrier at the ego's model ``state``; ``widening_m`` grows both semi-axes (an opponent
+    state known with noise)."""
+    function = _car_function(model_name)
+    steer0, accel0 = float(u0[0]), float(u0[1])
+    axes = (SEMI_AXIS_S_M + widening_m, SEMI_AXIS_Y_M + widening_m)
+    ego = (*state, steer0, accel0, kappa_radpm, *params)
+    rows = []
+    for ds, e_y_o, v_o in predictions:
+        worst_accel = OPPONENT_ACCEL_MPS2 if ds > 0.0 else -OPPONENT_ACCEL_MPS2
+        rows.append(function(*ego, ds, e_y_o, v_o, worst_accel, *axes, *gains))
+    values = np.array(rows).reshape(len(predictions), 4)
+    psi, gradient, h = values[:, 0], values[:, 1:3], values[:, 3]
+    b = psi - gradient @ np.array([steer0, accel0])
+    return -CAR_ROW_WEIGHT * gradient, CAR_ROW_WEIGHT * b, h
+
+
+def with_car_rows(
+    problem: FilterProblem,
+    h: np.ndarray,
+    model_name: str,
+    params: tuple[float, ...],
+    state: np.ndarray,
+    kappa_radpm: float,
+    u0: np.ndarray,
+    predictions: Sequence[tuple[float, float, float]],
+    gains: tuple[float, ...],
+    widening_m: float,
+) -> tuple[FilterProblem, np.ndarray]:
+    """The filter's ``problem`` and its barrier values ``h`` (a row per state sample) with a
+    row and a column per opponent (:func:`car_rows`; no sample spread on them)."""
+    a, b, car_h = car_rows(
+        model_name, params, state, kappa_radpm, u0, predictions, gains, widening_m
+    )
+    covariance = problem.covariance
+    if covariance is not None:
+        covariance = np.concatenate([covariance, np.zeros((len(predictions), 3, 3))])
+    problem = dataclasses.replace(
+        problem, a=np.vstack([problem.a, a]), b=np.append(problem.b, b), covariance=covariance
+    )
+    return problem, np.column_stack([h, np.broadcast_to(car_h, (len(h), len(predictions)))])
