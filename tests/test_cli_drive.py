@@ -93,3 +93,22 @@ def test_snapshots_of_a_randomisation_preset_make_a_contact_sheet(tmp_path: Path
     assert np.abs(first - second).mean() > 5.0  # two different looks
     refused = run_cli("snapshots", "--randomize", "wild", "--out", str(tmp_path))
     assert refused.returncode != 0 and "unknown VisualRandomization preset 'wild'" in refused.stderr
+
+
+def test_drive_in_traffic_records_the_opponents_collisions_and_car_barriers(tmp_path: Path):
+    recordings = {}
+    for filtered in (False, True):
+        recordings[filtered] = tmp_path / f"traffic_{filtered}.rrd"
+        result = run_cli(
+            "drive", "--track", "technical", "--agent", "pure-pursuit",
+            "--opponents", "pure-pursuit:gap_m=6,speed_factor=0.3,lateral_offset_m=0",
+            "--rerun", str(recordings[filtered]), *(["--filter", "cbf"] if filtered else []),
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+    unfiltered, filtered = (
+        {str(path) for path in RrdReader(recordings[f]).store().schema().entity_paths()}
+        for f in (False, True)
+    )
+    assert {"/map/opponents", "/events/collisions"} <= unfiltered  # ran into the slow car
+    assert "/map/opponents" in filtered and "/filter/barriers/car1" in filtered
+    assert "/events/collisions" not in filtered

@@ -31,12 +31,21 @@ def register(commands: argparse._SubParsersAction) -> None:
         epilog=example(
             "saferace drive --agent expert --track technical --video lap.mp4 --rerun lap.rrd",
             "saferace drive --agent speeding --filter cbf --state-source noisy --track lab",
+            "saferace drive --agent speeding --filter cbf --opponents braking blocker:gap_m=6",
         ),
     )
     add_episode_arguments(drive, default_agent="pure-pursuit")
     drive.add_argument("--seed", type=int, default=0, help="seeds the episode and its agent")
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
+    drive.add_argument(
+        "--opponents",
+        nargs="+",
+        default=[],
+        metavar="POLICY[:FIELD=VALUE,...]",
+        help="other cars on track: expert, pure-pursuit, lane-changer, blocker, braking "
+        "(fields gap_m, start_offset_m, speed_factor, lateral_offset_m)",
+    )
     add_filter_arguments(drive)
     add_device_argument(drive)
     drive.set_defaults(command=_drive)
@@ -150,6 +159,7 @@ def _drive(args: argparse.Namespace) -> int:
         stereo=args.stereo,
         mc_samples=args.mc_samples,
         safety=safety,
+        opponents=args.opponents,
     )
     row = result_row(
         args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-",

@@ -3,7 +3,9 @@
 Entities: ``camera/*`` onboard images; ``map/*`` a top-down map (y up) with the lane
 boundaries, the center and racing lines, the car's position over time and its whole
 path at the end; ``plots/*`` speed, reference speed, steering and lateral offsets over
-the ``sim_time`` timeline. Behind a safety filter also ``filter/*``: the state the filter
+the ``sim_time`` timeline. In traffic also ``map/opponents`` (each opponent's position,
+labelled) and ``events/collisions`` (a line per collision: the cars, the one at fault, the
+kind and the relative speed). Behind a safety filter also ``filter/*``: the state the filter
 believed (the mean of its state source's samples and a band of two spreads) against the
 truth for ``e_y``, ``e_psi`` and ``kappa``, the nominal and filtered steering and
 acceleration, and the barrier values.
@@ -89,6 +91,24 @@ class EpisodeRecording:
             ("plots/deviation_m", info["deviation_m"]),
         ):
             stream.log(name, rr.Scalars(value))
+        opponents = info.get("opponents", ())
+        if opponents:
+            stream.log(
+                "map/opponents",
+                rr.Points2D(
+                    [_map_points((o["x_m"], o["y_m"])) for o in opponents],
+                    colors=[[60, 110, 255]],
+                    radii=0.08,
+                    labels=[o["name"] for o in opponents],
+                ),
+            )
+        for collision in info.get("collisions", ()):
+            cars = " and ".join(collision["cars"])
+            text = (
+                f"{cars} collide ({collision['kind']}, "
+                f"{collision['relative_speed_mps']:.2f} m/s): {collision['at_fault']} at fault"
+            )
+            stream.log("events/collisions", rr.TextLog(text, level="WARN"))
         if "safety" in info:
             self._log_filter(info)
 
