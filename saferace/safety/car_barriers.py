@@ -1,10 +1,12 @@
 """Barriers that keep the car clear of other cars, in the same HOCBF form as the lane's.
 
 For an opponent at arc length ``s_o`` and lateral offset ``e_y_o``, predicted to go on
-along its current line (``e_y_o`` held) from its speed along the track ``v_o``, braking as
-hard as a car can if it is ahead (``OPPONENT_ACCEL_MPS2``, so that a car braking hard ahead
-is braked for in time) or accelerating as hard if it is behind, the barrier is an ellipse
-in the Frenet frame around it, a superellipse of power ``p = POWER``:
+along its current line (``e_y_o`` held) from its speed along the track ``v_o``, the
+barrier is a superellipse of power ``p = POWER`` in the Frenet frame around it. While the
+ego is in its line (less than ``B`` to the side), the opponent is predicted to brake as
+hard as a car can if it is ahead (``OPPONENT_ACCEL_MPS2``, so that a car braking hard
+ahead is braked for in time) or to accelerate as hard if it is behind; beside it, to hold
+its speed (so that it can be passed):
 
     h = (ds / A)^p + ((e_y - e_y_o) / B)^p - 1,    ds = s - s_o,  d(ds)/dt = s_dot - v_o
 
@@ -144,7 +146,8 @@ def car_rows(
     ego = (*state, steer0, accel0, kappa_radpm, *params)
     rows = []
     for ds, e_y_o, v_o in predictions:
-        worst_accel = OPPONENT_ACCEL_MPS2 if ds > 0.0 else -OPPONENT_ACCEL_MPS2
+        in_line = abs(float(state[0]) - e_y_o) < SEMI_AXIS_Y_M
+        worst_accel = (OPPONENT_ACCEL_MPS2 if ds > 0.0 else -OPPONENT_ACCEL_MPS2) * in_line
         rows.append(function(*ego, ds, e_y_o, v_o, worst_accel, *axes, *gains))
     values = np.array(rows).reshape(len(predictions), 4)
     psi, gradient, h = values[:, 0], values[:, 1:3], values[:, 3]
