@@ -155,6 +155,20 @@ def car_rows(
     return -CAR_ROW_WEIGHT * gradient, CAR_ROW_WEIGHT * b, h
 
 
+def car_conflict(
+    problem: FilterProblem, solution, cars: int, lane_rows: int, infeasible_slack: float
+) -> bool:
+    """Whether the solution cannot keep clear of a car (a car row needs slack) or keeps
+    clear of one at the lane's cost (a lane row needs slack while a car row binds): then the
+    filter brakes in its lane instead."""
+    car = slice(len(problem.b) - cars, None)
+    if solution.slack[car].max() > infeasible_slack:
+        return True
+    margins = problem.b[car] - problem.a[car] @ solution.u
+    binding = margins.min() < CAR_ROW_WEIGHT * infeasible_slack
+    return bool(binding and solution.slack[:lane_rows].max() > infeasible_slack)
+
+
 def with_car_rows(
     problem: FilterProblem,
     h: np.ndarray,

@@ -11,17 +11,12 @@ import numpy as np
 from gymnasium import spaces
 
 from saferace.names import SLACK_PENALTIES, SQUARED_SLACK, UNCERTAINTY_MODES
+from saferace.safety import car_barriers
 from saferace.safety.barriers import (
     BARRIER_NAMES,
     BarrierContext,
     class_k_gains,
     linearised_constraints,
-)
-from saferace.safety.car_barriers import (
-    CAR_GAINS,
-    car_close_ahead,
-    opponent_predictions,
-    with_car_rows,
 )
 from saferace.safety.chance import (
     ConstraintStatistics,
@@ -289,10 +284,11 @@ class SafetyFilter(gym.Wrapper):
         )
         speed = self.map.speed_constraint(s_m, v_x, lane[:, 0])
         states = lane_model_states(self.symbolic, lane, observation["velocity"])
-        cars = opponent_predictions(
+        cars = car_barriers.opponent_predictions(
             info.get("opponents", ()), self.track, s_m, self.opponent_noise_m, self._noise_rng
         )
-        creep = -math.inf if car_close_ahead(cars, float(lane[:, 0].mean())) else float(u0[1])
+        blocked = car_barriers.car_close_ahead(cars, float(lane[:, 0].mean()))
+        creep = -math.inf if blocked else float(u0[1])  # no creeping into a car
         problem, statistics, h, solution, solve_time = self._solve(
             states, lane[:, 2], u0, context, speed, cars, nominal, spread, chance,
             *self._action_box(v_x, creep),
@@ -314,7 +310,9 @@ class SafetyFilter(gym.Wrapper):
                 box = self._fallback_box(v_x, float(u0[1]), interval, context, speed)
                 accel = float(u0[1])
             filtered = np.clip(np.array([steer, accel]), *box)
-        elif cars and solution.slack[len(problem.b) - len(cars) :].max() > INFEASIBLE_SLACK:
+        elif cars and car_barriers.car_conflict(
+            problem, solution, len(cars), barrier_rows, INFEASIBLE_SLACK
+        ):
             fallback = "car"  # no room for the car: brake in the lane, not around the car
             lower, upper = self._action_box(v_x, -math.inf)
             upper[1] = lower[1]
@@ -377,9 +375,9 @@ class SafetyFilter(gym.Wrapper):
                 states, kappa, linearised_at, context, speed, nominal, spread, lower, upper, chance
             )
             if cars:
-                problem, h = with_car_rows(
+                problem, h = car_barriers.with_car_rows(
                     problem, h, self.model_name, self.param_values, states.mean(axis=0),
-                    float(kappa.mean()), linearised_at, cars, CAR_GAINS,
+                    float(kappa.mean()), linearised_at, cars, car_barriers.CAR_GAINS,
                     self.z * self.opponent_noise_m,
                 )  # fmt: skip
             solve_started = time.perf_counter()
