@@ -170,26 +170,15 @@ def car_conflict(
 
 
 def with_car_rows(
-    problem: FilterProblem,
-    h: np.ndarray,
-    model_name: str,
-    params: tuple[float, ...],
-    state: np.ndarray,
-    kappa_radpm: float,
-    u0: np.ndarray,
-    predictions: Sequence[tuple[float, float, float]],
-    gains: tuple[float, ...],
-    widening_m: float,
+    problem: FilterProblem, h: np.ndarray, rows: tuple[np.ndarray, np.ndarray, np.ndarray]
 ) -> tuple[FilterProblem, np.ndarray]:
-    """The filter's ``problem`` and its barrier values ``h`` (a row per state sample) with a
-    row and a column per opponent (:func:`car_rows`; no sample spread on them)."""
-    a, b, car_h = car_rows(
-        model_name, params, state, kappa_radpm, u0, predictions, gains, widening_m
-    )
+    """The filter's ``problem`` and its barrier values ``h`` (a row per state sample) with
+    the opponents' ``rows`` (:func:`car_rows`: no sample spread on them) and their ``h``."""
+    a, b, car_h = rows
     covariance = problem.covariance
     if covariance is not None:
-        covariance = np.concatenate([covariance, np.zeros((len(predictions), 3, 3))])
+        covariance = np.concatenate([covariance, np.zeros((len(b), 3, 3))])
     problem = dataclasses.replace(
         problem, a=np.vstack([problem.a, a]), b=np.append(problem.b, b), covariance=covariance
     )
-    return problem, np.column_stack([h, np.broadcast_to(car_h, (len(h), len(predictions)))])
+    return problem, np.column_stack([h, np.broadcast_to(car_h, (len(h), len(b)))])

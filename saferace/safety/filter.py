@@ -375,11 +375,12 @@ class SafetyFilter(gym.Wrapper):
                 states, kappa, linearised_at, context, speed, nominal, spread, lower, upper, chance
             )
             if cars:
-                problem, h = car_barriers.with_car_rows(
-                    problem, h, self.model_name, self.param_values, states.mean(axis=0),
+                rows = car_barriers.car_rows(
+                    self.model_name, self.param_values, states.mean(axis=0),
                     float(kappa.mean()), linearised_at, cars, car_barriers.CAR_GAINS,
                     self.z * self.opponent_noise_m,
                 )  # fmt: skip
+                problem, h = car_barriers.with_car_rows(problem, h, rows)
             solve_started = time.perf_counter()
             solution = self.solve(problem)
             solve_time += time.perf_counter() - solve_started
