@@ -57,7 +57,7 @@ class OffsetPursuit(_Restorable, PurePursuit):
     """Pure pursuit of a line at a lateral offset from the centre line that the subclass
     chooses (:meth:`wanted_offset_m`), moved toward it at ``LINE_CHANGE_MPS``."""
 
-    state_attributes = ("offset_m", "rng")
+    state_attributes: tuple[str, ...] = ("offset_m", "rng")
 
     def __init__(self, env, spec: OpponentSpec, reference_kind: str = "center") -> None:
         base = env.unwrapped
@@ -99,7 +99,7 @@ class OffsetPursuit(_Restorable, PurePursuit):
 class LaneChanger(OffsetPursuit):
     """Switches between the lanes at ``+-lateral_offset_m`` after seeded intervals."""
 
-    state_attributes = ("offset_m", "rng", "side", "switch_time_s")
+    state_attributes: tuple[str, ...] = ("offset_m", "rng", "side", "switch_time_s")
 
     def reset(self, rng: np.random.Generator) -> None:
         super().reset(rng)
@@ -135,7 +135,7 @@ class BrakingCar(_Restorable, PurePursuit):
     """Pure pursuit of the racing line that brakes as hard as it can for
     ``BRAKING_DURATION_S`` at seeded intervals."""
 
-    state_attributes = ("brake_at_s", "rng")
+    state_attributes: tuple[str, ...] = ("brake_at_s", "rng")
 
     def __init__(self, env, spec: OpponentSpec) -> None:
         base = env.unwrapped
@@ -164,7 +164,7 @@ class ExpertOpponent(_Restorable, MPCExpert):
     plan; its QP solver's warm start is not part of it, so a restored expert's next plans
     agree with the original's to the solver's tolerance, not to the bit."""
 
-    state_attributes = ("_plan_x", "_plan_slack", "_plan_u", "_previous_u", "_x0")
+    state_attributes: tuple[str, ...] = ("_plan_x", "_plan_slack", "_plan_u", "_previous_u", "_x0")
 
     def reset(self, rng: np.random.Generator | None = None) -> None:
         """Forget the last plan and the solver's warm start: an episode is the same for

@@ -81,8 +81,8 @@ def _opponent_spec(value: Any) -> OpponentSpec:
     if isinstance(value, OpponentSpec):
         return value
     if isinstance(value, str):
-        policy, _, fields = value.partition(":")
-        entries = [entry for entry in fields.split(",") if entry]
+        policy, _, assignments = value.partition(":")
+        entries = [entry for entry in assignments.split(",") if entry]
         if any("=" not in entry for entry in entries):
             raise SafeRaceError(f"opponent {value!r}: write POLICY[:FIELD=VALUE,...]")
         value = {"policy": policy, **dict(entry.split("=", 1) for entry in entries)}
@@ -95,15 +95,16 @@ def _opponent_spec(value: Any) -> OpponentSpec:
             f"unknown opponent field(s) {sorted(unknown)}: use {', '.join(sorted(known))}"
         )
     try:
-        fields = {
-            name: (entry if name == "policy" or entry is None else float(entry))
+        numbers: dict[str, Any] = {
+            name: None if entry is None else float(entry)
             for name, entry in value.items()
+            if name != "policy"
         }
     except (TypeError, ValueError):
         raise SafeRaceError(
             f"opponent {dict(value)!r}: fields other than policy are numbers"
         ) from None
-    return OpponentSpec(**fields)
+    return OpponentSpec(str(value.get("policy", OpponentSpec.policy)), **numbers)
 
 
 class OpponentCar:
@@ -112,6 +113,7 @@ class OpponentCar:
     def __init__(self, env, index: int, spec: OpponentSpec) -> None:
         self.name = f"car{index}"
         self.spec = spec
+        self.gap_m = DEFAULT_GAP_M * index if spec.gap_m is None else spec.gap_m
         self.io = CarIO(env.model, env.data, car_prefix(index))
         self.projector = env.track.projector()
         self.policy = None if spec.policy == EXTERNAL else _load_factory()(spec, env)
@@ -143,7 +145,7 @@ class Traffic:
         env = self.env
         length = env.track.length_m
         for car in self.cars:
-            s = (ego_start_s_m + car.spec.gap_m) % length
+            s = (ego_start_s_m + car.gap_m) % length
             pose = car.projector.from_frenet(s, car.spec.start_offset_m)
             speed = car.spec.speed_factor * float(env.reference.speed_at(s))
             car.io.set_pose(pose, speed, env.params.wheel_radius_m)

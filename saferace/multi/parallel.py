@@ -12,20 +12,18 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from pettingzoo import ParallelEnv
 
 from saferace.envs.racing_env import RacingEnv
 from saferace.envs.traffic import EGO, EXTERNAL, OpponentSpec
 from saferace.errors import SafeRaceError
-from saferace.extras import require
 from saferace.names import TASK_IDS, TRAFFIC_TASK_IDS
-
-pettingzoo = require("pettingzoo", "multi", "the PettingZoo parallel env")
 
 #: How far apart the cars start if not told (m, the first car ahead).
 START_SPACING_M = 1.5
 
 
-class RacingParallelEnv(pettingzoo.ParallelEnv):
+class RacingParallelEnv(ParallelEnv):
     """``cars`` rc10s on ``track`` in task ``task`` (``CenterLine`` or ``RacingLine``),
     ``car0`` in front (``start_gaps_m``: each other car's start behind it, default 1.5 m
     apart, ``start_offsets_m`` their lateral offsets); other keyword arguments go to the
