@@ -17,7 +17,12 @@ from saferace.envs.traffic import OpponentSpec, opponent_specs
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.multi import parallel_env
-from saferace.safety.car_barriers import CAR_GAINS, car_rows, opponent_predictions
+from saferace.safety.car_barriers import (
+    CAR_GAINS,
+    CAR_ROW_WEIGHT,
+    car_rows,
+    opponent_predictions,
+)
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.models import param_values
 from saferace.safety.vehicle_params import load_params
@@ -351,15 +356,24 @@ def test_opponent_predictions_wrap_the_lap_and_take_the_speed_along_the_track():
     assert np.std([p[0] for p in noisy]) == pytest.approx(0.05, rel=0.2)
 
 
-def test_a_car_row_weighs_more_than_a_lane_row_and_vanishes_far_away():
+def test_the_car_rows_brake_for_a_car_ahead_in_line_and_vanish_far_away():
     params = param_values(load_params())
     state = np.array([0.0, 0.0, 3.0, 0.0])
-    near = car_rows("kinematic", params, state, 0.0, np.zeros(2), [(-2.0, 0.0, 1.0)], CAR_GAINS)
-    far = car_rows("kinematic", params, state, 0.0, np.zeros(2), [(-20.0, 0.0, 1.0)], CAR_GAINS)
-    (a_near,), (b_near,), _ = near
-    assert a_near[1] > 0.0 and b_near / a_near[1] < -3.0  # 2 m behind, closing at 2 m/s: brake
-    (a_far,), (b_far,), (h_far,) = far
-    assert h_far > 100.0 and b_far / a_far[1] > 4.0  # any acceleration the car has
+
+    def accel_bounds(prediction: tuple[float, float, float]) -> list[float]:
+        """The acceleration bound of each of the opponent's rows (superellipse, following)."""
+        a, b, _ = car_rows("kinematic", params, state, 0.0, np.zeros(2), [prediction], CAR_GAINS)
+        assert a[0, 1] > 0.0 and list(a[1]) == [0.0, CAR_ROW_WEIGHT]
+        return list(b / a[:, 1])
+
+    ellipse, follow = accel_bounds((-2.0, 0.0, 1.0))  # 2 m behind, closing at 2 m/s
+    assert ellipse < -3.0 and follow < -2.0
+    _, stopped = accel_bounds((-1.1, 0.0, 0.0))  # too close to stop: brake as hard as it may
+    assert stopped < -3.5
+    _, beside = accel_bounds((-1.1, 0.7, 0.0))  # in the next line over: pass it
+    assert beside > 10.0
+    ellipse, follow = accel_bounds((-20.0, 0.0, 1.0))  # far: any acceleration the car has
+    assert ellipse > 4.0 and follow > 4.0
 
 
 @pytest.mark.parametrize("side", [-0.25, 0.25])

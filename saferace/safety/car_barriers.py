@@ -19,6 +19,20 @@ steering around the nominal control. Its rows go into the filter's QP scaled by
 ``CAR_ROW_WEIGHT``: a squared slack on them costs that factor squared more than on a lane
 row, so that where lane and car conditions cannot both hold the car is the one kept clear,
 mostly by braking.
+
+A second-order barrier only holds from states where its first-order condition holds too,
+and closing on a car at speed from a few metres leaves that set (more so at power 4): on
+such states the superellipse's condition let a car accelerate into a car stopped ahead.
+So each opponent also has a first-order following barrier, the responsibility-sensitive
+safe distance of Shalev-Shwartz et al. (2017) along the track, while the ego is behind it
+and near its line (``FOLLOW_WIDTH_M``):
+
+    h_follow = gap - (v^2 / b_ego - v_o^2 / b_o) / 2,    gap = -ds - FOLLOW_GAP_M
+
+(``v`` the ego's speed along the track, ``b_ego = EGO_BRAKE_MPS2`` and ``b_o =
+OPPONENT_ACCEL_MPS2``); with the opponent braking as hard as it can,
+``dh/dt + lam h >= 0`` is ``a <= b_ego (lam h / v - 1)``: exact, linear in the
+acceleration, and braking as hard as the ego may where ``h = 0``.
 """
 
 from __future__ import annotations
@@ -52,6 +66,20 @@ SEMI_AXIS_Y_M = 2.0 ** (1.0 / POWER) * 2.0 * BUMPER_HALF_WIDTH_M + CAR_MARGIN_M
 OPPONENT_ACCEL_MPS2 = 4.0
 #: A car closer ahead than this (m, along the track) stops the filter's creep rule.
 CLOSE_AHEAD_M = 2.0
+#: The following barrier's gap between centres at a standstill (m): a bumper's length plus
+#: a margin; the braking it counts on from the ego (m/s^2, a margin below the 4 it has);
+#: its class-K gain (1/s).
+FOLLOW_GAP_M = 2.0 * BUMPER_HALF_LENGTH_M + 0.1
+EGO_BRAKE_MPS2 = 3.5
+FOLLOW_GAIN = 2.5
+#: The following barrier holds while the ego is less than this to either side of the
+#: opponent's line (m): the superellipse's half width and a margin, so that it already holds
+#: when a car cuts into the line close behind.
+FOLLOW_WIDTH_M = SEMI_AXIS_Y_M + 0.2
+#: Rows and barrier values per opponent: the superellipse's, then the following one's.
+ROWS_PER_CAR = 2
+#: The bound of a row that does not bind (m/s^2): beyond any acceleration the car has.
+UNBOUNDED_ACCEL_MPS2 = 100.0
 #: The car barrier's class-K gains (1/s), whatever the lane barriers' are.
 CAR_GAINS = class_k_gains(2.5)
 #: How much heavier a car row's slack weighs than a lane row's (its row is scaled by it).
@@ -152,16 +180,43 @@ def car_rows(
     values = np.array(rows).reshape(len(predictions), 4)
     psi, gradient, h = values[:, 0], values[:, 1:3], values[:, 3]
     b = psi - gradient @ np.array([steer0, accel0])
-    return -CAR_ROW_WEIGHT * gradient, CAR_ROW_WEIGHT * b, h
+    speed_index = symbolic_model(model_name).speed_index
+    along = (
+        float(state[speed_index])
+        * math.cos(float(state[1]))
+        / max(1.0 - kappa_radpm * float(state[0]), 0.1)
+    )
+    follow = [
+        _follow_row(ds, float(state[0]) - e_y_o, v_o, along) for ds, e_y_o, v_o in predictions
+    ]
+    a_rows = np.empty((ROWS_PER_CAR * len(predictions), 2))
+    a_rows[0::2], a_rows[1::2] = -gradient, [[0.0, 1.0]] * len(predictions)
+    b_rows = np.empty(ROWS_PER_CAR * len(predictions))
+    b_rows[0::2], b_rows[1::2] = b, [row[0] for row in follow]
+    h_rows = np.empty(ROWS_PER_CAR * len(predictions))
+    h_rows[0::2], h_rows[1::2] = h, [row[1] for row in follow]
+    return CAR_ROW_WEIGHT * a_rows, CAR_ROW_WEIGHT * b_rows, h_rows
+
+
+def _follow_row(ds: float, dy: float, v_o: float, along_mps: float) -> tuple[float, float]:
+    """``(bound on the acceleration, h_follow)`` of the following barrier; no bound (a large
+    one) unless the opponent is ahead in the ego's line."""
+    gap = -ds - FOLLOW_GAP_M
+    speed, v_o = max(along_mps, 0.0), max(v_o, 0.0)
+    h = gap - 0.5 * (speed * speed / EGO_BRAKE_MPS2 - v_o * v_o / OPPONENT_ACCEL_MPS2)
+    if ds >= 0.0 or abs(dy) >= FOLLOW_WIDTH_M:
+        return UNBOUNDED_ACCEL_MPS2, h
+    bound = EGO_BRAKE_MPS2 * (FOLLOW_GAIN * h / max(speed, 0.1) - 1.0)
+    return min(bound, UNBOUNDED_ACCEL_MPS2), h
 
 
 def car_conflict(
-    problem: FilterProblem, solution, cars: int, lane_rows: int, infeasible_slack: float
+    problem: FilterProblem, solution, car_rows: int, lane_rows: int, infeasible_slack: float
 ) -> bool:
     """Whether the solution cannot keep clear of a car (a car row needs slack) or keeps
     clear of one at the lane's cost (a lane row needs slack while a car row binds): then the
     filter brakes in its lane instead."""
-    car = slice(len(problem.b) - cars, None)
+    car = slice(len(problem.b) - car_rows, None)
     if solution.slack[car].max() > infeasible_slack:
         return True
     margins = problem.b[car] - problem.a[car] @ solution.u
@@ -182,3 +237,8 @@ def with_car_rows(
         problem, a=np.vstack([problem.a, a]), b=np.append(problem.b, b), covariance=covariance
     )
     return problem, np.column_stack([h, np.broadcast_to(car_h, (len(h), len(b)))])
+
+
+def names(opponents: Sequence[str]) -> tuple[str, ...]:
+    """The filter's constraint names of the opponents' rows, in their order."""
+    return tuple(name for car in opponents for name in (car, f"{car}_follow"))

@@ -226,9 +226,8 @@ class SafetyFilter(gym.Wrapper):
         self.opponent_noise_m = opponent_noise_m
         self.opponents = tuple(base.traffic.names) if base.traffic is not None else ()
         self._noise_rng = np.random.default_rng()
-        self.constraint_names = (
-            BARRIER_NAMES + (("speed",) if self.map.speed_limit else ()) + self.opponents
-        )
+        speed_names = ("speed",) if self.map.speed_limit else ()
+        self.constraint_names = BARRIER_NAMES + speed_names + car_barriers.names(self.opponents)
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
@@ -294,7 +293,8 @@ class SafetyFilter(gym.Wrapper):
             *self._action_box(v_x, creep),
         )  # fmt: skip
         fallback = "alarm" if alarm and self.robust else "" if solution.solved else "solver"
-        barrier_rows = len(problem.b) - (speed is not None) - len(cars)
+        car_rows = car_barriers.ROWS_PER_CAR * len(cars)
+        barrier_rows = len(problem.b) - (speed is not None) - car_rows
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
             fallback = "infeasible"
         self.last_problem = problem
@@ -311,7 +311,7 @@ class SafetyFilter(gym.Wrapper):
                 accel = float(u0[1])
             filtered = np.clip(np.array([steer, accel]), *box)
         elif cars and car_barriers.car_conflict(
-            problem, solution, len(cars), barrier_rows, INFEASIBLE_SLACK
+            problem, solution, car_rows, barrier_rows, INFEASIBLE_SLACK
         ):
             fallback = "car"  # no room for the car: brake in the lane, not around the car
             lower, upper = self._action_box(v_x, -math.inf)
