@@ -315,19 +315,20 @@ def test_opponents_start_three_metres_apart_unless_told():
     assert [spec.gap_m for spec in specs] == [3.0, -2.0, 9.0]
 
 
-def braking_ahead(filtered: bool):
+def braking_ahead(filtered: bool, opponent_noise_m: float = 0.0):
     """The ego at 3 m/s, full throttle, 1.5 m behind a car braking as hard as it can."""
     env = gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(1.5)])
     if filtered:
-        env = SafetyFilter(env, **GAIN_PRESETS["grip"])
+        env = SafetyFilter(env, opponent_noise_m=opponent_noise_m, **GAIN_PRESETS["grip"])
     env.reset(seed=0, options={"start_speed_mps": 3.0})
     return drive(env, np.array([0.0, 4.0]), {"car1": BRAKE}, steps=40)
 
 
-def test_the_car_barrier_brakes_for_a_car_braking_hard_ahead():
+@pytest.mark.parametrize("opponent_noise_m", [0.0, 0.05])
+def test_the_car_barrier_brakes_for_a_car_braking_hard_ahead(opponent_noise_m: float):
     unfiltered, _ = braking_ahead(filtered=False)
     assert [c["at_fault"] for c in unfiltered] == ["car0"]
-    collisions, infos = braking_ahead(filtered=True)
+    collisions, infos = braking_ahead(filtered=True, opponent_noise_m=opponent_noise_m)
     assert collisions == []
     decisions = [info["safety"] for info in infos]
     assert min(decision["filtered_action"][1] for decision in decisions) < -3.0  # braked
