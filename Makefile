@@ -89,6 +89,7 @@ bench: setup
 	$(BIN)/python benchmarks/frenet_speed.py
 	$(BIN)/python benchmarks/mpc_speed.py
 	$(BIN)/python benchmarks/env_speed.py
+	$(BIN)/python benchmarks/traffic_speed.py
 	$(BIN)/python benchmarks/learned_step_speed.py
 	$(BIN)/python benchmarks/benchmark_scaling.py
 
