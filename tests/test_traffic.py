@@ -419,3 +419,18 @@ def test_thepassing_side_is_the_ego_cars_own_if_it_has_room():
     assert passing_side(-0.1, left_room_m=0.05, right_room_m=0.2) == -1
     assert passing_side(0.1, left_room_m=-0.01, right_room_m=0.2) == -1
     assert passing_side(0.1, left_room_m=-0.01, right_room_m=-0.2) == 0
+
+
+def test_a_car_at_rest_does_not_creep_into_a_car_stopped_ahead():
+    env = SafetyFilter(
+        gym.make(
+            "saferace/CenterLine-v0",
+            track=STRAIGHT_TRACK,
+            opponents=[OpponentSpec("external", gap_m=0.6, speed_factor=0.01)],
+        ),
+        **GAIN_PRESETS["grip"],
+    )
+    env.reset(seed=0, options={"start_speed_mps": 0.0, "start_s_m": 3.0})
+    collisions, infos = drive(env, np.array([0.0, 2.0]), {"car1": BRAKE}, steps=40)
+    assert collisions == []
+    assert infos[-1]["opponents"][0]["gap_m"] > 0.45  # the bumpers' length: never touched

@@ -64,8 +64,6 @@ SEMI_AXIS_Y_M = 2.0 ** (1.0 / POWER) * 2.0 * BUMPER_HALF_WIDTH_M + CAR_MARGIN_M
 #: The opponent's acceleration the barrier assumes, the worst for the ego (m/s^2): braking
 #: as hard as the car can when ahead of the ego, accelerating as hard when behind it.
 OPPONENT_ACCEL_MPS2 = 4.0
-#: A car closer ahead than this (m, along the track) stops the filter's creep rule.
-CLOSE_AHEAD_M = 2.0
 #: The following barrier's gap between centres at a standstill (m): a bumper's length plus
 #: a margin; the braking it counts on from the ego (m/s^2, a margin below the 4 it has);
 #: its class-K gain (1/s).
@@ -143,16 +141,6 @@ def opponent_predictions(
             ds, e_y_o = ds + noise[0], e_y_o + noise[1]
         predictions.append((ds, e_y_o, v_o))
     return predictions
-
-
-def car_close_ahead(predictions: Sequence[tuple[float, float, float]], e_y_m: float) -> bool:
-    """Whether a car is ahead within ``CLOSE_AHEAD_M`` in the ego's path (its ellipse's
-    width): the filter's creep rule, which makes a car at a standstill move off, must not
-    push it into a car stopped ahead."""
-    return any(
-        -CLOSE_AHEAD_M < ds < 0.0 and abs(e_y_m - e_y_o) < SEMI_AXIS_Y_M
-        for ds, e_y_o, _ in predictions
-    )
 
 
 def car_rows(

@@ -286,11 +286,9 @@ class SafetyFilter(gym.Wrapper):
         cars = car_barriers.opponent_predictions(
             info.get("opponents", ()), self.track, s_m, self.opponent_noise_m, self._noise_rng
         )
-        blocked = car_barriers.car_close_ahead(cars, float(lane[:, 0].mean()))
-        creep = -math.inf if blocked else float(u0[1])  # no creeping into a car
         problem, statistics, h, solution, solve_time = self._solve(
             states, lane[:, 2], u0, context, speed, cars, nominal, spread, chance,
-            *self._action_box(v_x, creep),
+            *self._action_box(v_x, float(u0[1])),
         )  # fmt: skip
         fallback = "alarm" if alarm and self.robust else "" if solution.solved else "solver"
         car_rows = car_barriers.ROWS_PER_CAR * len(cars)
