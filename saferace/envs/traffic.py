@@ -118,7 +118,6 @@ class OpponentCar:
         self.projector = env.track.projector()
         self.policy = None if spec.policy == EXTERNAL else _load_factory()(spec, env)
         self.steer_target = 0.0
-        self.action = (0.0, 0.0)
         self.state: dict[str, Any] = {}
         self.progress_m = 0.0
 
@@ -151,7 +150,6 @@ class Traffic:
             car.io.set_pose(pose, speed, env.params.wheel_radius_m)
             car.projector.reset(s)
             car.steer_target = 0.0
-            car.action = (0.0, 0.0)
             car.progress_m = 0.0
             reset = getattr(car.policy, "reset", None)
             if reset is not None:
@@ -165,7 +163,6 @@ class Traffic:
             "cars": [
                 {
                     "steer_target": car.steer_target,
-                    "action": car.action,
                     "state": dict(car.state),
                     "progress_m": car.progress_m,
                     "projector": car.projector.get_state(),
@@ -180,7 +177,7 @@ class Traffic:
     def set_state(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`get_state` returned, in an env built with the same opponents."""
         for car, saved in zip(self.cars, state["cars"], strict=True):
-            car.steer_target, car.action = saved["steer_target"], saved["action"]
+            car.steer_target = saved["steer_target"]
             car.state, car.progress_m = dict(saved["state"]), saved["progress_m"]
             car.projector.set_state(saved["projector"])
             if car.policy is not None:
@@ -203,14 +200,13 @@ class Traffic:
             else:
                 action = car.policy.act(None, car.state)
             steer = min(max(float(action[0]), -params.max_steer_rad), params.max_steer_rad)
-            forward, _ = car.io.speeds()  # braking stops the car, never backs it up
-            brake = min(params.max_brake_mps2, max(forward, 0.0) / env.control_dt_s)
+            speeds = car.io.speeds()  # braking stops the car, never backs it up
+            brake = min(params.max_brake_mps2, max(speeds[0], 0.0) / env.control_dt_s)
             accel = min(max(float(action[1]), -brake), params.max_accel_mps2)
-            car.action = (steer, accel)
             car.steer_target = rate_limited(
                 steer, car.steer_target, params.max_steer_rate_radps, env.control_dt_s
             )
-            torques = wheel_torques(accel, *car.io.speeds(), params)
+            torques = wheel_torques(accel, *speeds, params)
             car.io.set_controls(
                 ackermann_angles(car.steer_target, params), torques.rear_nm, torques.front_nm
             )
