@@ -14,20 +14,21 @@ from typing import Any
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from saferace.envs.racing_env import RacingEnv
+from saferace.envs import racing_env
 from saferace.envs.traffic import EGO, EXTERNAL, OpponentSpec
 from saferace.errors import SafeRaceError
-from saferace.names import TASK_IDS, TRAFFIC_TASK_IDS
+from saferace.names import TASK_IDS
 
 #: How far apart the cars start if not told (m, the first car ahead).
 START_SPACING_M = 1.5
 
 
 class RacingParallelEnv(ParallelEnv):
-    """``cars`` rc10s on ``track`` in task ``task`` (``CenterLine`` or ``RacingLine``),
-    ``car0`` in front (``start_gaps_m``: each other car's start behind it, default 1.5 m
-    apart, ``start_offsets_m`` their lateral offsets); other keyword arguments go to the
-    task (image size, stereo, looks, ``max_laps``, ``collision_penalty``...)."""
+    """``cars`` rc10s on ``track`` in task ``task`` (``CenterLine`` or ``RacingLine``):
+    ``start_gaps_m`` is each other car's start along the track from ``car0``'s (negative:
+    behind; by default 1.5 m apart behind it), ``start_offsets_m`` their lateral offsets;
+    other keyword arguments go to the task (image size, stereo, looks, ``max_laps``,
+    ``collision_penalty``...)."""
 
     metadata = {"name": "saferace_racing_v0", "render_modes": ["rgb_array"], "render_fps": 20}  # noqa: RUF012
 
@@ -41,7 +42,7 @@ class RacingParallelEnv(ParallelEnv):
     ) -> None:
         if cars < 1:
             raise SafeRaceError(f"cars must be at least 1, got {cars}")
-        if task not in TASK_IDS or task in TRAFFIC_TASK_IDS:
+        if task not in TASK_IDS:
             raise SafeRaceError(f"task must be one of {', '.join(TASK_IDS)}, got {task!r}")
         gaps = start_gaps_m or [-START_SPACING_M * k for k in range(1, cars)]
         offsets = start_offsets_m or [0.0] * (cars - 1)
@@ -51,10 +52,8 @@ class RacingParallelEnv(ParallelEnv):
             OpponentSpec(policy=EXTERNAL, gap_m=gap, start_offset_m=offset, speed_factor=1.0)
             for gap, offset in zip(gaps, offsets, strict=True)
         ]
-        from saferace.envs import racing_env
-
         env_class = getattr(racing_env, f"{task}Env")
-        self.env: RacingEnv = env_class(opponents=opponents, **env_kwargs)
+        self.env: racing_env.RacingEnv = env_class(opponents=opponents, **env_kwargs)
         self.possible_agents = [EGO, *self.env.traffic.names] if cars > 1 else [EGO]
         self.agents: list[str] = []
         self.render_mode = self.env.render_mode
