@@ -59,10 +59,10 @@ class OffsetPursuit(_Restorable, PurePursuit):
 
     state_attributes: tuple[str, ...] = ("offset_m", "rng")
 
-    def __init__(self, env, spec: OpponentSpec, reference_kind: str = "center") -> None:
+    def __init__(self, env, spec: OpponentSpec) -> None:
         base = env.unwrapped
         settings = PurePursuitSettings(speed_scale=spec.speed_factor, max_speed_mps=8.0)
-        super().__init__(base.track, reference_line(base.track, reference_kind), settings)
+        super().__init__(base.track, reference_line(base.track, "center"), settings)
         self.spec = spec
         self.dt_s = base.control_dt_s
         self.half_width_m = base.car_half_width_m

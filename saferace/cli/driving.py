@@ -41,7 +41,6 @@ def register(commands: argparse._SubParsersAction) -> None:
     drive.add_argument(
         "--opponents",
         nargs="+",
-        default=[],
         metavar="POLICY[:FIELD=VALUE,...]",
         help="other cars on track: expert, pure-pursuit, lane-changer, blocker, braking "
         "(fields gap_m, start_offset_m, speed_factor, lateral_offset_m)",

@@ -48,19 +48,12 @@ class CarIO:
             int(model.sensor(prefix + "rear_right_wheel_speed").adr[0]),
         ]
 
-    def place(
-        self, pose: tuple[float, float, float], speed_mps: float, wheel_radius_m: float
-    ) -> None:
-        """Reset the physics with the car at ``(x, y, yaw)`` rolling at ``speed_mps``."""
-        mujoco.mj_resetData(self.model, self.data)
-        self.set_pose(pose, speed_mps, wheel_radius_m)
-        mujoco.mj_forward(self.model, self.data)
-
     def set_pose(
         self, pose: tuple[float, float, float], speed_mps: float, wheel_radius_m: float
     ) -> None:
         """Put the car at ``(x, y, yaw)`` rolling at ``speed_mps`` (positions and velocities
-        only: the caller runs ``mj_forward`` once every car is placed)."""
+        only: the caller resets the physics before and runs ``mj_forward`` once every car is
+        placed)."""
         data = self.data
         x, y, yaw = pose
         data.qpos[self.root_qpos : self.root_qpos + 7] = [

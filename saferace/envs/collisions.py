@@ -160,9 +160,13 @@ class CollisionMonitor:
         return collisions
 
     def _motion(self, index: int) -> CarMotion:
+        """Car ``index``'s position and velocity when the contact list was made: both from
+        the step's start (``qvel`` is already past the contact's impulse)."""
         car = self.cars[index]
-        data = self.data
+        velocity = np.empty(6)  # [angular; linear], in the world frame
+        mujoco.mj_objectVelocity(
+            car.model, self.data, mujoco.mjtObj.mjOBJ_BODY, car.chassis, velocity, 0
+        )
         return CarMotion(
-            position_m=data.xpos[car.chassis, :2].copy(),
-            velocity_mps=data.qvel[car.root_qvel : car.root_qvel + 2].copy(),
+            position_m=self.data.xpos[car.chassis, :2].copy(), velocity_mps=velocity[3:5]
         )

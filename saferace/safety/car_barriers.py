@@ -2,11 +2,11 @@
 
 For an opponent at arc length ``s_o`` and lateral offset ``e_y_o``, predicted to go on
 along its current line (``e_y_o`` held) from its speed along the track ``v_o``, the
-barrier is a superellipse of power ``p = POWER`` in the Frenet frame around it. While the
-ego is in its line (less than ``B`` to the side), the opponent is predicted to brake as
-hard as a car can if it is ahead (``OPPONENT_ACCEL_MPS2``, so that a car braking hard
-ahead is braked for in time) or to accelerate as hard if it is behind; beside it, to hold
-its speed (so that it can be passed):
+barrier is a superellipse of power ``p = POWER`` in the Frenet frame around it. An
+opponent moving ahead of the ego in its line (less than ``B`` to the side) is predicted to
+brake as hard as a car can (``OPPONENT_ACCEL_MPS2``, so that a car braking hard ahead is
+braked for in time); any other, to hold its speed (one beside can be passed; one behind is
+at fault if it runs into the ego):
 
     h = (ds / A)^p + ((e_y - e_y_o) / B)^p - 1,    ds = s - s_o,  d(ds)/dt = s_dot - v_o
 
@@ -55,14 +55,14 @@ BUMPER_HALF_LENGTH_M = 0.225
 BUMPER_HALF_WIDTH_M = 0.155
 #: Added to each semi-axis of the ellipse (m).
 CAR_MARGIN_M = 0.05
-#: The power of the superellipse: 2 is an ellipse; 4 hugs the two bumpers' rectangle closer,
-#: leaving room to pass a car alongside in a 1 m lane.
+#: The power of the superellipse: 2 is an ellipse; 4 hugs the two bumpers' rectangle closer
+#: (its lateral semi-axis 0.42 m against the ellipse's 0.49 m).
 POWER = 4
 #: Its semi-axes along the track and across it (m): the rectangle's corners on the curve.
 SEMI_AXIS_S_M = 2.0 ** (1.0 / POWER) * 2.0 * BUMPER_HALF_LENGTH_M + CAR_MARGIN_M
 SEMI_AXIS_Y_M = 2.0 ** (1.0 / POWER) * 2.0 * BUMPER_HALF_WIDTH_M + CAR_MARGIN_M
-#: The opponent's acceleration the barrier assumes, the worst for the ego (m/s^2): braking
-#: as hard as the car can when ahead of the ego, accelerating as hard when behind it.
+#: How hard an opponent ahead in the ego's line is assumed to brake (m/s^2): as hard as the
+#: car can.
 OPPONENT_ACCEL_MPS2 = 4.0
 #: The following barrier's gap between centres at a standstill (m): a bumper's length plus
 #: a margin; the braking it counts on from the ego (m/s^2, a margin below the 4 it has);
@@ -162,8 +162,8 @@ def car_rows(
     ego = (*state, steer0, accel0, kappa_radpm, *params)
     rows = []
     for ds, e_y_o, v_o in predictions:
-        in_line = abs(float(state[0]) - e_y_o) < SEMI_AXIS_Y_M
-        worst_accel = (OPPONENT_ACCEL_MPS2 if ds > 0.0 else -OPPONENT_ACCEL_MPS2) * in_line
+        braking_ahead = ds < 0.0 and v_o > 0.0 and abs(float(state[0]) - e_y_o) < SEMI_AXIS_Y_M
+        worst_accel = -OPPONENT_ACCEL_MPS2 if braking_ahead else 0.0
         rows.append(function(*ego, ds, e_y_o, v_o, worst_accel, *axes, *gains))
     values = np.array(rows).reshape(len(predictions), 4)
     psi, gradient, h = values[:, 0], values[:, 1:3], values[:, 3]
@@ -205,11 +205,21 @@ def car_conflict(
     clear of one at the lane's cost (a lane row needs slack while a car row binds): then the
     filter brakes in its lane instead."""
     car = slice(len(problem.b) - car_rows, None)
-    if solution.slack[car].max() > infeasible_slack:
+    if solution.slack[car].max() > infeasible_slack:  # on rows scaled by CAR_ROW_WEIGHT
         return True
     margins = problem.b[car] - problem.a[car] @ solution.u
     binding = margins.min() < CAR_ROW_WEIGHT * infeasible_slack
     return bool(binding and solution.slack[:lane_rows].max() > infeasible_slack)
+
+
+def follow_capped(
+    problem: FilterProblem, car_rows: int, accel_mps2: float, box: tuple[np.ndarray, np.ndarray]
+) -> float:
+    """``accel_mps2`` within the tightest bound the following rows of ``problem`` put on the
+    acceleration, and within the action ``box``: the filter's fallbacks leave the QP, not
+    the car ahead."""
+    follow = problem.b[len(problem.b) - car_rows + 1 :: ROWS_PER_CAR] / CAR_ROW_WEIGHT
+    return float(max(min(accel_mps2, follow.min()), box[0][1]))
 
 
 def with_car_rows(

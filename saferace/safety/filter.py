@@ -236,7 +236,8 @@ class SafetyFilter(gym.Wrapper):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
         self.state_source.reset(seed)
-        self._noise_rng = np.random.default_rng(seed)
+        if seed is not None:  # its own stream, apart from the state source's
+            self._noise_rng = np.random.default_rng([seed, 1])
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         return observation, info
@@ -308,15 +309,17 @@ class SafetyFilter(gym.Wrapper):
                 box = self._fallback_box(v_x, float(u0[1]), interval, context, speed)
                 accel = float(u0[1])
             filtered = np.clip(np.array([steer, accel]), *box)
+            if cars:  # nor into a car ahead
+                filtered[1] = car_barriers.follow_capped(problem, car_rows, filtered[1], box)
         elif cars and car_barriers.car_conflict(
             problem, solution, car_rows, barrier_rows, INFEASIBLE_SLACK
         ):
             fallback = "car"  # no room for the car: brake in the lane, not around the car
             lower, upper = self._action_box(v_x, -math.inf)
             upper[1] = lower[1]
-            filtered = self._solve(
+            filtered = np.clip(self._solve(
                 states, lane[:, 2], u0, context, speed, [], nominal, spread, chance, lower, upper
-            )[3].u
+            )[3].u, lower, upper)  # fmt: skip
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         count = len(self.constraint_names)
         spread_at_u = np.zeros(count)
