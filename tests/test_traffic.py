@@ -442,3 +442,16 @@ def test_a_car_at_rest_does_not_creep_into_a_car_stopped_ahead():
     collisions, infos = drive(env, np.array([0.0, 2.0]), {"car1": BRAKE}, steps=40)
     assert collisions == []
     assert infos[-1]["opponents"][0]["gap_m"] > 0.45  # the bumpers' length: never touched
+
+
+def test_a_look_mounts_every_cars_onboard_cameras_alike():
+    env = parallel_env(cars=2, track="lab", randomize="strong")
+    model = env.env.model
+    cameras = [model.camera(name).id for name in ("front_camera", "car1/front_camera")]
+    built = model.cam_pos[cameras].copy(), model.cam_fovy[cameras].copy()
+    env.reset(seed=3)
+    moved = model.cam_pos[cameras] - built[0]
+    assert np.abs(moved[0]).max() > 1e-4  # the look raised the ego's camera
+    np.testing.assert_allclose(moved[1], moved[0])  # and car1's alike
+    np.testing.assert_allclose(model.cam_fovy[cameras][1], model.cam_fovy[cameras][0])
+    assert model.cam_fovy[cameras][0] != built[1][0]

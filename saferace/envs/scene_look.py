@@ -101,7 +101,11 @@ class SceneLook:
             and model.geom(geom).name.split("/")[-1] in SHELL_GEOMS
         ]
         self._opponent_rgba = model.geom_rgba[self._opponent_shells].copy()
-        self._cameras = [model.camera(name).id for name in ONBOARD_CAMERAS]
+        self._cameras = [  # every car's: an opponent's view (PettingZoo) has the look too
+            camera
+            for camera in range(model.ncam)
+            if model.camera(camera).name.split("/")[-1] in ONBOARD_CAMERAS
+        ]
         self._camera_pos = model.cam_pos[self._cameras].copy()
         self._camera_quat = model.cam_quat[self._cameras].copy()
         self._camera_fovy = model.cam_fovy[self._cameras].copy()
