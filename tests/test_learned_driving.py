@@ -1,5 +1,5 @@
-"""Behaviour cloning as a sanity check of the whole path: collect, train, drive (a tiny one in
-the fast suite, the paper's image size in the slow one)."""
+"""Behaviour cloning as a sanity check of the whole path: collect, train, drive (a tiny one
+and one at the paper's image size, both in the slow suite)."""
 
 from __future__ import annotations
 
@@ -18,9 +18,11 @@ from saferace.learning.training import TrainConfig
 TINY_IMAGE, TINY_SECONDS = 32, 10.0
 
 
+@pytest.mark.slow
 def test_a_tiny_cloned_expert_laps_lab_inside_its_lane(tmp_path: Path):
     """Six perturbed 10 s expert drives at 32x32, ten epochs: the cloned driver laps lab
-    inside the lane, near the expert's line and time (about 45 s)."""
+    inside the lane, near the expert's line and time (about 85 s on 2 cores: the default
+    suite's longest test, so in the slow one)."""
     episode = EpisodeSettings(
         laps=1, max_seconds=TINY_SECONDS, image_size=TINY_IMAGE, expert_model="kinematic"
     )
