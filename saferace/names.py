@@ -7,6 +7,10 @@ or a default cannot drift between two copies.
 
 from __future__ import annotations
 
+#: The half length and half width of the rc10's ``bumper`` box (m, ``rc10.xml``; a test
+#: checks the model): where two cars touch, for the contact check and the car barriers.
+RC10_BUMPER_HALF_EXTENTS_M = (0.225, 0.155)
+
 #: The tasks by short name, and their gymnasium ids.
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
 TASKS: tuple[str, ...] = tuple(TASK_IDS)

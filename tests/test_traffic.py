@@ -17,6 +17,7 @@ from saferace.envs.traffic import OpponentSpec, opponent_specs
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.multi import parallel_env
+from saferace.names import RC10_BUMPER_HALF_EXTENTS_M
 from saferace.safety.car_barriers import (
     CAR_GAINS,
     CAR_ROW_WEIGHT,
@@ -455,3 +456,8 @@ def test_a_look_mounts_every_cars_onboard_cameras_alike():
     np.testing.assert_allclose(moved[1], moved[0])  # and car1's alike
     np.testing.assert_allclose(model.cam_fovy[cameras][1], model.cam_fovy[cameras][0])
     assert model.cam_fovy[cameras][0] != built[1][0]
+
+
+def test_the_bumper_constants_are_the_models():
+    model = gym.make("saferace/RacingLine-v0", track="lab").unwrapped.model
+    np.testing.assert_allclose(model.geom("bumper").size[:2], RC10_BUMPER_HALF_EXTENTS_M)

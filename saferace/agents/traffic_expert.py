@@ -1,15 +1,16 @@
 """The expert MPC in traffic: it plans around the opponents in ``info``, passing where the
 lane has room and following where it has not.
 
-Each opponent is predicted to go on at its speed along the track on its current line (as
-the filter's car barriers predict it). At every stage of the plan where the ego car's
-predicted arc length is within ``PASS_LENGTH_M`` of an opponent's, the opponent takes the
-band ``e_y_o +- PASS_WIDTH_M`` of the lane: the stage's lateral bound moves to the side the
-car passes on (the side it is on now if that has room, else the other), and the plan
-overtakes. Where neither side has room for the car, the plan follows: every stage's speed
-is capped at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in
-``FOLLOW_TIME_S``. The bounds are soft, as the lane's are; the safety filter's car
-barriers are what guarantee clearance.
+Each opponent is predicted to go on along its current line at its speed along its
+heading (``speed cos(e_psi)``; the filter's car barriers also divide by the Frenet
+frame's stretch). At every stage of the plan where the ego car's predicted arc length is
+within ``PASS_LENGTH_M`` of an opponent's, the opponent takes the band ``e_y_o
++- PASS_WIDTH_M`` of the lane: the stage's lateral bound moves to the side the car passes
+on (the side it is on now if that has room, else the other), and the plan overtakes.
+Where neither side has room for the car, the plan follows: every stage's speed is capped
+at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in ``FOLLOW_TIME_S``. The
+bounds are soft, as the lane's are; the safety filter's car barriers are what guarantee
+clearance.
 """
 
 from __future__ import annotations
@@ -40,6 +41,10 @@ class TrafficExpert(MPCExpert):
     """The expert MPC that passes or follows the opponents in ``info["opponents"]``."""
 
     speed_rows = True
+    #: This step's opponents near the car ``(s_o, e_y_o, v_o)`` (set by :meth:`act`), and
+    #: those it follows ``(gap, v_o)`` (set with the plan's lane bounds, read by its caps).
+    _opponents: list[tuple[float, float, float]] = []  # noqa: RUF012 - replaced, never mutated
+    _follow: list[tuple[float, float]] = []  # noqa: RUF012 - replaced, never mutated
 
     def act(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
         self._opponents = opponents_near(info.get("opponents", ()), self.track.length_m)
@@ -48,9 +53,9 @@ class TrafficExpert(MPCExpert):
 
     def _lane_bounds(self, s_stage: np.ndarray, plan_x: np.ndarray):
         upper, lower = super()._lane_bounds(s_stage, plan_x)
-        self._follow: list[tuple[float, float]] = []
+        self._follow = []
         times = self.settings.dt_s * np.arange(1, len(s_stage))
-        for s_o, e_y_o, v_o in getattr(self, "_opponents", ()):
+        for s_o, e_y_o, v_o in self._opponents:
             gaps = np.array(
                 [
                     wrap_arc(s_o + v_o * t - s, self.track.length_m)
@@ -73,7 +78,7 @@ class TrafficExpert(MPCExpert):
 
     def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
         caps = np.full(len(s_m), np.inf)
-        for gap, v_o in getattr(self, "_follow", ()):
+        for gap, v_o in self._follow:
             caps[:] = np.minimum(caps, max(0.0, v_o + (gap - FOLLOW_GAP_M) / FOLLOW_TIME_S))
         return caps
 

@@ -23,6 +23,7 @@ import mujoco
 import numpy as np
 
 from saferace.envs.car_io import CarIO
+from saferace.names import RC10_BUMPER_HALF_EXTENTS_M
 
 #: Two cars whose centres are closer than this along the track are alongside (m): about
 #: half the car's 0.45 m length, so that a car nosing into another's flank is alongside.
@@ -31,7 +32,7 @@ ALONGSIDE_M = 0.25
 SEPARATION_S = 0.5
 #: Two bumpers cannot touch while their centres are further apart than this (m): the
 #: distance from the centre to a bumper's corner, twice.
-BUMPER_REACH_M = 2.0 * float(np.hypot(0.225, 0.155))
+BUMPER_REACH_M = 2.0 * math.hypot(*RC10_BUMPER_HALF_EXTENTS_M)
 #: The fastest two cars close on each other (m/s): each at most 8 m/s.
 MAX_CLOSING_MPS = 16.0
 

@@ -46,13 +46,13 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
+from saferace.names import RC10_BUMPER_HALF_EXTENTS_M
 from saferace.safety.barriers import MAX_ORDER, class_k_gains, time_derivative
 from saferace.safety.models import symbolic_model
 from saferace.safety.qp import FilterProblem
+from saferace.track.frenet import wrap_arc
 
-#: The bumpers' half length and half width (m, the rc10's ``bumper`` geom).
-BUMPER_HALF_LENGTH_M = 0.225
-BUMPER_HALF_WIDTH_M = 0.155
+BUMPER_HALF_LENGTH_M, BUMPER_HALF_WIDTH_M = RC10_BUMPER_HALF_EXTENTS_M
 #: Added to each semi-axis of the ellipse (m).
 CAR_MARGIN_M = 0.05
 #: The power of the superellipse: 2 is an ellipse; 4 hugs the two bumpers' rectangle closer
@@ -135,7 +135,7 @@ def opponent_predictions(
         s_o, e_y_o, e_psi_o = opponent["s_m"], opponent["e_y_m"], opponent["e_psi_rad"]
         stretch = 1.0 - track.centerline.curvature_scalar(s_o) * e_y_o
         v_o = opponent["speed_mps"] * math.cos(e_psi_o) / max(stretch, 0.1)
-        ds = (ego_s_m - s_o + 0.5 * length) % length - 0.5 * length
+        ds = wrap_arc(ego_s_m - s_o, length)
         if noise_m > 0.0:
             noise = (rng or np.random.default_rng()).normal(0.0, noise_m, 2)
             ds, e_y_o = ds + noise[0], e_y_o + noise[1]
