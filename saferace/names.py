@@ -16,6 +16,13 @@ TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/Raci
 TASKS: tuple[str, ...] = tuple(TASK_IDS)
 #: Tasks in traffic (``saferace.envs.traffic``): they start among opponents.
 TRAFFIC_TASK_IDS = {"Overtake": "saferace/Overtake-v0"}
+#: Every task a driver can be run, collected or trained on.
+DRIVING_TASKS: tuple[str, ...] = (*TASKS, *TRAFFIC_TASK_IDS)
+#: The opponent specs' form on the command line and in configs.
+OPPONENTS_HELP = (
+    "other cars on track, POLICY[:FIELD=VALUE,...]: expert, pure-pursuit, lane-changer, "
+    "blocker, braking (fields gap_m, start_offset_m, speed_factor, lateral_offset_m)"
+)
 
 #: Vehicle models of the expert MPC and the safety filter (``saferace.safety.models``).
 VEHICLE_MODELS = ("kinematic", "dynamic", "dynamic-paper")

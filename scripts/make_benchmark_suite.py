@@ -1,10 +1,12 @@
-"""Write the SafeRace benchmark suite v1: its evaluation tracks and the expert's lap times.
+"""Write the SafeRace benchmark suite: its evaluation tracks, the expert's lap times and the
+traffic set.
 
 The evaluation tracks are random tracks (``write_random_track``, 3 m radius, as the safety
 table's) from seeds that nothing else in the repository uses; the expert MPC laps every
-track, task and start of the protocol once, and its lap times are the suite's references.
+track, task and start of the protocol once, and its lap times are the suite's references
+(the traffic set's runs are measured against the expert's racing-line laps alone).
 Run once from the repository root (``python scripts/make_benchmark_suite.py``); changing
-anything it writes means a new suite version (see ``saferace/eval/benchmark.py``).
+anything it writes means a new suite version (see ``saferace/experiments/benchmark.py``).
 """
 
 from __future__ import annotations
@@ -27,6 +29,17 @@ PROTOCOL = {
     "laps": 1,
     "max_seconds": 60.0,
     "filters": ["none", "cbf"],
+}
+TRAFFIC = {
+    "task": "Overtake",
+    "opponents": {
+        "expert": ["expert:gap_m=2,speed_factor=0.8"],
+        "braking": ["braking:gap_m=2,speed_factor=0.8"],
+    },
+    "seeds": [0],
+    "laps": 2,
+    "max_seconds": 60.0,
+    "collision_factor": 0.6,
 }
 
 
@@ -70,6 +83,7 @@ def main() -> None:
                 print(f"{track:10s} {task:10s} start {fraction:.1f}: {lap:.2f} s")
     suite = {"version": SUITE_VERSION, "tracks": tracks, **PROTOCOL}
     suite["expert_lap_time_s"] = references
+    suite["traffic"] = TRAFFIC
     (folder / "suite.json").write_text(json.dumps(suite, indent=2) + "\n")
     print(f"suite v{SUITE_VERSION} written to {folder}")
 

@@ -11,8 +11,15 @@ import pytest
 from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
-from saferace.experiments.benchmark import load_suite, replay_record
-from saferace.experiments.benchmark_page import leaderboard_html, leaderboard_rows
+from saferace.experiments.benchmark import (
+    TRAFFIC_MEASUREMENTS,
+    RunSpec,
+    load_suite,
+    replay_record,
+    scored,
+    totals,
+)
+from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
 from saferace.experiments.submission_checks import check_submission
 from saferace.experiments.verify import (
     choose_runs,
@@ -68,6 +75,18 @@ def drop_half_the_points(data: dict) -> None:
         trajectory[name] = trajectory[name][::2]
 
 
+def traffic_row(data: dict) -> dict:
+    """The submission's first run in traffic."""
+    return next(row for row in data["rows"] if row.get("opponents") is not None)
+
+
+def hide_a_collision(data: dict) -> None:
+    """A run that caused a collision, submitted with its score as if it had not."""
+    row = traffic_row(data)
+    row["collisions"] += 1
+    row["at_fault_collisions"] += 1
+
+
 def set_row(**values):
     return lambda data: first_row(data).update(values)
 
@@ -78,7 +97,7 @@ REFUSALS = {
     "a doctored ratio": (set_row(lap_time_ratio=0.5), "lap_time_ratio is 0.5, recomputed"),
     "a doctored reference": (
         set_row(expert_lap_time_s=3.0),
-        "expert_lap_time_s is 3.0, recomputed 7.7769",
+        "expert_lap_time_s is 3.0, recomputed 7.7782",
     ),
     "lap times halved": (halve_every_lap_time, f"run {FIRST}: the drive ("),
     "completion above 1": (set_row(completion=1.2), "completion 1.2 is outside [0, 1]"),
@@ -98,11 +117,11 @@ REFUSALS = {
     "an intervention without a filter": (set_row(intervention_rate=0.5), "without a filter"),
     "a missing run": (
         lambda d: d["rows"].pop(),
-        "eval_902/RacingLine/1/cbf of suite v1 is missing",
+        "eval_902/Overtake/0/cbf/braking of suite v2 is missing",
     ),
     "a duplicated run": (lambda d: d["rows"].append(d["rows"][0]), f"run {FIRST} appears 2 times"),
     "a run of another track": (set_row(track="bean"), "bean/CenterLine/0/none is not a run of"),
-    "a run of another suite version": (set_row(suite_version=2), "of suite v2, not v1"),
+    "a run of another suite version": (set_row(suite_version=3), "of suite v3, not v2"),
     "a run of another agent": (set_row(agent_sha256="0" * 64), "driven by another agent"),
     "a drive too long for a float": (set_row(driven_s=10**400), "driven_s is 1000"),
     "coordinates as text": (
@@ -114,6 +133,20 @@ REFUSALS = {
         lambda d: d["rows"][1].update(intervention_rate=None),
         "run lab/CenterLine/0/cbf: intervention_rate None is not a share in [0, 1]",
     ),
+    "more collisions caused than in all": (
+        lambda d: traffic_row(d).update(collisions=0, at_fault_collisions=1),
+        "at_fault_collisions 1 is more than the 0 collisions",
+    ),
+    "more overtakes than opponents": (
+        lambda d: traffic_row(d).update(overtakes=2),
+        "overtakes 2 is more than the 1 opponents",
+    ),
+    "a collision count as a fraction": (
+        lambda d: traffic_row(d).update(collisions=0.5),
+        "collisions is 0.5, not a whole number",
+    ),
+    "collisions on a lane run": (set_row(collisions=1), "collisions on a run without opponents"),
+    "a collision hidden": (lambda d: hide_a_collision(d), "score is "),
     "a replay of the wrong shape": (
         lambda d: d["replay"].update(files_sha256=["x.pt"]),
         "replay or versions has fields of the wrong type",
@@ -158,7 +191,53 @@ def test_the_leaderboard_refuses_in_one_line_and_ranks_the_honest(
     [line] = accepted.stdout.strip().splitlines()[2:]
     cells = [cell.strip() for cell in line.strip("|").split("|")]
     agent_hash = json.loads(honest_submission.read_text())["replay"]["agent_sha256"]
-    assert cells[:5] == ["1", "pure-pursuit", "v1", agent_hash[:12], "no"]
+    assert cells[:5] == ["1", "pure-pursuit", "v2", agent_hash[:12], "no"]
+
+
+def test_each_at_fault_collision_multiplies_the_run_score_by_the_suite_factor(honest: dict):
+    suite = load_suite()
+    row = traffic_row(honest)
+    spec = RunSpec.of_row(row)
+    clean = scored({**row, "at_fault_collisions": 0}, spec, suite)["score"]
+    for count in (1, 2):
+        penalised = scored({**row, "at_fault_collisions": count}, spec, suite)["score"]
+        assert penalised == pytest.approx(clean * suite.traffic_set().collision_factor ** count)
+    assert 0.0 < suite.traffic_set().collision_factor < 1.0
+
+
+def as_version_1(submission: dict) -> dict:
+    """``submission``'s lane runs as a submission of suite v1 would hold them: no traffic
+    runs, fields or totals, every score from v1's references."""
+    suite = load_suite(1)
+    rows = []
+    for row in submission["rows"]:
+        if row.get("opponents") is not None:
+            continue
+        row = {k: v for k, v in row.items() if k not in ("opponents", *TRAFFIC_MEASUREMENTS)}
+        row = {**row, "suite_version": 1}
+        rows.append({**row, **scored(row, RunSpec.of_row(row), suite)})
+    kept = {
+        k: v for k, v in submission.items() if k not in totals(submission["rows"], load_suite())
+    }
+    return {**kept, "suite_version": 1, "rows": rows, **totals(rows, suite)}
+
+
+def test_a_submission_of_the_old_version_is_scored_under_its_own(honest: dict):
+    old = as_version_1(honest)
+    assert "traffic_score" not in old and len(old["rows"]) == len(load_suite(1).runs())
+    assert check_submission(json.loads(json.dumps(old)), SOURCE) == old
+    current = check_submission(json.loads(json.dumps(honest)), SOURCE)
+    better_old = {**old, "agent": "old", "score": 100.0}  # ranked only among its version
+    ranked = leaderboard_rows([better_old, current])
+    assert [(row[0], row[1], row[2]) for row in ranked] == [
+        (1, "pure-pursuit", "v2"),
+        (1, "old", "v1"),
+    ]
+    assert ranked[1][COLUMNS.index("traffic score")] is None
+    mixed = json.loads(json.dumps(old))
+    mixed["rows"].append(traffic_row(honest))  # a traffic run is no run of v1
+    with pytest.raises(SafeRaceError, match="Overtake/0/none/expert is not a run of suite v1"):
+        check_submission(mixed, SOURCE)
 
 
 def test_the_page_escapes_every_string_of_a_submission(honest: dict):
@@ -175,13 +254,14 @@ def test_verify_replays_an_honest_submission_and_marks_it_in_its_own_records(
     path, records = tmp_path / "pp.json", tmp_path / "records"
     shutil.copy(honest_submission, path)
     result = verify_submission(path, runs=2, seed=3, progress=False, records=records)
-    assert result.passed and len(result.replayed) == 2 and result.total_runs == 48
+    runs = len(load_suite().runs())
+    assert result.passed and len(result.replayed) == 2 and result.total_runs == runs
     record = verification_record(path, records)
     assert record is not None and record["replayed"] == list(result.replayed)
     entry = {**check_submission(json.loads(path.read_text()), str(path)), "verification": record}
-    assert leaderboard_rows([entry])[0][4] == "2 of 48"
+    assert leaderboard_rows([entry])[0][4] == f"2 of {runs}"
     shown = run_cli("leaderboard", str(path), "--verified-only", "--records", str(records))
-    assert shown.returncode == 0 and "2 of 48" in shown.stdout, shown.stderr
+    assert shown.returncode == 0 and f"2 of {runs}" in shown.stdout, shown.stderr
     elsewhere = run_cli("leaderboard", str(path), "--verified-only", "--records", str(tmp_path))
     assert elsewhere.returncode != 0  # a record is only worth the folder it is kept in
     path.write_text(json.dumps(json.loads(path.read_text()), indent=2))  # same rows, new bytes

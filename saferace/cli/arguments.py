@@ -10,14 +10,15 @@ from saferace.errors import SafeRaceError
 from saferace.names import (
     DEFAULT_STATE_NOISE,
     DEVICE_HELP,
+    DRIVING_TASKS,
     MC_SAMPLES,
     NOISY_SAMPLES,
+    OPPONENTS_HELP,
     RANDOMIZATION_PRESETS,
     SLACK_PENALTIES,
     SMOOTHING_KEEPS,
     SQUARED_SLACK,
     STATE_SOURCE_KINDS,
-    TASKS,
 )
 
 AGENT_HELP = "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY"
@@ -25,10 +26,13 @@ TRACK_HELP = "built-in track name or track CSV path"
 
 
 def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -> None:
-    """The arguments of one driven episode: task, track, agent, laps, camera."""
+    """The arguments of one driven episode: task, track, agent, laps, camera, opponents."""
     group = parser.add_argument_group("episode")
     group.add_argument(
-        "--task", default="RacingLine", choices=TASKS, help="the reference line to follow"
+        "--task",
+        default="RacingLine",
+        choices=DRIVING_TASKS,
+        help="the reference line to follow (Overtake: the racing line behind a slower car)",
     )
     group.add_argument("--track", default="technical", help=TRACK_HELP)
     group.add_argument("--agent", default=default_agent, help=AGENT_HELP)
@@ -40,6 +44,9 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
         type=int,
         default=MC_SAMPLES,
         help="MC-dropout samples per step of a learned agent",
+    )
+    group.add_argument(
+        "--opponents", nargs="+", metavar="POLICY[:FIELD=VALUE,...]", help=OPPONENTS_HELP
     )
 
 

@@ -38,13 +38,6 @@ def register(commands: argparse._SubParsersAction) -> None:
     drive.add_argument("--seed", type=int, default=0, help="seeds the episode and its agent")
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
-    drive.add_argument(
-        "--opponents",
-        nargs="+",
-        metavar="POLICY[:FIELD=VALUE,...]",
-        help="other cars on track: expert, pure-pursuit, lane-changer, blocker, braking "
-        "(fields gap_m, start_offset_m, speed_factor, lateral_offset_m)",
-    )
     add_filter_arguments(drive)
     add_device_argument(drive)
     drive.set_defaults(command=_drive)
@@ -55,6 +48,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         epilog=example(
             "saferace eval --agent expert --task RacingLine --track technical --out rows.jsonl",
             "saferace eval --agent weave --filter cbf --seeds 0 1 2 --out rows.jsonl",
+            "saferace eval --agent expert --task Overtake --filter cbf --out rows.jsonl",
         ),
     )
     add_episode_arguments(evaluate, default_agent="expert")
@@ -164,6 +158,8 @@ def _drive(args: argparse.Namespace) -> int:
         args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-",
         result, safety=safety,
     )  # fmt: skip
+    if args.opponents:
+        row["config"]["env"] = {"opponents": args.opponents}
     print(leaderboard_markdown([row]))
     for label, path in (("video", args.video), ("rerun recording", args.rerun)):
         if path:
@@ -188,6 +184,7 @@ def _eval(args: argparse.Namespace) -> int:
             "max_steps": max_steps_for(args.max_seconds),
             "image_size": (args.image_size, args.image_size),
             "stereo": args.stereo,
+            **({} if args.opponents is None else {"opponents": args.opponents}),
         },
         safety=filter_config(args),
         mc_samples=args.mc_samples,

@@ -242,15 +242,16 @@ class Traffic:
         at_fault = sum(collision.at_fault == EGO for collision in collisions)
         return {
             **info,
-            "opponents": self.opponents_info(info["s_m"]),
+            "opponents": self.opponents_info(info["s_m"], info["progress_m"]),
             "collisions": [collision.as_dict() for collision in collisions],
             "at_fault_collisions": at_fault,
             "reward_collision": -collision_penalty * at_fault,
         }
 
-    def opponents_info(self, ego_s_m: float) -> list[dict[str, Any]]:
-        """Each opponent's pose, Frenet state, speed and gap ahead of the ego (m, along the
-        centre line, within half a lap)."""
+    def opponents_info(self, ego_s_m: float, ego_progress_m: float) -> list[dict[str, Any]]:
+        """Each opponent's pose, Frenet state, speed, gap ahead of the ego (m, along the
+        centre line, within half a lap) and ``ego_lead_m``: how far the ego has driven past
+        it since the start, laps counted (negative while it has not)."""
         length = self.env.track.length_m
         return [
             {
@@ -271,7 +272,10 @@ class Traffic:
                     "outside_lane",
                 )
             }
-            | {"gap_m": wrap_arc(car.state["s_m"] - ego_s_m, length)}
+            | {
+                "gap_m": wrap_arc(car.state["s_m"] - ego_s_m, length),
+                "ego_lead_m": ego_progress_m - car.progress_m - car.gap_m,
+            }
             for car in self.cars
         ]
 

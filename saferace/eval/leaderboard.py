@@ -33,6 +33,9 @@ COLUMNS = (
     "outside lane [s]",
     "interventions [%]",
     "steer rate RMS [rad/s]",
+    "opponents",
+    "at-fault collisions",
+    "overtakes",
 )
 _MEAN_LAP = COLUMNS.index("mean lap [s]")
 _FILTER_FIELDS = {field.name for field in fields(FilterConfig)}
@@ -123,16 +126,23 @@ def row_label(row: dict) -> str:
 
 
 def leaderboard_rows(rows: list[dict]) -> list[list]:
-    """One line per (agent, task, track, filter, state source), averaged over seeds, sorted
-    by mean lap time. The whole filter configuration keys a group: runs behind different
-    filters are never merged."""
+    """One line per (agent, task, track, filter, state source, opponents), averaged over
+    seeds, sorted by mean lap time. The whole filter configuration keys a group: runs behind
+    different filters, or among other opponents, are never merged. In traffic, the
+    collisions the agent caused and its overtakes are summed over the seeds."""
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for row in rows:
         config = row_filter(row)
-        key = (row["agent"], row["task"], row["track"], json.dumps(config.as_dict()))
+        key = (
+            row["agent"],
+            row["task"],
+            row["track"],
+            json.dumps(config.as_dict()),
+            " ".join(row_opponents(row)),
+        )
         groups[key].append(row["summary"])
     table = []
-    for (agent, task, track, config_json), summaries in groups.items():
+    for (agent, task, track, config_json, opponents), summaries in groups.items():
         config = FilterConfig(**_tuples(json.loads(config_json)))
         best = [s["best_lap_time_s"] for s in summaries if s["best_lap_time_s"] is not None]
         worst = [
@@ -155,6 +165,9 @@ def leaderboard_rows(rows: list[dict]) -> list[list]:
                 sum(s["time_outside_lane_s"] for s in summaries),
                 None if rate is None else 100.0 * rate,
                 _mean(summaries, "steering_rate_rms_radps"),
+                opponents or None,
+                _sum(summaries, "at_fault_collisions"),
+                _sum(summaries, "overtakes"),
             ]
         )
     return sorted(
@@ -165,6 +178,20 @@ def leaderboard_rows(rows: list[dict]) -> list[list]:
 
 def _tuples(config: dict) -> dict:
     return {k: tuple(v) if isinstance(v, list) else v for k, v in config.items()}
+
+
+def row_opponents(row: dict) -> list[str]:
+    """The opponents a row drove among, as given (``--opponents``); ``task default`` for a
+    traffic task's own, none alone on the track."""
+    given = (row.get("config") or {}).get("env", {}).get("opponents")
+    if given:
+        return [str(spec) for spec in given]
+    return ["task default"] if "at_fault_collisions" in row["summary"] else []
+
+
+def _sum(summaries: list[dict], key: str) -> int | None:
+    values = [s[key] for s in summaries if s.get(key) is not None]
+    return sum(values) if values else None
 
 
 def _mean(summaries: list[dict], key: str) -> float | None:
@@ -183,8 +210,9 @@ def write_leaderboard_csv(rows: list[dict], path: str | Path) -> None:
 
 
 def plot_trajectories(rows: list[dict], path: str | Path) -> None:
-    """Per track: driven paths over the track (paper Fig. 4), and speed against ``s``; the
-    legend (agent, task, seed, filter, state source) below the plots, off the track.
+    """Per track: driven paths over the track (paper Fig. 4), in traffic the opponents'
+    paths and the collisions too, and speed against ``s``; the legend (agent, task, seed,
+    filter, state source) below the plots, off the track.
 
     A row finds its track wherever the plot is made (:func:`~saferace.eval.runner.row_track`).
     """
@@ -206,6 +234,7 @@ def plot_trajectories(rows: list[dict], path: str | Path) -> None:
             label, colour = row_label(row), f"C{number % 10}"
             trajectory = row["trajectory"]
             plot_path(ax_map, trajectory, lw=1.2, color=colour, label=label)
+            plot_traffic(ax_map, row.get("traffic"), colour)
             ax_speed.plot(trajectory["s_m"], trajectory["v_x_mps"], ".", ms=2, color=colour)
         ax_map.set_title(f"{track.name}: driven trajectories (x: outside the lane)")
         ax_speed.set_xlabel("centerline arc length s [m]")
@@ -215,3 +244,28 @@ def plot_trajectories(rows: list[dict], path: str | Path) -> None:
         legend_outside(panel, [ax_map])
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+OPPONENTS_LABEL = "opponents (dotted, in their driver's colour)"
+AT_FAULT_LABEL = "collision the driver caused"
+NOT_AT_FAULT_LABEL = "collision an opponent caused"
+
+
+def plot_traffic(axis, traffic: dict | None, colour: str) -> None:
+    """A row's opponents' paths (dotted, in ``colour``) and its collisions (stars: red where
+    the row's driver caused it, orange elsewhere) on ``axis``; nothing without traffic."""
+    if not traffic:
+        return
+    for path in traffic["opponents"]:
+        axis.plot(path["x_m"], path["y_m"], ":", lw=1.0, color=colour, label=OPPONENTS_LABEL)
+    for hit in traffic["collisions"]:
+        axis.plot(
+            hit["x_m"],
+            hit["y_m"],
+            "*",
+            ms=12,
+            mec="black",
+            color="red" if hit["at_fault"] else "orange",
+            zorder=5,
+            label=AT_FAULT_LABEL if hit["at_fault"] else NOT_AT_FAULT_LABEL,
+        )

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -20,6 +20,9 @@ STEP_FIELDS = (
     "steer_rad",
     "accel_mps2",
 )
+#: Per-step records in traffic: collisions that started in the step, those the ego caused,
+#: and every opponent's position (one column per opponent).
+TRAFFIC_FIELDS = ("collisions", "at_fault_collisions", "opponents_x_m", "opponents_y_m")
 #: Per-step records of a safety filter (``info["safety"]``), see :func:`safety_step_record`.
 SAFETY_FIELDS = (
     "intervened",
@@ -249,3 +252,50 @@ def _filter_metric(value: _T | None) -> _T:
     """A filter metric of a lap driven with the filter: :func:`span_metrics` sets them all."""
     assert value is not None, "a lap driven with the filter has every filter metric"
     return value
+
+
+def traffic_step_record(info: dict[str, Any]) -> dict[str, Any]:
+    """A step's :data:`TRAFFIC_FIELDS` from the ego's ``info`` in traffic."""
+    opponents = info["opponents"]
+    return {
+        "collisions": len(info["collisions"]),
+        "at_fault_collisions": int(info["at_fault_collisions"]),
+        "opponents_x_m": [opponent["x_m"] for opponent in opponents],
+        "opponents_y_m": [opponent["y_m"] for opponent in opponents],
+    }
+
+
+def traffic_paths(steps: dict[str, np.ndarray], decimals: int = 4) -> dict[str, list]:
+    """What a result row keeps of the traffic: every opponent's path, thinned as
+    :func:`thinned_trajectory` thins the ego's, and where each collision started (the ego's
+    position, and whether it caused it)."""
+    count = len(steps["opponents_x_m"])
+    stride = max(1, count // TRAJECTORY_POINTS)
+    x_m, y_m = (np.round(steps[name][::stride], decimals) for name in TRAFFIC_FIELDS[2:])
+    struck = np.flatnonzero(steps["collisions"])
+    return {
+        "opponents": [
+            {"x_m": x_m[:, column].tolist(), "y_m": y_m[:, column].tolist()}
+            for column in range(x_m.shape[1])
+        ],
+        "collisions": [
+            {
+                "time_s": float(steps["time_s"][step]),
+                "x_m": float(steps["x_m"][step]),
+                "y_m": float(steps["y_m"][step]),
+                "at_fault": bool(steps["at_fault_collisions"][step]),
+            }
+            for step in struck
+        ],
+    }
+
+
+def traffic_summary(steps: dict[str, np.ndarray], last_info: dict[str, Any]) -> dict[str, int]:
+    """An episode in traffic: its collisions, those the ego caused, and ``overtakes``: the
+    opponents the ego finished ahead of, counting from where each started (positions
+    gained; a car lapped counts once)."""
+    return {
+        "collisions": int(np.sum(steps["collisions"])),
+        "at_fault_collisions": int(np.sum(steps["at_fault_collisions"])),
+        "overtakes": int(sum(opponent["ego_lead_m"] > 0.0 for opponent in last_info["opponents"])),
+    }

@@ -7,7 +7,7 @@ import json
 import platform
 import subprocess
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cache
 from importlib import metadata
 from pathlib import Path
@@ -25,11 +25,15 @@ from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.eval.metrics import (
     SAFETY_FIELDS,
     STEP_FIELDS,
+    TRAFFIC_FIELDS,
     LapMetrics,
     lap_metrics,
     safety_step_record,
     summarize,
     thinned_trajectory,
+    traffic_paths,
+    traffic_step_record,
+    traffic_summary,
 )
 from saferace.names import TASK_IDS as LANE_TASK_IDS
 from saferace.names import TRAFFIC_TASK_IDS
@@ -50,11 +54,12 @@ class EpisodeResult:
     laps: list[LapMetrics]
     terminated: bool
     truncated: bool
-    extra: dict[str, Any] = field(default_factory=dict)
+    traffic: dict[str, int] | None = None
 
     @property
     def summary(self) -> dict:
-        return summarize(self.laps)
+        """Lap metrics over the episode, and in traffic its collisions and overtakes."""
+        return {**summarize(self.laps), **(self.traffic or {})}
 
 
 def task_id(task: str) -> str:
@@ -84,7 +89,8 @@ def run_episode(
 ) -> EpisodeResult:
     """Drive ``agent`` until the episode ends; record STEP_FIELDS after every step.
 
-    Also recorded: the true lane barrier ``lane_barrier_m`` and, if ``env`` is wrapped in a
+    Also recorded: the true lane barrier ``lane_barrier_m``; in traffic the
+    :data:`TRAFFIC_FIELDS`; and, if ``env`` is wrapped in a
     :class:`~saferace.safety.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
     return a :class:`~saferace.safety.decision.NominalAction`; without a filter its mean is
     applied. ``on_step(observation, info, action)`` is called after each step with the
@@ -94,10 +100,16 @@ def run_episode(
     if hasattr(agent, "reset"):
         agent.reset()
     filtered = _has_safety_filter(env)
-    fields = STEP_FIELDS + ("lane_barrier_m",) + (SAFETY_FIELDS if filtered else ())
+    base = racing_env(env)
+    in_traffic = base.traffic is not None
+    fields = (
+        STEP_FIELDS
+        + ("lane_barrier_m",)
+        + (TRAFFIC_FIELDS if in_traffic else ())
+        + (SAFETY_FIELDS if filtered else ())
+    )
     records: dict[str, list] = {name: [] for name in fields}
     terminated = truncated = False
-    base = racing_env(env)
     half_width = base.car_half_width_m
     # disable=None: a bar on a terminal only, not in logs and pipes.
     with tqdm(
@@ -114,6 +126,9 @@ def run_episode(
                 min(info["w_left_m"] - info["e_y_m"], info["w_right_m"] + info["e_y_m"])
                 - half_width
             )
+            if in_traffic:
+                for name, value in traffic_step_record(info).items():
+                    records[name].append(value)
             if filtered:
                 for name, value in safety_step_record(info["safety"]).items():
                     records[name].append(value)
@@ -124,7 +139,8 @@ def run_episode(
             bar.set_postfix(lap=info["lap"], v=f"{info['v_x_mps']:.1f}m/s")
     steps = {name: np.asarray(values) for name, values in records.items()}
     laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
-    return EpisodeResult(steps=steps, laps=laps, terminated=terminated, truncated=truncated)
+    traffic = traffic_summary(steps, info) if in_traffic else None
+    return EpisodeResult(steps, laps, terminated, truncated, traffic)
 
 
 def _has_safety_filter(env: gym.Env) -> bool:
@@ -221,6 +237,7 @@ def result_row(
         "laps": [lap.as_dict() for lap in result.laps],
         "terminated": result.terminated,
         "trajectory": thinned_trajectory(result.steps, ("x_m", "y_m", "s_m", "v_x_mps")),
+        **({} if result.traffic is None else {"traffic": traffic_paths(result.steps)}),
         "config": {**track_reference(track_arg), "laps": laps, "model": model},
         "saferace_version": __version__,
         "git_revision": git_revision(),

@@ -20,6 +20,17 @@ expert scores above 1). The agent's **score** is 100 times the mean over its unf
 the filter cannot lift it. Beside it: the score with the filter, and the filter's share of
 interventions and mean corrections in the filtered runs (how much the driver leans on it).
 Every row carries the suite's version; changing the suite means a new version.
+
+Protocol v2 adds a **traffic set** (``suite.json``'s ``traffic``): ``Overtake`` on the same
+tracks, 2 m behind each of a fixed set of opponents (the expert MPC at 80% of the racing
+line's speed, and a car at 80% that brakes as hard as it can every few seconds), from the
+first start, two laps within 60 s, without and with the filter (which then keeps clear of
+the opponents too). A run goes on after a collision. Its score is the lane score times
+``COLLISION_FACTOR`` per collision the agent caused (multiplicative, as the CARLA
+leaderboard's infraction penalties), its speed measured against the expert's lap alone on
+the track; it also counts ``overtakes``, the opponents it finished ahead of. The agent's
+**score** covers both sets; beside it, the traffic score and the at-fault collisions.
+Submissions are checked and scored under the version they were made for, while it ships.
 """
 
 from __future__ import annotations
@@ -57,9 +68,28 @@ from saferace.eval.runner import (
 from saferace.track import Track
 from saferace.version import __version__
 
-SUITE_VERSION = 1
+SUITE_VERSION = 2
 OUTSIDE_SCALE_S = 1.0  # the score falls by 1/e per second outside the lane
 TRAJECTORY_POINTS = 200
+#: The traffic set's reference: the expert alone on the track, on this task's line.
+TRAFFIC_REFERENCE_TASK = "RacingLine"
+#: A traffic run's own measurements (None in a lane run).
+TRAFFIC_MEASUREMENTS = ("collisions", "at_fault_collisions", "overtakes")
+
+
+@dataclass(frozen=True)
+class TrafficSet:
+    """The head-to-head runs of a suite: ``task`` among each named set of ``opponents``
+    (specs as ``saferace drive --opponents`` takes them), from the suite's starts of
+    ``seeds``, ``laps`` within ``max_seconds``; each at-fault collision multiplies the run's
+    score by ``collision_factor``."""
+
+    task: str
+    opponents: dict[str, tuple[str, ...]]
+    seeds: tuple[int, ...]
+    laps: int
+    max_seconds: float
+    collision_factor: float
 
 
 @dataclass(frozen=True)
@@ -77,6 +107,7 @@ class Suite:
     filters: tuple[str, ...]
     expert_lap_time_s: dict[str, float]
     folder: Path
+    traffic: TrafficSet | None = None
 
     def track_argument(self, track: str) -> str:
         """A built-in track's name, or the path of one of the suite's own tracks."""
@@ -84,13 +115,44 @@ class Suite:
         return str(path) if path.exists() else track
 
     def runs(self) -> list[RunSpec]:
-        return [
+        """Every run of the protocol: the lane set's, then the traffic set's."""
+        lane = [
             RunSpec(track, task, seed, kind)
             for track in self.tracks
             for task in self.tasks
             for seed in self.seeds
             for kind in self.filters
         ]
+        traffic = self.traffic
+        if traffic is None:
+            return lane
+        return lane + [
+            RunSpec(track, traffic.task, seed, kind, opponents)
+            for track in self.tracks
+            for opponents in traffic.opponents
+            for seed in traffic.seeds
+            for kind in self.filters
+        ]
+
+    def laps_of(self, spec: RunSpec) -> int:
+        return self.laps if spec.opponents is None else self.traffic_set().laps
+
+    def max_seconds_of(self, spec: RunSpec) -> float:
+        return self.max_seconds if spec.opponents is None else self.traffic_set().max_seconds
+
+    def start_fraction(self, spec: RunSpec) -> float:
+        """Where on the lap the run starts (a share of the lap), by its seed."""
+        return self.start_fractions[self.seeds.index(spec.seed)]
+
+    def reference_key(self, spec: RunSpec) -> str:
+        """The key of the run's expert lap time in ``expert_lap_time_s``."""
+        task = spec.task if spec.opponents is None else TRAFFIC_REFERENCE_TASK
+        return f"{spec.track}/{task}/{spec.seed}"
+
+    def traffic_set(self) -> TrafficSet:
+        if self.traffic is None:
+            raise SafeRaceError(f"suite v{self.version} has no traffic runs")
+        return self.traffic
 
 
 @dataclass(frozen=True)
@@ -101,19 +163,24 @@ class RunSpec:
     task: str
     seed: int
     filter: str
+    opponents: str | None = None  # the name of a traffic set's opponents
 
     @property
     def key(self) -> str:
-        return f"{self.track}/{self.task}/{self.seed}/{self.filter}"
-
-    @property
-    def reference_key(self) -> str:
-        return f"{self.track}/{self.task}/{self.seed}"
+        key = f"{self.track}/{self.task}/{self.seed}/{self.filter}"
+        return key if self.opponents is None else f"{key}/{self.opponents}"
 
     @classmethod
     def of_row(cls, row: dict) -> RunSpec:
         """The run a result row (or a submission's) was driven for."""
-        return cls(str(row["track"]), str(row["task"]), row["seed"], str(row["filter"]))
+        opponents = row.get("opponents")
+        return cls(
+            str(row["track"]),
+            str(row["task"]),
+            row["seed"],
+            str(row["filter"]),
+            None if opponents is None else str(opponents),
+        )
 
 
 def suite_folder(version: int = SUITE_VERSION) -> Path:
@@ -127,6 +194,7 @@ def load_suite(version: int = SUITE_VERSION) -> Suite:
     if not path.exists():
         raise SafeRaceError(f"no benchmark suite version {version} in this SafeRace ({path})")
     data = json.loads(path.read_text())
+    traffic = data.get("traffic")
     return Suite(
         version=data["version"],
         tracks=tuple(data["tracks"]),
@@ -138,6 +206,16 @@ def load_suite(version: int = SUITE_VERSION) -> Suite:
         filters=tuple(data["filters"]),
         expert_lap_time_s=data["expert_lap_time_s"],
         folder=folder,
+        traffic=None
+        if traffic is None
+        else TrafficSet(
+            task=traffic["task"],
+            opponents={name: tuple(specs) for name, specs in traffic["opponents"].items()},
+            seeds=tuple(traffic["seeds"]),
+            laps=traffic["laps"],
+            max_seconds=traffic["max_seconds"],
+            collision_factor=traffic["collision_factor"],
+        ),
     )
 
 
@@ -145,15 +223,25 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
     """The row of one run: its metrics and score (see the module docstring)."""
     track_argument = suite.track_argument(spec.track)
     length_m = Track.load(track_argument).length_m
-    start_s_m = suite.start_fractions[suite.seeds.index(spec.seed)] * length_m
+    start_s_m = suite.start_fraction(spec) * length_m
+    laps = suite.laps_of(spec)
+    traffic = (
+        {}
+        if spec.opponents is None
+        else {
+            "opponents": list(suite.traffic_set().opponents[spec.opponents]),
+            "terminate_on_collision": False,
+        }
+    )
     env = make_task_env(
         spec.task,
         track_argument,
-        suite.laps,
+        laps,
         FilterConfig(kind=spec.filter),
         spec.seed,
-        max_steps=max_steps_for(suite.max_seconds),
+        max_steps=max_steps_for(suite.max_seconds_of(spec)),
         start_s_m=start_s_m,
+        **traffic,
     )
     progress_m = [0.0]
     try:
@@ -167,7 +255,7 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
     finally:
         env.close()
     summary = result.summary
-    completion = min(1.0, max(0.0, progress_m[0]) / (suite.laps * length_m))
+    completion = min(1.0, max(0.0, progress_m[0]) / (laps * length_m))
     measurements = {
         "completion": completion,
         "laps_completed": summary["laps_completed"],
@@ -179,6 +267,7 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
         "intervention_rate": summary.get("intervention_rate"),
         "mean_steer_correction_rad": summary.get("mean_steer_correction_rad"),
         "mean_accel_correction_mps2": summary.get("mean_accel_correction_mps2"),
+        **{name: summary.get(name) for name in TRAFFIC_MEASUREMENTS},
         "trajectory": thinned_trajectory(
             result.steps, ("x_m", "y_m"), decimals=3, points=TRAJECTORY_POINTS
         ),
@@ -194,16 +283,20 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
 def scored(measurements: dict, spec: RunSpec, suite: Suite) -> dict:
     """A run's derived fields from its measurements and the suite's expert reference (never
     from a reference or score carried in a row): its lap-time and speed ratios and score."""
-    expert_lap_s = suite.expert_lap_time_s[spec.reference_key]
+    expert_lap_s = suite.expert_lap_time_s[suite.reference_key(spec)]
     completion, driven_s = measurements["completion"], measurements["driven_s"]
     lap_time_s = measurements["lap_time_s"]
-    speed_ratio = completion * suite.laps * expert_lap_s / driven_s if driven_s else 0.0
+    laps = suite.laps_of(spec)
+    speed_ratio = completion * laps * expert_lap_s / driven_s if driven_s else 0.0
     outside_s = measurements["time_outside_lane_s"]
+    score = completion * speed_ratio * math.exp(-outside_s / OUTSIDE_SCALE_S)
+    if spec.opponents is not None:
+        score *= suite.traffic_set().collision_factor ** measurements["at_fault_collisions"]
     return {
         "expert_lap_time_s": expert_lap_s,
         "lap_time_ratio": None if lap_time_s is None else lap_time_s / expert_lap_s,
         "speed_ratio": speed_ratio,
-        "score": completion * speed_ratio * math.exp(-outside_s / OUTSIDE_SCALE_S),
+        "score": score,
     }
 
 
@@ -316,20 +409,39 @@ def vehicle_params_sha256() -> str:
     return file_sha256(PARAMS_FILE)
 
 
-def totals(rows: list[dict]) -> dict:
-    """The agent's scores and totals from its rows' scores (see the module docstring)."""
+def totals(rows: list[dict], suite: Suite) -> dict:
+    """The agent's scores and totals from its rows' scores (see the module docstring), the
+    traffic totals where ``suite`` has a traffic set."""
     plain = [row for row in rows if row["filter"] == "none"]
     filtered = [row for row in rows if row["filter"] != "none"]
     rates = [row["intervention_rate"] for row in filtered if row["intervention_rate"] is not None]
-    return {
-        "score": 100.0 * float(np.mean([row["score"] for row in plain])) if plain else None,
-        "score_with_filter": (
-            100.0 * float(np.mean([row["score"] for row in filtered])) if filtered else None
-        ),
+    result = {
+        "score": _percent(plain),
+        "score_with_filter": _percent(filtered),
         "intervention_rate": float(np.mean(rates)) if rates else None,
         "completion": float(np.mean([row["completion"] for row in plain])) if plain else None,
         "time_outside_lane_s": float(sum(row["time_outside_lane_s"] for row in plain)),
     }
+    if suite.traffic is None:
+        return result
+    traffic = [row for row in plain if row.get("opponents") is not None]
+    traffic_filtered = [row for row in filtered if row.get("opponents") is not None]
+    return {
+        **result,
+        "traffic_score": _percent(traffic),
+        "at_fault_collisions": _total(traffic, "at_fault_collisions"),
+        "at_fault_collisions_with_filter": _total(traffic_filtered, "at_fault_collisions"),
+        "overtakes": _total(traffic, "overtakes"),
+    }
+
+
+def _percent(rows: list[dict]) -> float | None:
+    """100 times the mean score of ``rows`` (None for none)."""
+    return 100.0 * float(np.mean([row["score"] for row in rows])) if rows else None
+
+
+def _total(rows: list[dict], name: str) -> int | None:
+    return sum(row[name] for row in rows) if rows else None
 
 
 def submission(agent: str, rows: list[dict], suite: Suite, replay: dict) -> dict:
@@ -338,7 +450,7 @@ def submission(agent: str, rows: list[dict], suite: Suite, replay: dict) -> dict
     return {
         "suite_version": suite.version,
         "agent": agent,
-        **totals(rows),
+        **totals(rows, suite),
         "rows": rows,
         "replay": replay,
         "versions": {"saferace": __version__, **package_versions()},

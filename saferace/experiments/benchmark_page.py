@@ -2,7 +2,9 @@
 
 The page is self-contained (a group can publish the file alone): the table sorts by any
 column with a click (a few lines of inline JavaScript), and each track's driven paths of
-every agent (unfiltered, first seed, both tasks) are embedded as PNG images.
+every agent (unfiltered, first seed, every task and set of opponents) are embedded as PNG
+images. Submissions of an older suite version keep their own scores and
+rank among their own version, below the newer.
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ COLUMNS = (
     "verified runs",
     "score",
     "score with filter",
+    "traffic score",
+    "at-fault collisions",
+    "at-fault collisions with filter",
+    "overtakes",
     "interventions [%]",
     "completion [%]",
     "lap time / expert",
@@ -34,12 +40,20 @@ COLUMNS = (
 
 def leaderboard_rows(submissions: list[dict]) -> list[list]:
     """One row per checked submission (see :mod:`~saferace.experiments.submission_checks`),
-    best score first (its unfiltered score; see the protocol). A submission's
-    ``"verification"``, when :mod:`~saferace.experiments.verify` left a record for it, says
-    how many of its runs were replayed."""
-    ordered = sorted(submissions, key=lambda s: -(s["score"] if s["score"] is not None else -1))
+    the newest suite version first and, within a version, the best score first (its
+    unfiltered score; see the protocol): ranks count within a version, whose scores alone
+    compare. A submission's ``"verification"``, when :mod:`~saferace.experiments.verify`
+    left a record for it, says how many of its runs were replayed; the traffic columns are
+    empty for a suite without traffic runs."""
+    ordered = sorted(
+        submissions,
+        key=lambda s: (-s["suite_version"], -(s["score"] if s["score"] is not None else -1)),
+    )
     rows = []
-    for rank, entry in enumerate(ordered, start=1):
+    rank, version = 0, None
+    for entry in ordered:
+        rank = 1 if entry["suite_version"] != version else rank + 1
+        version = entry["suite_version"]
         plain = [row for row in entry["rows"] if row["filter"] == "none"]
         ratios = [row["lap_time_ratio"] for row in plain if row.get("lap_time_ratio") is not None]
         rate = entry["intervention_rate"]
@@ -53,6 +67,10 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
                 f"{len(record['replayed'])} of {record['total_runs']}" if record else "no",
                 entry["score"],
                 entry["score_with_filter"],
+                entry.get("traffic_score"),
+                entry.get("at_fault_collisions"),
+                entry.get("at_fault_collisions_with_filter"),
+                entry.get("overtakes"),
                 None if rate is None else 100.0 * rate,
                 None if entry["completion"] is None else 100.0 * entry["completion"],
                 float(np.mean(ratios)) if ratios else None,
@@ -72,7 +90,12 @@ def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:
     for entry in submissions:
         for row in entry["rows"]:
             if row["filter"] == "none" and row["seed"] == suite.seeds[0] and "trajectory" in row:
-                paths[row["track"]].append((f"{entry['agent']} ({row['task']})", row))
+                task = (
+                    row["task"]
+                    if row.get("opponents") is None
+                    else (f"{row['task']} vs {row['opponents']}")
+                )
+                paths[row["track"]].append((f"{entry['agent']} ({task})", row))
     images = {}
     for track_name in suite.tracks:
         if track_name not in paths:
@@ -139,17 +162,36 @@ figure {{ display: inline-block; margin: 0.5em; }}
 </style></head><body>
 <h1>SafeRace leaderboard</h1>
 <p>Suite v{suite.version}: {len(suite.tracks)} tracks, {len(suite.tasks)} tasks,
-{len(suite.seeds)} starts, without and with the shared safety filter. Score: 100 times the
-mean over the unfiltered runs of completion x speed against the expert x exp(-seconds
-outside the lane), recomputed from every run's measurements. Verified runs: how many of
-an entry's runs <code>saferace verify</code> drove again and found as submitted. Click a
-column to sort.</p>
+{len(suite.seeds)} starts{_traffic_words(suite)}, without and with the shared safety
+filter. Score: 100 times the mean over the unfiltered runs of completion x speed against
+the expert x exp(-seconds outside the lane){_penalty_words(suite)}, recomputed from every
+run's measurements. Overtakes: opponents an agent finished ahead of. Submissions of an
+older suite rank among their own version only. Verified runs: how many of an entry's
+runs <code>saferace verify</code> drove again and found as submitted. Click a column to
+sort.</p>
 <table id="leaderboard"><thead><tr>{header}</tr></thead><tbody>{body}</tbody></table>
 <h2>Driven paths</h2>
 {figures}
 <script>{_SORT_SCRIPT}</script>
 </body></html>
 """
+
+
+def _traffic_words(suite: Suite) -> str:
+    traffic = suite.traffic
+    if traffic is None:
+        return ""
+    return (
+        f"; in traffic, {traffic.task} behind each of {len(traffic.opponents)} opponents "
+        f"({', '.join(traffic.opponents)}), {traffic.laps} laps"
+    )
+
+
+def _penalty_words(suite: Suite) -> str:
+    traffic = suite.traffic
+    if traffic is None:
+        return ""
+    return f" x {traffic.collision_factor:g} per collision the agent caused"
 
 
 def _cell(value: object) -> str:

@@ -6,7 +6,10 @@ measurements and the suite's stored expert references (:func:`~saferace.experime
 benchmark.scored`), and the agent's scores from its runs (:func:`~saferace.experiments.
 benchmark.totals`). A submission is refused, in one line naming the run and the field, when
 
-- its runs are not exactly the suite's: every (track, task, start, filter) once, no other;
+- it was made on a suite version this SafeRace does not ship (one it ships checks and
+  scores it under its own version);
+- its runs are not exactly the suite's: every (track, task, start, filter, opponents) once,
+  no other;
 - a stored score or ratio differs from the recomputed one beyond rounding;
 - a measurement is physically impossible or contradicts another: completion outside
   [0, 1]; an episode longer than the suite allows or not a whole number of control steps;
@@ -14,7 +17,9 @@ benchmark.totals`). A submission is refused, in one line naming the run and the 
   outside flags allow; a finished lap without full completion or longer than the drive;
   a trajectory with the wrong number of points, faster than the car's top speed between
   two points, not starting at the run's start, or much shorter than the distance the
-  completion claims; a filtered run without its intervention rate.
+  completion claims; a filtered run without its intervention rate; a traffic run's
+  collision counts not whole numbers, more at fault than in all, or more overtakes than
+  opponents.
 
 What passes is consistent, not proven: ``saferace verify`` drives the runs again.
 """
@@ -33,6 +38,8 @@ from saferace.envs.drivetrain import DrivetrainParams
 from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.errors import SafeRaceError
 from saferace.experiments.benchmark import (
+    SUITE_VERSION,
+    TRAFFIC_MEASUREMENTS,
     TRAJECTORY_POINTS,
     RunSpec,
     Suite,
@@ -90,8 +97,9 @@ MIN_PROGRESS_FOR_PATH_CHECK_M = 2.0
 
 def check_submission(data: object, source: str, suite: Suite | None = None) -> dict:
     """``data`` with every score recomputed, if it is a consistent submission of ``suite``
-    (default: the shipped one); otherwise a :class:`SafeRaceError` in one line."""
-    suite = suite or load_suite()
+    (default: the shipped suite of the version it was made on); otherwise a
+    :class:`SafeRaceError` in one line."""
+    suite = suite or _own_suite(data, source)
     _check_structure(data, source, suite)
     assert isinstance(data, dict)
     _check_replay(data, source)
@@ -109,7 +117,7 @@ def check_submission(data: object, source: str, suite: Suite | None = None) -> d
         recomputed = scored(row, spec, suite)
         _check_same(row, recomputed, where)
         checked.append({**row, **recomputed})
-    recomputed_totals = totals(checked)
+    recomputed_totals = totals(checked, suite)
     _check_same(data, recomputed_totals, source)
     return {**data, **recomputed_totals, "rows": checked}
 
@@ -121,6 +129,20 @@ def read_submission(path: str | Path, suite: Suite | None = None) -> dict:
     except (OSError, json.JSONDecodeError) as error:
         raise SafeRaceError(f"{path}: cannot be read as JSON ({error})") from error
     return check_submission(data, str(path), suite)
+
+
+def _own_suite(data: object, source: str) -> Suite:
+    """The shipped suite of the version ``data`` was made on."""
+    version = data.get("suite_version") if isinstance(data, dict) else None
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise SafeRaceError(f"{source}: not a submission (no integer suite_version)")
+    try:
+        return load_suite(version)
+    except SafeRaceError:
+        raise SafeRaceError(
+            f"{source}: made on suite v{version}, which this SafeRace does not ship (it "
+            f"scores v1 to v{SUITE_VERSION}): run saferace benchmark again"
+        ) from None
 
 
 def _check_structure(data: object, source: str, suite: Suite) -> None:
@@ -205,17 +227,19 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
     if not 0.0 <= completion <= 1.0:
         raise SafeRaceError(f"{where}: completion {completion} is outside [0, 1]")
     steps = driven_s / CONTROL_DT_S
-    within = 0.0 < driven_s <= suite.max_seconds + 1e-9
+    max_seconds = suite.max_seconds_of(spec)
+    within = 0.0 < driven_s <= max_seconds + 1e-9
     if not within or not math.isclose(steps, round(steps), abs_tol=1e-6):
         raise SafeRaceError(
-            f"{where}: driven_s {driven_s} is not 1 to {suite.max_seconds:g} s of whole "
+            f"{where}: driven_s {driven_s} is not 1 to {max_seconds:g} s of whole "
             f"{CONTROL_DT_S:g} s control steps"
         )
     if not 0.0 <= outside_s <= driven_s:
         raise SafeRaceError(
             f"{where}: time_outside_lane_s {outside_s} is not within the {driven_s:g} s driven"
         )
-    _check_lap(row, suite, where)
+    _check_lap(row, suite.laps_of(spec), where)
+    _check_traffic(row, spec, suite, where)
     rate = row["intervention_rate"]
     if spec.filter == "none" and rate is not None:
         raise SafeRaceError(f"{where}: intervention_rate {rate} on a run without a filter")
@@ -224,22 +248,47 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
     _check_trajectory(row, spec, suite, round(steps), where)
 
 
-def _check_lap(row: dict, suite: Suite, where: str) -> None:
+def _check_traffic(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:
+    """A traffic run's counts are whole and possible; a lane run has none."""
+    if spec.opponents is None:
+        counted = [name for name in TRAFFIC_MEASUREMENTS if row.get(name) is not None]
+        if counted:
+            raise SafeRaceError(f"{where}: {counted[0]} on a run without opponents")
+        return
+    counts: dict[str, int] = {}
+    for name in TRAFFIC_MEASUREMENTS:
+        value = row.get(name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise SafeRaceError(f"{where}: {name} is {value!r}, not a whole number")
+        counts[name] = value
+    if counts["at_fault_collisions"] > counts["collisions"]:
+        raise SafeRaceError(
+            f"{where}: at_fault_collisions {counts['at_fault_collisions']} is more than the "
+            f"{counts['collisions']} collisions"
+        )
+    opponents = len(suite.traffic_set().opponents[spec.opponents])
+    if counts["overtakes"] > opponents:
+        raise SafeRaceError(
+            f"{where}: overtakes {counts['overtakes']} is more than the {opponents} opponents"
+        )
+
+
+def _check_lap(row: dict, suite_laps: int, where: str) -> None:
     laps, lap_time_s = row["laps_completed"], row["lap_time_s"]
-    if not isinstance(laps, int) or not 0 <= laps <= suite.laps:
-        raise SafeRaceError(f"{where}: laps_completed {laps!r} is not 0 to {suite.laps}")
+    if not isinstance(laps, int) or not 0 <= laps <= suite_laps:
+        raise SafeRaceError(f"{where}: laps_completed {laps!r} is not 0 to {suite_laps}")
     if laps == 0:
         if lap_time_s is not None:
             raise SafeRaceError(f"{where}: lap_time_s {lap_time_s} without a completed lap")
         return
     if not _finite(lap_time_s):
         raise SafeRaceError(f"{where}: lap_time_s is {lap_time_s!r}, not a finite number")
-    if laps == suite.laps and row["completion"] != 1.0:
+    if laps == suite_laps and row["completion"] != 1.0:
         raise SafeRaceError(f"{where}: every lap completed but completion is {row['completion']}")
     driven_s = row["driven_s"]
     if not laps * lap_time_s <= driven_s + 1e-9:
         raise SafeRaceError(f"{where}: lap_time_s {lap_time_s} is longer than the drive")
-    if laps == suite.laps and driven_s - laps * lap_time_s > CONTROL_DT_S + 1e-9:
+    if laps == suite_laps and driven_s - laps * lap_time_s > CONTROL_DT_S + 1e-9:
         raise SafeRaceError(
             f"{where}: the drive ({driven_s:g} s) went on after its last lap ({lap_time_s:g} s)"
         )
@@ -282,12 +331,12 @@ def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where:
             f"at {flagged} of its points ({flagged * CONTROL_DT_S:g}-{flagged * stride_s:g} s)"
         )
     track = _load_track(suite.track_argument(spec.track))
-    start_m = suite.start_fractions[suite.seeds.index(spec.seed)] * track.length_m
+    start_m = suite.start_fraction(spec) * track.length_m
     start = track.centerline.position(np.array([start_m]))[0]
     half_width = max(track.widths(start_m))
     if np.linalg.norm(xy[0] - start) > half_width + START_TOLERANCE_M:
         raise SafeRaceError(f"{where}: the trajectory does not start at the run's start")
-    progress_m = row["completion"] * suite.laps * track.length_m
+    progress_m = row["completion"] * suite.laps_of(spec) * track.length_m
     if progress_m >= MIN_PROGRESS_FOR_PATH_CHECK_M:
         ratio = float(segments.sum()) / progress_m
         if ratio < MIN_PATH_TO_PROGRESS:

@@ -207,7 +207,7 @@ def _replay(
     check_agent_files(replay, str(path))
     if replay["files_sha256"]:  # a network may run: on the submission's device
         use_device(replay.get("device") or "cpu")
-    suite = load_suite()
+    suite = load_suite(data["suite_version"])  # checked: a version this SafeRace ships
     rows = {RunSpec.of_row(row).key: row for row in data["rows"]}
     chosen = choose_runs(list(rows), runs, seed)
     installed = {"saferace": __version__, **package_versions()}

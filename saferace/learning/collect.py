@@ -225,11 +225,13 @@ def collect_episode(
         image_size=(settings.image_size, settings.image_size),
         stereo=settings.stereo,
         randomize=settings.randomize,
+        **({"opponents": list(config.opponents)} if config.opponents else {}),
     )
     try:
         base = racing_env(env)
         track_length = base.track.length_m
-        expert = MPCExpert.for_env(env, model=settings.expert_model)
+        expert = make_agent("expert", env, settings.expert_model)  # in traffic, it plans around
+        assert isinstance(expert, MPCExpert)
         driver = (
             None
             if config.agent == "expert"

@@ -17,11 +17,12 @@ from saferace.eval.filter_config import FilterConfig
 from saferace.names import (
     AUTO,
     DEFAULT_EXPERT_MODEL,
+    DRIVING_TASKS,
     MC_SAMPLES,
+    OPPONENTS_HELP,
     RANDOMIZATION_PRESETS,
     SHIFT_LOOKS,
     STATE_UNCERTAINTY_METHODS,
-    TASKS,
     VEHICLE_MODELS,
 )
 
@@ -218,16 +219,22 @@ class EpisodeSettings:
 
 @dataclass(frozen=True)
 class CollectionConfig:
-    """What one round records: driver, task, track, an episode per seed, how each is
-    driven (``episode``), the steering noise, the filter and the expert's share."""
+    """What one round records: driver, task, track, an episode per seed, the opponents
+    (none: the task's own), how each is driven (``episode``), the steering noise, the
+    filter and the expert's share."""
 
     agent: str = setting(
         "expert",
         "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY",
     )
-    task: str = setting("RacingLine", "the reference line to follow", choices=TASKS)
+    task: str = setting(
+        "RacingLine", "the reference line to follow (Overtake: in traffic)", choices=DRIVING_TASKS
+    )
     track: str = setting("technical", "built-in track name or track CSV path")
     seeds: tuple[int, ...] = setting((0,), "one episode per seed")
+    opponents: tuple[str, ...] = setting(
+        (), OPPONENTS_HELP + "; the expert labels passing or following them", metavar="SPEC"
+    )
     episode: EpisodeSettings = field(default_factory=EpisodeSettings)
     perturbation: Perturbation = field(default_factory=Perturbation)
     safety: FilterConfig = field(default_factory=FilterConfig)
@@ -268,8 +275,13 @@ class DaggerConfig:
     checkpoint and ``collection.mc_samples``) or None (the truth).
     """
 
-    task: str = setting("CenterLine", "the reference line", choices=TASKS)
+    task: str = setting(
+        "CenterLine", "the reference line (Overtake: in traffic)", choices=DRIVING_TASKS
+    )
     track: str = setting("lab", "built-in track name or track CSV path")
+    opponents: tuple[str, ...] = setting(
+        (), OPPONENTS_HELP + "; the expert labels passing or following them", metavar="SPEC"
+    )
     iterations: int = setting(10, "iterations after the expert's")
     filter_from: int = setting(
         2, "the iterations after K drive through the filter (the paper's k)", metavar="K"
@@ -304,8 +316,10 @@ class DaggerConfig:
             honest = self.perceived and self.filter.uncertainty == "robust"
             method = "ensemble" if honest else "mc-dropout"
             object.__setattr__(self, "training", replace(self.training, state_uncertainty=method))
-        if self.task not in TASKS:
-            raise ConfigError("task", f"must be one of {', '.join(TASKS)}, got {self.task!r}")
+        if self.task not in DRIVING_TASKS:
+            raise ConfigError(
+                "task", f"must be one of {', '.join(DRIVING_TASKS)}, got {self.task!r}"
+            )
         if self.episodes < 1:
             raise ConfigError("episodes", f"must be at least 1, got {self.episodes}")
         for name in ("iterations", "filter_from", "beta_rampdown"):
@@ -391,6 +405,7 @@ class DaggerConfig:
         values: dict[str, Any] = {
             "task": self.task,
             "track": self.track,
+            "opponents": list(self.opponents),
             "filter": safety.kind,
             "filter_from": self.filter_from,
             "state_source": "oracle" if safety.state_source is None else "learned",
@@ -441,6 +456,7 @@ class DaggerConfig:
             if value != default:
                 values[name] = value
         defaults: tuple[tuple[str, Any], ...] = (
+            ("opponents", []),
             ("randomize", "none"),
             ("episodes", 1),
             ("fuse_odometry", False),
