@@ -9,8 +9,9 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import saferace  # noqa: F401  - registers the tasks
+from saferace.agents.mpc import MPCExpert
 from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
-from saferace.agents.traffic_expert import TrafficExpert, passing_side
+from saferace.agents.traffic_expert import NearOpponent, TrafficExpert, passing_side
 from saferace.envs.collisions import CarMotion, attribute_fault
 from saferace.envs.reference_lines import reference_line
 from saferace.envs.traffic import OpponentSpec, opponent_specs
@@ -421,6 +422,35 @@ def test_the_expert_in_traffic_follows_where_the_lane_has_no_room():
     (opponent,) = info["opponents"]
     assert 0.6 < opponent["gap_m"] < 2.0  # behind it, at about the following gap
     assert abs(info["v_x_mps"] - opponent["speed_mps"]) < 0.5
+
+
+def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float):
+    """How far the traffic expert's plan moves the lane's bounds, and the cars it follows,
+    on a straight at 3 m/s, with an opponent ``gap_m`` ahead at 1 m/s."""
+    env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=["external"])
+    expert = make_agent("expert", env)
+    assert isinstance(expert, TrafficExpert)
+    horizon, dt = expert.settings.horizon, expert.settings.dt_s
+    s_stage = 2.0 + 3.0 * dt * np.arange(horizon + 1)  # 3 m/s from s = 2 m
+    expert._ego_e_y = ego_e_y_m
+    expert._opponents = [NearOpponent("car1", 2.0 + gap_m, opponent_e_y_m, 1.0)]
+    alone = MPCExpert._lane_bounds(expert, s_stage, None)
+    upper, lower = expert._lane_bounds(s_stage, None)
+    env.close()
+    return (upper - alone[0], lower - alone[1]), expert._follow
+
+
+def test_alongside_the_expert_never_crosses_the_opponents_nose():
+    # the ego on the right, its side too narrow for it: it would pass on the left from behind
+    (moved_upper, moved_lower), follow = expert_bounds(1.5, -0.2, -0.12)
+    assert moved_lower.max() > 0.3 and not follow
+    # alongside, crossing to the left would cut across the car: it drops back behind it
+    (moved_upper, moved_lower), follow = expert_bounds(0.5, -0.2, -0.12)
+    assert not moved_lower.any() and not moved_upper.any()
+    assert len(follow) == 1 and follow[0][1] == 1.0
+    # alongside and ahead, it never brakes for a car behind it
+    (moved_upper, moved_lower), follow = expert_bounds(-0.5, -0.2, -0.12)
+    assert not follow
 
 
 def test_thepassing_side_is_the_ego_cars_own_if_it_has_room():

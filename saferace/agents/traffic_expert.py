@@ -6,15 +6,18 @@ heading (``speed cos(e_psi)``; the filter's car barriers also divide by the Fren
 frame's stretch). At every stage of the plan where the ego car's predicted arc length is
 within ``PASS_LENGTH_M`` of an opponent's, the opponent takes the band ``e_y_o
 +- PASS_WIDTH_M`` of the lane: the stage's lateral bound moves to the side the car passes
-on (the side it is on now if that has room, else the other), and the plan overtakes.
-Where neither side has room for the car, the plan follows: every stage's speed is capped
-at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in ``FOLLOW_TIME_S``. The
+on (the side it is on now if that has room, else the other; once alongside, only its
+own: it never cuts across the opponent's nose), and the plan overtakes. Where no side has
+room for the car beside an opponent ahead, the plan follows: every stage's speed is capped
+at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in ``FOLLOW_TIME_S``. A car
+behind it is never followed (braking for it would only invite it in). The
 bounds are soft, as the lane's are; the safety filter's car barriers are what guarantee
 clearance.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -41,13 +44,13 @@ class TrafficExpert(MPCExpert):
     """The expert MPC that passes or follows the opponents in ``info["opponents"]``."""
 
     speed_rows = True
-    #: This step's opponents near the car ``(s_o, e_y_o, v_o)`` (set by :meth:`act`), and
-    #: those it follows ``(gap, v_o)`` (set with the plan's lane bounds, read by its caps).
-    _opponents: list[tuple[float, float, float]] = []  # noqa: RUF012 - replaced, never mutated
+    #: This step's opponents near the car (set by :meth:`act`), and those it follows
+    #: ``(gap, v_o)`` (set with the plan's lane bounds, read by its caps).
+    _opponents: list[NearOpponent] = []  # noqa: RUF012 - replaced, never mutated
     _follow: list[tuple[float, float]] = []  # noqa: RUF012 - replaced, never mutated
 
     def act(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
-        self._opponents = opponents_near(info.get("opponents", ()), self.track.length_m)
+        self._opponents = opponents_near(info.get("opponents", ()))
         self._ego_e_y = float(info["e_y_m"])
         return super().act(observation, info)
 
@@ -55,25 +58,30 @@ class TrafficExpert(MPCExpert):
         upper, lower = super()._lane_bounds(s_stage, plan_x)
         self._follow = []
         times = self.settings.dt_s * np.arange(1, len(s_stage))
-        for s_o, e_y_o, v_o in self._opponents:
+        for opponent in self._opponents:
             gaps = np.array(
                 [
-                    wrap_arc(s_o + v_o * t - s, self.track.length_m)
+                    wrap_arc(opponent.s_m + opponent.v_mps * t - s, self.track.length_m)
                     for s, t in zip(s_stage[1:], times, strict=True)
                 ]
             )
             beside = np.abs(gaps) < PASS_LENGTH_M
             if not beside.any():
                 continue
+            e_y_o = opponent.e_y_m
             left_room = upper[beside] - (e_y_o + PASS_WIDTH_M)
             right_room = (e_y_o - PASS_WIDTH_M) - lower[beside]
-            side = passing_side(self._ego_e_y - e_y_o, left_room.min(), right_room.min())
+            offset = self._ego_e_y - opponent.e_y_m
+            rooms = (left_room.min(), right_room.min())
+            if abs(gaps[0]) < PASS_LENGTH_M:  # alongside: never across the opponent's nose
+                rooms = (rooms[0], -1.0) if offset > 0.0 else (-1.0, rooms[1])
+            side = passing_side(offset, *rooms)
             if side > 0:
                 lower[beside] = np.maximum(lower[beside], e_y_o + PASS_WIDTH_M)
             elif side < 0:
                 upper[beside] = np.minimum(upper[beside], e_y_o - PASS_WIDTH_M)
-            else:
-                self._follow.append((float(gaps[0]), v_o))
+            elif gaps[0] > 0.0:  # no room beside a car ahead: follow it
+                self._follow.append((float(gaps[0]), opponent.v_mps))
         return upper, lower
 
     def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
@@ -83,13 +91,24 @@ class TrafficExpert(MPCExpert):
         return caps
 
 
-def opponents_near(opponents, length_m: float) -> list[tuple[float, float, float]]:
-    """``(s_o, e_y_o, v_o)`` of the opponents within reach, ``v_o`` along the track."""
+@dataclass(frozen=True)
+class NearOpponent:
+    """An opponent within reach: its name, arc length, lateral offset and speed along the
+    track."""
+
+    name: str
+    s_m: float
+    e_y_m: float
+    v_mps: float
+
+
+def opponents_near(opponents) -> list[NearOpponent]:
+    """The opponents in ``info["opponents"]`` within reach of the ego."""
     near = []
     for opponent in opponents:
-        v_o = opponent["speed_mps"] * float(np.cos(opponent["e_psi_rad"]))
         if -LOOK_BEHIND_M < opponent["gap_m"] < LOOK_AHEAD_M:
-            near.append((opponent["s_m"], opponent["e_y_m"], v_o))
+            v_o = opponent["speed_mps"] * float(np.cos(opponent["e_psi_rad"]))
+            near.append(NearOpponent(opponent["name"], opponent["s_m"], opponent["e_y_m"], v_o))
     return near
 
 
