@@ -116,3 +116,24 @@ def test_the_plot_draws_each_opponent_and_marks_collisions_by_fault():
     stars = {line.get_label(): line.get_color() for line in lines if line.get_marker() == "*"}
     assert stars == {AT_FAULT_LABEL: "red", NOT_AT_FAULT_LABEL: "orange"}
     plt.close(figure)
+
+
+def test_the_filter_sees_the_opponents_with_the_noise_asked_for(tmp_path: Path):
+    rows_path = tmp_path / "rows.jsonl"
+    common = ("eval", "--agent", "speeding", "--track", "lab", "--opponents", SLOW_CAR)
+    result = run_cli(
+        *common, "--filter", "cbf", "--opponent-noise", "0.05", "--max-seconds", "4",
+        "--out", str(rows_path),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    [row] = read_jsonl(rows_path)
+    assert row["filter"]["opponent_noise_m"] == 0.05
+    assert row["summary"]["at_fault_collisions"] == 0
+    assert "opponents seen with 0.05 m noise" in result.stdout
+    for refused, reason in (
+        (("--opponent-noise", "0.05"), "need --filter cbf"),
+        (("--filter", "cbf", "--opponent-noise", "-1"), "must not be negative"),
+        (("--filter", "mpsf", "--opponent-noise", "0.05"), "the predictive filter (mpsf) has none"),
+    ):
+        result = run_cli(*common, *refused, "--out", str(tmp_path / "no.jsonl"))
+        assert result.returncode != 0 and reason in result.stderr, result.stderr

@@ -109,11 +109,12 @@ def filter_config(args: argparse.Namespace):
         option["filter.map_curvature"],
         option["filter.spread_scale"] is not None,
         option["filter.fuse_odometry"],
+        option["filter.opponent_noise_m"] != 0.0,
     )
     if option["filter.kind"] == "none" and any(needs_filter):
         raise SafeRaceError(
-            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale and "
-            "--fuse-odometry need --filter cbf"
+            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale, "
+            "--fuse-odometry and --opponent-noise need --filter cbf"
         )
     if option["filter.fuse_odometry"] and not (noise is not None or learned):
         raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")

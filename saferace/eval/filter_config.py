@@ -132,6 +132,14 @@ class FilterConfig:
         choices=SLACK_PENALTIES,
     )
 
+    opponent_noise_m: float = setting(
+        0.0,
+        "in traffic: the standard deviation (m) of the noise on the opponents' positions the "
+        "filter's car barriers see, which widen by it (0: their true positions)",
+        flag="--opponent-noise",
+        metavar="M",
+    )
+
     def __post_init__(self) -> None:
         learned = self.state_source is not None
         chance_options = not self.probabilistic or self.spread_scale or self.fuse_odometry
@@ -156,6 +164,15 @@ class FilterConfig:
             raise ConfigError(
                 "uncertainty",
                 f"must be one of {', '.join(UNCERTAINTY_MODES)}, got {self.uncertainty!r}",
+            )
+        if self.opponent_noise_m < 0.0:
+            raise ConfigError(
+                "opponent_noise_m", f"must not be negative, got {self.opponent_noise_m}"
+            )
+        if self.kind == "mpsf" and self.opponent_noise_m:
+            raise ConfigError(
+                "opponent_noise_m",
+                "is the CBF filter's car barriers': the predictive filter (mpsf) has none",
             )
         if self.slack not in SLACK_PENALTIES:
             raise ConfigError(

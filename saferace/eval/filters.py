@@ -80,4 +80,10 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
     }
     if config.kind == "mpsf":
         return PredictiveSafetyFilter(env, **shared)
-    return SafetyFilter(env, **shared, slack_penalty=config.slack, **GAIN_PRESETS[config.gains])
+    return SafetyFilter(
+        env,
+        **shared,
+        slack_penalty=config.slack,
+        opponent_noise_m=config.opponent_noise_m,
+        **GAIN_PRESETS[config.gains],
+    )

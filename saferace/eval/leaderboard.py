@@ -73,6 +73,8 @@ def filter_words(config: FilterConfig) -> str:
         parts.append(f"{config.model} model")
     if config.map_curvature:
         parts.append("map curvature")
+    if config.opponent_noise_m:
+        parts.append(f"opponents seen with {config.opponent_noise_m:g} m noise")
     if config.slack != _DEFAULT_FILTER.slack:
         parts.append(f"{config.slack} slack")
     if config.adaptive == "oracle":

@@ -451,6 +451,7 @@ class DaggerConfig:
             ),
             "augment": (training.augment, False),
             "patience": (training.patience, 0),
+            "opponent_noise_m": (safety.opponent_noise_m, 0.0),
         }
         for name, (value, default) in newer.items():
             if value != default:
@@ -471,6 +472,7 @@ class DaggerConfig:
                 "filter_from", "state_source", "filter_model", "filter_gains", "map_curvature",
                 "calibrate_spread", "fuse_odometry", "state_noise", "filter_samples",
                 "probabilistic", "eta", "spread_scale", "uncertainty", "adaptive",
+                "opponent_noise_m",
             ):  # fmt: skip
                 values.pop(name, None)
         return json.loads(json.dumps(values))
