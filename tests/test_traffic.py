@@ -274,6 +274,20 @@ def test_pettingzoo_parallel_api():
     parallel_api_test(parallel_env(cars=3, track="oval", max_steps=80), num_cycles=100)
 
 
+def test_every_car_in_pettingzoo_reports_the_tasks_terms():
+    env = parallel_env(cars=2, track="oval", collision_penalty=3.0)
+    env.reset(seed=0)
+    for _ in range(10):  # straight on, still on the oval's straight
+        _, rewards, _, _, infos = env.step({agent: np.array([0.0, 1.0]) for agent in env.agents})
+    terms = ("reward_progress", "reward_deviation", "reward_collision")
+    for agent in ("car0", "car1"):
+        info = infos[agent]
+        assert {"lap", "cost", "at_fault_collisions", "collisions", *terms} <= set(info)
+        assert rewards[agent] == pytest.approx(sum(info[term] for term in terms))
+        assert info["reward_progress"] > 0.05  # both drove on
+    env.close()
+
+
 def two_car_race(seed: int) -> list[tuple]:
     """Two cars from a random start (drawn from ``seed``), driven by the same random actions."""
     env = parallel_env(cars=2, track=STRAIGHT_TRACK, random_start=True)

@@ -3,7 +3,8 @@
 Agent ``car0`` is the task's own car and ``car1``... are its ``external`` opponents; each
 has its own onboard camera (the other cars in view) and velocity, and a reward of the task's
 form (progress less the squared deviation from the reference). ``car0``'s info is the
-task's; the others' is their state (pose, Frenet state, speed, lane, progress). A car whose
+task's; the others' is their state (pose, Frenet state, speed, lane, progress) with the
+task's ``lap``, ``cost``, reward terms and collisions. A car whose
 episode ends (out of the lane, flipped, ``max_laps`` of progress or ``max_steps``) leaves
 ``agents`` and brakes to a stop where it is; the race goes on while any car is in it. A
 collision is in the infos of both cars; the car at fault loses the task's
@@ -109,11 +110,12 @@ class RacingParallelEnv(ParallelEnv):
             progress = state["progress_m"] - self._last_progress.get(car.name, 0.0)
             deviation = state["e_y_m"] - float(env.reference.offset_at(state["s_m"]))
             at_fault = sum(collision["at_fault"] == car.name for collision in collisions)
-            rewards[car.name] = (
-                progress
-                - env.deviation_weight * deviation * deviation
-                - env.collision_penalty * at_fault
-            )
+            parts = {
+                "reward_progress": progress,
+                "reward_deviation": -env.deviation_weight * deviation * deviation,
+                "reward_collision": -env.collision_penalty * at_fault,
+            }
+            rewards[car.name] = sum(parts.values())
             observations[car.name] = env.car_observation(index)
             terminations[car.name] = bool(
                 state["fully_outside_lane"]
@@ -126,6 +128,9 @@ class RacingParallelEnv(ParallelEnv):
             )
             infos[car.name] = {
                 **state,
+                **parts,
+                "lap": int(state["progress_m"] // env.track.length_m),
+                "cost": 1.0 if state["outside_lane"] else 0.0,
                 "collisions": [c for c in collisions if car.name in c["cars"]],
                 "at_fault_collisions": at_fault,
             }
