@@ -12,7 +12,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-from collections import defaultdict
 
 import numpy as np
 
@@ -82,32 +81,48 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
 
 
 def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:
-    """Per track, a base64 PNG of every agent's unfiltered paths (first seed) over it."""
-    from saferace.eval.track_plots import plot_path, plot_track, plt
+    """Per track, a base64 PNG of every agent's unfiltered paths (first seed) over it: one
+    panel alone on the track and, where the suite has traffic runs, one among opponents;
+    a colour per agent, a line style per task or opponent, the legend below."""
+    from saferace.eval.track_plots import legend_outside, plot_path, plot_track, plt
     from saferace.track import Track
 
-    paths: dict[str, list[tuple[str, dict]]] = defaultdict(list)
-    for entry in submissions:
-        for row in entry["rows"]:
-            if row["filter"] == "none" and row["seed"] == suite.seeds[0] and "trajectory" in row:
-                task = (
-                    row["task"]
-                    if row.get("opponents") is None
-                    else (f"{row['task']} vs {row['opponents']}")
-                )
-                paths[row["track"]].append((f"{entry['agent']} ({task})", row))
+    traffic = suite.traffic
+    panels = [("alone", tuple(suite.tasks))]
+    if traffic is not None:
+        panels.append((f"{traffic.task} among opponents", tuple(traffic.opponents)))
+    styles = ("-", "--", ":", "-.")
     images = {}
     for track_name in suite.tracks:
-        if track_name not in paths:
+        figure = plt.figure(figsize=(5.5 * len(panels), 5.5), layout="constrained")
+        axes = figure.subplots(1, len(panels), squeeze=False)[0]
+        track = Track.load(suite.track_argument(track_name))
+        for axis, (title, _) in zip(axes, panels, strict=True):
+            plot_track(axis, track)
+            axis.set_title(f"{track_name}, {title}: no filter (x: outside the lane)", fontsize=9)
+        drawn = False
+        for number, entry in enumerate(submissions):
+            for row in entry["rows"]:
+                first_plain = row["filter"] == "none" and row["seed"] == suite.seeds[0]
+                if row["track"] != track_name or not first_plain or "trajectory" not in row:
+                    continue
+                in_traffic = row.get("opponents") is not None
+                kind = row["opponents"] if in_traffic else row["task"]
+                kinds = panels[int(in_traffic)][1]
+                plot_path(
+                    axes[int(in_traffic)],
+                    row["trajectory"],
+                    styles[kinds.index(kind) % len(styles)],
+                    lw=1.2,
+                    color=f"C{number % 10}",
+                    label=f"{entry['agent']} ({'vs ' if in_traffic else ''}{kind})",
+                )
+                drawn = True
+        if not drawn:
+            plt.close(figure)
             continue
-        figure, axis = plt.subplots(figsize=(6, 5))
-        plot_track(axis, Track.load(suite.track_argument(track_name)))
-        for label, row in paths[track_name]:
-            plot_path(axis, row["trajectory"], lw=1.2, label=label)
-        axis.set_title(f"{track_name}: driven paths, no filter (x: outside the lane)")
-        axis.legend(fontsize=6, loc="upper right")
+        legend_outside(figure, list(axes), ncol=4, fontsize=7)
         buffer = io.BytesIO()
-        figure.tight_layout()
         figure.savefig(buffer, format="png", dpi=90)
         plt.close(figure)
         images[track_name] = base64.b64encode(buffer.getvalue()).decode("ascii")
