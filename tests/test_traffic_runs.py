@@ -24,14 +24,22 @@ from saferace.learning.configs import CollectionConfig, DaggerConfig, EpisodeSet
 SLOW_CAR = "pure-pursuit:gap_m=2.5,speed_factor=0.5,lateral_offset_m=0"
 
 
-def test_the_episode_counts_collisions_and_the_opponents_finished_behind():
-    steps = {"collisions": np.array([0, 1, 0, 1]), "at_fault_collisions": np.array([0, 1, 0, 0])}
-    last = {"opponents": [{"ego_lead_m": 0.3}, {"ego_lead_m": -2.0}, {"ego_lead_m": 40.0}]}
-    assert traffic_summary(steps, last) == {
-        "collisions": 2,
-        "at_fault_collisions": 1,
-        "overtakes": 2,  # one passed, one lapped (once), one still ahead
+def test_the_episode_counts_collisions_and_the_opponents_it_passed():
+    steps = {
+        "time_s": np.arange(4) * 0.05,
+        "collisions": np.array([0, 1, 0, 1]),
+        "at_fault_collisions": np.array([0, 1, 0, 0]),
+        # leads on four cars: passed; still ahead; lapped; started behind, stayed behind
+        "opponents_lead_m": np.array(
+            [
+                [-2.0, -2.0, -3.0, 1.5],
+                [-1.0, -2.5, 5.0, 1.0],
+                [0.1, -3.0, 20.0, 1.2],
+                [0.3, -3.5, 40.0, 1.4],
+            ]
+        ),
     }
+    assert traffic_summary(steps) == {"collisions": 2, "at_fault_collisions": 1, "overtakes": 2}
 
 
 def test_the_ego_lead_counts_from_each_opponents_start():

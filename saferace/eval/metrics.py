@@ -21,8 +21,14 @@ STEP_FIELDS = (
     "accel_mps2",
 )
 #: Per-step records in traffic: collisions that started in the step, those the ego caused,
-#: and every opponent's position (one column per opponent).
-TRAFFIC_FIELDS = ("collisions", "at_fault_collisions", "opponents_x_m", "opponents_y_m")
+#: and every opponent's position and the ego's lead on it (one column per opponent).
+TRAFFIC_FIELDS = (
+    "collisions",
+    "at_fault_collisions",
+    "opponents_x_m",
+    "opponents_y_m",
+    "opponents_lead_m",
+)
 #: Per-step records of a safety filter (``info["safety"]``), see :func:`safety_step_record`.
 SAFETY_FIELDS = (
     "intervened",
@@ -262,6 +268,7 @@ def traffic_step_record(info: dict[str, Any]) -> dict[str, Any]:
         "at_fault_collisions": int(info["at_fault_collisions"]),
         "opponents_x_m": [opponent["x_m"] for opponent in opponents],
         "opponents_y_m": [opponent["y_m"] for opponent in opponents],
+        "opponents_lead_m": [opponent["ego_lead_m"] for opponent in opponents],
     }
 
 
@@ -271,7 +278,7 @@ def traffic_paths(steps: dict[str, np.ndarray], decimals: int = 4) -> dict[str, 
     position, and whether it caused it)."""
     count = len(steps["opponents_x_m"])
     stride = max(1, count // TRAJECTORY_POINTS)
-    x_m, y_m = (np.round(steps[name][::stride], decimals) for name in TRAFFIC_FIELDS[2:])
+    x_m, y_m = (np.round(steps[name][::stride], decimals) for name in TRAFFIC_FIELDS[2:4])
     struck = np.flatnonzero(steps["collisions"])
     return {
         "opponents": [
@@ -290,12 +297,14 @@ def traffic_paths(steps: dict[str, np.ndarray], decimals: int = 4) -> dict[str, 
     }
 
 
-def traffic_summary(steps: dict[str, np.ndarray], last_info: dict[str, Any]) -> dict[str, int]:
+def traffic_summary(steps: dict[str, np.ndarray]) -> dict[str, int]:
     """An episode in traffic: its collisions, those the ego caused, and ``overtakes``: the
-    opponents the ego finished ahead of, counting from where each started (positions
+    opponents that started ahead of the ego and that it finished ahead of (positions
     gained; a car lapped counts once)."""
+    lead = np.asarray(steps["opponents_lead_m"], dtype=float).reshape(len(steps["time_s"]), -1)
+    passed = (lead[0] < 0.0) & (lead[-1] > 0.0) if len(lead) else np.zeros(0, bool)
     return {
         "collisions": int(np.sum(steps["collisions"])),
         "at_fault_collisions": int(np.sum(steps["at_fault_collisions"])),
-        "overtakes": int(sum(opponent["ego_lead_m"] > 0.0 for opponent in last_info["opponents"])),
+        "overtakes": int(passed.sum()),
     }

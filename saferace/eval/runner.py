@@ -48,7 +48,7 @@ RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch", "torchvisi
 
 @dataclass
 class EpisodeResult:
-    """Per-step arrays, per-lap metrics and the episode's end."""
+    """Per-step arrays, per-lap metrics, the episode's end and, in traffic, its counts."""
 
     steps: dict[str, np.ndarray]
     laps: list[LapMetrics]
@@ -139,7 +139,7 @@ def run_episode(
             bar.set_postfix(lap=info["lap"], v=f"{info['v_x_mps']:.1f}m/s")
     steps = {name: np.asarray(values) for name, values in records.items()}
     laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
-    traffic = traffic_summary(steps, info) if in_traffic else None
+    traffic = traffic_summary(steps) if in_traffic else None
     return EpisodeResult(steps, laps, terminated, truncated, traffic)
 
 

@@ -26,9 +26,9 @@ tracks, 2 m behind each of a fixed set of opponents (the expert MPC at 80% of th
 line's speed, and a car at 80% that brakes as hard as it can every few seconds), from the
 first start, two laps within 60 s, without and with the filter (which then keeps clear of
 the opponents too). A run goes on after a collision. Its score is the lane score times
-``COLLISION_FACTOR`` per collision the agent caused (multiplicative, as the CARLA
-leaderboard's infraction penalties), its speed measured against the expert's lap alone on
-the track; it also counts ``overtakes``, the opponents it finished ahead of. The agent's
+the suite's ``collision_factor`` (0.6) per collision the agent caused (multiplicative, as
+the CARLA leaderboard's infraction penalties), its speed measured against the expert's lap alone on
+the track; it also counts ``overtakes``, the opponents it passed and stayed ahead of. The agent's
 **score** covers both sets; beside it, the traffic score and the at-fault collisions.
 Submissions are checked and scored under the version they were made for, while it ships.
 """

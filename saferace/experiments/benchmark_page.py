@@ -180,7 +180,7 @@ figure {{ display: inline-block; margin: 0.5em; }}
 {len(suite.seeds)} starts{_traffic_words(suite)}, without and with the shared safety
 filter. Score: 100 times the mean over the unfiltered runs of completion x speed against
 the expert x exp(-seconds outside the lane){_penalty_words(suite)}, recomputed from every
-run's measurements. Overtakes: opponents an agent finished ahead of. Submissions of an
+run's measurements. Overtakes: opponents an agent passed and stayed ahead of. Submissions of an
 older suite rank among their own version only. Verified runs: how many of an entry's
 runs <code>saferace verify</code> drove again and found as submitted. Click a column to
 sort.</p>
