@@ -146,6 +146,15 @@ REFUSALS = {
         "collisions is 0.5, not a whole number",
     ),
     "collisions on a lane run": (set_row(collisions=1), "collisions on a run without opponents"),
+    "more collisions than control steps": (
+        lambda d: traffic_row(d).update(collisions=10**400),
+        "control steps",
+    ),
+    "a traffic run spelled as a lane run": (
+        lambda d: traffic_row(d).update(filter="none/expert", opponents=None),
+        "run lab/Overtake/0/none/expert is not a run of suite v2",
+    ),
+    "a traffic total missing": (lambda d: d.pop("traffic_score"), "missing field(s) traffic_score"),
     "a collision hidden": (lambda d: hide_a_collision(d), "score is "),
     "a replay of the wrong shape": (
         lambda d: d["replay"].update(files_sha256=["x.pt"]),
@@ -300,6 +309,31 @@ def test_verify_finds_the_edited_row_it_replays(honest_submission: Path, tmp_pat
         f"run {replayed}: mean_abs_deviation_m was {row['mean_abs_deviation_m']!r}"
         in (result.stderr.strip().splitlines()[-1])
     ), result.stderr
+
+
+def test_verify_finds_a_collision_hidden_with_its_scores_recomputed(
+    honest_submission: Path, tmp_path: Path
+):
+    edited = json.loads(honest_submission.read_text())
+    keys = [row["key"] for row in edited["rows"]]
+    rows = dict(zip(keys, edited["rows"], strict=True))
+    seed = next(  # a draw that replays a run in which pure pursuit ran into the braking car
+        seed
+        for seed in range(1000)
+        if rows[choose_runs(keys, 1, seed)[0]].get("at_fault_collisions")
+    )
+    [replayed] = choose_runs(keys, 1, seed)
+    row = rows[replayed]
+    row["at_fault_collisions"] = row["collisions"] = 0
+    suite = load_suite()
+    row.update(scored(row, RunSpec.of_row(row), suite))
+    edited.update(totals(edited["rows"], suite))
+    path = tmp_path / "hidden.json"
+    path.write_text(json.dumps(edited))
+    check_submission(json.loads(path.read_text()), str(path))  # consistent on its face
+    result = verify_submission(path, runs=1, seed=seed, progress=False, records=tmp_path / "r")
+    assert not result.passed
+    assert result.mismatches[0].startswith(f"run {replayed}: collisions was 0, replayed ")
 
 
 def test_verify_refuses_an_agent_file_swapped_after_the_runs(

@@ -458,13 +458,14 @@ def test_alongside_the_expert_never_crosses_the_opponents_nose():
     # the ego on the right, its side too narrow for it: it would pass on the left from behind
     (moved_upper, moved_lower), follow = expert_bounds(1.5, -0.2, -0.12)
     assert moved_lower.max() > 0.3 and not follow
-    # alongside, crossing to the left would cut across the car: it drops back behind it
+    # alongside, crossing to the left would cut across the car: it keeps to its own side,
+    # too narrow as it is, and drops back behind the car
     (moved_upper, moved_lower), follow = expert_bounds(0.5, -0.2, -0.12)
-    assert not moved_lower.any() and not moved_upper.any()
+    assert not moved_lower.any() and moved_upper.min() < -0.1
     assert len(follow) == 1 and follow[0][1] == 1.0
-    # alongside and ahead, it never brakes for a car behind it
+    # alongside and ahead, it keeps to its side and never brakes for a car behind it
     (moved_upper, moved_lower), follow = expert_bounds(-0.5, -0.2, -0.12)
-    assert not follow
+    assert not moved_lower.any() and moved_upper.min() < -0.1 and not follow
 
 
 def test_thepassing_side_is_the_ego_cars_own_if_it_has_room():

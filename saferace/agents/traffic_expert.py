@@ -6,13 +6,13 @@ heading (``speed cos(e_psi)``; the filter's car barriers also divide by the Fren
 frame's stretch). At every stage of the plan where the ego car's predicted arc length is
 within ``PASS_LENGTH_M`` of an opponent's, the opponent takes the band ``e_y_o
 +- PASS_WIDTH_M`` of the lane: the stage's lateral bound moves to the side the car passes
-on (the side it is on now if that has room, else the other; once alongside, only its
-own: it never cuts across the opponent's nose), and the plan overtakes. Where no side has
-room for the car beside an opponent ahead, the plan follows: every stage's speed is capped
-at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in ``FOLLOW_TIME_S``. A car
-behind it is never followed (braking for it would only invite it in). The
-bounds are soft, as the lane's are; the safety filter's car barriers are what guarantee
-clearance.
+on (the side it is on now if that has room, else the other; once alongside, its own
+whatever the room: it never cuts across the opponent's nose), and the plan overtakes.
+Where the side it may take has no room beside an opponent ahead, the plan follows: every
+stage's speed is capped at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in
+``FOLLOW_TIME_S``. A car behind it is never followed (braking for it would only invite it
+in). The bounds are soft, as the lane's are; the safety filter's car barriers are what
+guarantee clearance.
 """
 
 from __future__ import annotations
@@ -73,14 +73,17 @@ class TrafficExpert(MPCExpert):
             right_room = (e_y_o - PASS_WIDTH_M) - lower[beside]
             offset = self._ego_e_y - opponent.e_y_m
             rooms = (left_room.min(), right_room.min())
-            if abs(gaps[0]) < PASS_LENGTH_M:  # alongside: never across the opponent's nose
-                rooms = (rooms[0], -1.0) if offset > 0.0 else (-1.0, rooms[1])
-            side = passing_side(offset, *rooms)
+            if abs(gaps[0]) < PASS_LENGTH_M:  # alongside: its own side, never across the nose
+                side = 1 if offset > 0.0 else -1
+                boxed = rooms[0 if side > 0 else 1] < 0.0
+            else:
+                side = passing_side(offset, *rooms)
+                boxed = side == 0
             if side > 0:
                 lower[beside] = np.maximum(lower[beside], e_y_o + PASS_WIDTH_M)
             elif side < 0:
                 upper[beside] = np.minimum(upper[beside], e_y_o - PASS_WIDTH_M)
-            elif gaps[0] > 0.0:  # no room beside a car ahead: follow it
+            if boxed and gaps[0] > 0.0:  # no room beside a car ahead: follow it
                 self._follow.append((float(gaps[0]), opponent.v_mps))
         return upper, lower
 

@@ -189,6 +189,7 @@ def _collect(args: argparse.Namespace) -> int:
             "track": Path(config.track).stem,
             "filter": config.safety.as_dict(),
             "summary": summary,
+            "config": {"env": {"opponents": list(config.opponents)}},
         }
         for summary in collected.episodes
     ]

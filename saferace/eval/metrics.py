@@ -7,6 +7,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from saferace.envs.traffic import EGO
+
 #: Per-step signals the metrics need (see :func:`saferace.eval.runner.run_episode`).
 STEP_FIELDS = (
     "time_s",
@@ -261,10 +263,11 @@ def _filter_metric(value: _T | None) -> _T:
 
 
 def traffic_step_record(info: dict[str, Any]) -> dict[str, Any]:
-    """A step's :data:`TRAFFIC_FIELDS` from the ego's ``info`` in traffic."""
+    """A step's :data:`TRAFFIC_FIELDS` from the ego's ``info`` in traffic (its own
+    collisions only: ``info["collisions"]`` also has those between opponents)."""
     opponents = info["opponents"]
     return {
-        "collisions": len(info["collisions"]),
+        "collisions": sum(EGO in collision["cars"] for collision in info["collisions"]),
         "at_fault_collisions": int(info["at_fault_collisions"]),
         "opponents_x_m": [opponent["x_m"] for opponent in opponents],
         "opponents_y_m": [opponent["y_m"] for opponent in opponents],
@@ -274,8 +277,8 @@ def traffic_step_record(info: dict[str, Any]) -> dict[str, Any]:
 
 def traffic_paths(steps: dict[str, np.ndarray], decimals: int = 4) -> dict[str, list]:
     """What a result row keeps of the traffic: every opponent's path, thinned as
-    :func:`thinned_trajectory` thins the ego's, and where each collision started (the ego's
-    position, and whether it caused it)."""
+    :func:`thinned_trajectory` thins the ego's, and where each of the ego's collisions
+    started (its position, and whether it caused it)."""
     count = len(steps["opponents_x_m"])
     stride = max(1, count // TRAJECTORY_POINTS)
     x_m, y_m = (np.round(steps[name][::stride], decimals) for name in TRAFFIC_FIELDS[2:4])

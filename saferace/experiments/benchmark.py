@@ -75,6 +75,13 @@ TRAJECTORY_POINTS = 200
 TRAFFIC_REFERENCE_TASK = "RacingLine"
 #: A traffic run's own measurements (None in a lane run).
 TRAFFIC_MEASUREMENTS = ("collisions", "at_fault_collisions", "overtakes")
+#: A submission's totals over the traffic runs (in suites with a traffic set).
+TRAFFIC_TOTALS = (
+    "traffic_score",
+    "at_fault_collisions",
+    "at_fault_collisions_with_filter",
+    "overtakes",
+)
 
 
 @dataclass(frozen=True)
@@ -426,13 +433,13 @@ def totals(rows: list[dict], suite: Suite) -> dict:
         return result
     traffic = [row for row in plain if row.get("opponents") is not None]
     traffic_filtered = [row for row in filtered if row.get("opponents") is not None]
-    return {
-        **result,
-        "traffic_score": _percent(traffic),
-        "at_fault_collisions": _total(traffic, "at_fault_collisions"),
-        "at_fault_collisions_with_filter": _total(traffic_filtered, "at_fault_collisions"),
-        "overtakes": _total(traffic, "overtakes"),
-    }
+    values = (
+        _percent(traffic),
+        _total(traffic, "at_fault_collisions"),
+        _total(traffic_filtered, "at_fault_collisions"),
+        _total(traffic, "overtakes"),
+    )
+    return {**result, **dict(zip(TRAFFIC_TOTALS, values, strict=True))}
 
 
 def _percent(rows: list[dict]) -> float | None:

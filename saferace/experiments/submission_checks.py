@@ -40,6 +40,7 @@ from saferace.errors import SafeRaceError
 from saferace.experiments.benchmark import (
     SUITE_VERSION,
     TRAFFIC_MEASUREMENTS,
+    TRAFFIC_TOTALS,
     TRAJECTORY_POINTS,
     RunSpec,
     Suite,
@@ -148,7 +149,8 @@ def _own_suite(data: object, source: str) -> Suite:
 def _check_structure(data: object, source: str, suite: Suite) -> None:
     if not isinstance(data, dict):
         raise SafeRaceError(f"{source}: not a submission (a JSON object is expected)")
-    missing = [name for name in SUBMISSION_FIELDS if name not in data]
+    required = SUBMISSION_FIELDS + (TRAFFIC_TOTALS if suite.traffic is not None else ())
+    missing = [name for name in required if name not in data]
     if missing:
         raise SafeRaceError(f"{source}: missing field(s) {', '.join(missing)}")
     if data["suite_version"] != suite.version:
@@ -199,18 +201,22 @@ def _run_spec(row: dict, index: int, source: str) -> RunSpec:
 
 
 def _check_coverage(specs: list[RunSpec], source: str, suite: Suite) -> None:
-    counts = Counter(spec.key for spec in specs)
-    wanted = [spec.key for spec in suite.runs()]
-    repeated = [key for key, count in counts.items() if count > 1]
+    """Every run of the suite once, no other: runs compared field by field (a filter named
+    ``none/expert`` spells a traffic run's key, and is still no run of the suite)."""
+    counts = Counter(specs)
+    wanted = suite.runs()
+    repeated = [spec for spec, count in counts.items() if count > 1]
     if repeated:
-        raise SafeRaceError(f"{source}: run {repeated[0]} appears {counts[repeated[0]]} times")
-    extra = [key for key in counts if key not in wanted]
+        raise SafeRaceError(f"{source}: run {repeated[0].key} appears {counts[repeated[0]]} times")
+    extra = [spec for spec in counts if spec not in wanted]
     if extra:
-        raise SafeRaceError(f"{source}: run {extra[0]} is not a run of suite v{suite.version}")
-    absent = [key for key in wanted if key not in counts]
+        raise SafeRaceError(f"{source}: run {extra[0].key} is not a run of suite v{suite.version}")
+    absent = [spec for spec in wanted if spec not in counts]
     if absent:
         more = f" (and {len(absent) - 1} more)" if len(absent) > 1 else ""
-        raise SafeRaceError(f"{source}: run {absent[0]} of suite v{suite.version} is missing{more}")
+        raise SafeRaceError(
+            f"{source}: run {absent[0].key} of suite v{suite.version} is missing{more}"
+        )
 
 
 def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:
@@ -239,7 +245,7 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
             f"{where}: time_outside_lane_s {outside_s} is not within the {driven_s:g} s driven"
         )
     _check_lap(row, suite.laps_of(spec), where)
-    _check_traffic(row, spec, suite, where)
+    _check_traffic(row, spec, suite, round(steps), where)
     rate = row["intervention_rate"]
     if spec.filter == "none" and rate is not None:
         raise SafeRaceError(f"{where}: intervention_rate {rate} on a run without a filter")
@@ -248,8 +254,9 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
     _check_trajectory(row, spec, suite, round(steps), where)
 
 
-def _check_traffic(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:
-    """A traffic run's counts are whole and possible; a lane run has none."""
+def _check_traffic(row: dict, spec: RunSpec, suite: Suite, steps: int, where: str) -> None:
+    """A traffic run's counts are whole and possible (a collision starts in a control step
+    at most once); a lane run has none."""
     if spec.opponents is None:
         counted = [name for name in TRAFFIC_MEASUREMENTS if row.get(name) is not None]
         if counted:
@@ -261,6 +268,10 @@ def _check_traffic(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise SafeRaceError(f"{where}: {name} is {value!r}, not a whole number")
         counts[name] = value
+    if counts["collisions"] > steps:
+        raise SafeRaceError(
+            f"{where}: collisions {counts['collisions']} is more than the {steps} control steps"
+        )
     if counts["at_fault_collisions"] > counts["collisions"]:
         raise SafeRaceError(
             f"{where}: at_fault_collisions {counts['at_fault_collisions']} is more than the "

@@ -51,6 +51,9 @@ TOLERANCES: dict[str, float | None] = {
     "intervention_rate": 1e-9,
     "mean_steer_correction_rad": 1e-6,
     "mean_accel_correction_mps2": 1e-6,
+    "collisions": None,
+    "at_fault_collisions": None,
+    "overtakes": None,
     "trajectory": 2e-3,
 }
 
