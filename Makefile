@@ -41,6 +41,8 @@ demo: setup
 		--plot results/trajectories.png)
 	$(call stage,drive-video,$(BIN)/saferace drive --agent expert --task RacingLine --track technical \
 		--video results/technical_racingline.mp4 --rerun results/technical_racingline.rrd)
+	$(call stage,overtake,$(BIN)/saferace drive --agent expert --task Overtake --track technical \
+		--laps 2 --video results/technical_overtake.mp4 --rerun results/technical_overtake.rrd)
 	$(call stage,snapshots,$(BIN)/saferace snapshots --out results/snapshots)
 	$(call stage,safety-table,$(BIN)/saferace safety-table --random-tracks 11 23 --out results/safety)
 	rm -rf results/learned
