@@ -78,9 +78,9 @@ def uncalibrated_checkpoint(tiny_checkpoint, tmp_path: Path) -> Path:
 @pytest.fixture(scope="session")
 def honest_submission(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Pure pursuit's submission of the whole benchmark suite, as ``saferace benchmark``
-    writes it (about 30 s)."""
+    writes it (about 30 s over two worker processes; its rows are the serial ones)."""
     from saferace.experiments.benchmark import run_benchmark
 
     path = tmp_path_factory.mktemp("benchmark") / "pure_pursuit.json"
-    run_benchmark("pure-pursuit", path, progress=False)
+    run_benchmark("pure-pursuit", path, workers=2, progress=False)
     return path
