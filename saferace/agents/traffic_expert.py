@@ -59,11 +59,8 @@ class TrafficExpert(MPCExpert):
         self._follow = []
         times = self.settings.dt_s * np.arange(1, len(s_stage))
         for opponent in self._opponents:
-            gaps = np.array(
-                [
-                    wrap_arc(opponent.s_m + opponent.v_mps * t - s, self.track.length_m)
-                    for s, t in zip(s_stage[1:], times, strict=True)
-                ]
+            gaps = wrap_arc(
+                opponent.s_m + opponent.v_mps * times - s_stage[1:], self.track.length_m
             )
             beside = np.abs(gaps) < PASS_LENGTH_M
             if not beside.any():

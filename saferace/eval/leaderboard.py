@@ -191,13 +191,17 @@ def row_opponents(row: dict) -> list[str]:
     return ["task default"] if "at_fault_collisions" in row["summary"] else []
 
 
+def _present(summaries: list[dict], key: str) -> list:
+    return [s[key] for s in summaries if s.get(key) is not None]
+
+
 def _sum(summaries: list[dict], key: str) -> int | None:
-    values = [s[key] for s in summaries if s.get(key) is not None]
+    values = _present(summaries, key)
     return sum(values) if values else None
 
 
 def _mean(summaries: list[dict], key: str) -> float | None:
-    values = [s[key] for s in summaries if s.get(key) is not None]
+    values = _present(summaries, key)
     return float(np.mean(values)) if values else None
 
 

@@ -124,6 +124,11 @@ STOP_SPEED_MPS = 0.1
 TRAJECTORY_POINTS = 500
 
 
+def thinning_stride(count: int, points: int = TRAJECTORY_POINTS) -> int:
+    """Every how many steps a path of ``count`` steps keeps one, for about ``points``."""
+    return max(1, count // points)
+
+
 def thinned_trajectory(
     steps: dict[str, np.ndarray],
     names: tuple[str, ...],
@@ -134,7 +139,7 @@ def thinned_trajectory(
     whether the car was outside its lane at any step of each stride, so that thinning never
     hides a short exit."""
     count = len(steps[names[0]])
-    stride = max(1, count // points)
+    stride = thinning_stride(count, points)
     trajectory = {name: np.round(steps[name][::stride], decimals).tolist() for name in names}
     outside = np.asarray(steps["cost"])[:count] > 0
     starts = np.arange(0, count, stride)
@@ -279,9 +284,10 @@ def traffic_paths(steps: dict[str, np.ndarray], decimals: int = 4) -> dict[str, 
     """What a result row keeps of the traffic: every opponent's path, thinned as
     :func:`thinned_trajectory` thins the ego's, and where each of the ego's collisions
     started (its position, and whether it caused it)."""
-    count = len(steps["opponents_x_m"])
-    stride = max(1, count // TRAJECTORY_POINTS)
-    x_m, y_m = (np.round(steps[name][::stride], decimals) for name in TRAFFIC_FIELDS[2:4])
+    stride = thinning_stride(len(steps["opponents_x_m"]))
+    x_m, y_m = (
+        np.round(steps[name][::stride], decimals) for name in ("opponents_x_m", "opponents_y_m")
+    )
     struck = np.flatnonzero(steps["collisions"])
     return {
         "opponents": [
@@ -304,8 +310,8 @@ def traffic_summary(steps: dict[str, np.ndarray]) -> dict[str, int]:
     """An episode in traffic: its collisions, those the ego caused, and ``overtakes``: the
     opponents that started ahead of the ego and that it finished ahead of (positions
     gained; a car lapped counts once)."""
-    lead = np.asarray(steps["opponents_lead_m"], dtype=float).reshape(len(steps["time_s"]), -1)
-    passed = (lead[0] < 0.0) & (lead[-1] > 0.0) if len(lead) else np.zeros(0, bool)
+    lead = np.asarray(steps["opponents_lead_m"], dtype=float)  # (steps, opponents)
+    passed = (lead[0] < 0.0) & (lead[-1] > 0.0)
     return {
         "collisions": int(np.sum(steps["collisions"])),
         "at_fault_collisions": int(np.sum(steps["at_fault_collisions"])),

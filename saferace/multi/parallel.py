@@ -4,11 +4,11 @@ Agent ``car0`` is the task's own car and ``car1``... are its ``external`` oppone
 has its own onboard camera (the other cars in view) and velocity, and a reward of the task's
 form (progress less the squared deviation from the reference). ``car0``'s info is the
 task's; the others' is their state (pose, Frenet state, speed, lane, progress) with the
-task's ``lap``, ``cost``, reward terms and collisions. A car whose
-episode ends (out of the lane, flipped, ``max_laps`` of progress or ``max_steps``) leaves
-``agents`` and brakes to a stop where it is; the race goes on while any car is in it. A
-collision is in the infos of both cars; the car at fault loses the task's
-``collision_penalty`` (0 unless given) of reward.
+task's ``lap``, ``cost``, reward terms and collisions. A car whose episode ends (out of
+the lane, flipped, ``max_laps`` of progress or ``max_steps``) leaves ``agents`` and brakes
+to a stop where it is; the race goes on while any car is in it. A collision is in the
+infos of both cars; the car at fault loses the task's ``collision_penalty`` (0 unless
+given) of reward.
 """
 
 from __future__ import annotations

@@ -119,6 +119,12 @@ def _car_function(model_name: str) -> Callable[..., list[float]]:
     return sp.lambdify(args, outputs, "math", cse=True)
 
 
+def along_track_mps(speed_mps: float, e_psi_rad: float, kappa_radpm: float, e_y_m: float) -> float:
+    """A car's speed along the centre line, ``v cos(e_psi) / (1 - kappa e_y)`` (the
+    Frenet stretch kept above 0.1 off a tight bend's inside)."""
+    return speed_mps * math.cos(e_psi_rad) / max(1.0 - kappa_radpm * e_y_m, 0.1)
+
+
 def opponent_predictions(
     opponents: Sequence[dict[str, Any]],
     track,
@@ -133,8 +139,8 @@ def opponent_predictions(
     predictions = []
     for opponent in opponents:
         s_o, e_y_o, e_psi_o = opponent["s_m"], opponent["e_y_m"], opponent["e_psi_rad"]
-        stretch = 1.0 - track.centerline.curvature_scalar(s_o) * e_y_o
-        v_o = opponent["speed_mps"] * math.cos(e_psi_o) / max(stretch, 0.1)
+        kappa = track.centerline.curvature_scalar(s_o)
+        v_o = along_track_mps(opponent["speed_mps"], e_psi_o, kappa, e_y_o)
         ds = wrap_arc(ego_s_m - s_o, length)
         if noise_m > 0.0:
             noise = (rng or np.random.default_rng()).normal(0.0, noise_m, 2)
@@ -168,12 +174,8 @@ def car_rows(
     values = np.array(rows).reshape(len(predictions), 4)
     psi, gradient, h = values[:, 0], values[:, 1:3], values[:, 3]
     b = psi - gradient @ np.array([steer0, accel0])
-    speed_index = symbolic_model(model_name).speed_index
-    along = (
-        float(state[speed_index])
-        * math.cos(float(state[1]))
-        / max(1.0 - kappa_radpm * float(state[0]), 0.1)
-    )
+    speed = float(state[symbolic_model(model_name).speed_index])
+    along = along_track_mps(speed, float(state[1]), kappa_radpm, float(state[0]))
     follow = [
         _follow_row(ds, float(state[0]) - e_y_o, v_o, along) for ds, e_y_o, v_o in predictions
     ]

@@ -10,8 +10,14 @@ the local search jumps too far or fails to converge.
 from __future__ import annotations
 
 import math
+from typing import TypeVar
+
+import numpy as np
 
 from saferace.track.path import ClosedPath
+
+#: An arc length or an array of them.
+Arc = TypeVar("Arc", float, np.ndarray)
 
 
 def wrap_angle(angle_rad: float) -> float:
@@ -134,6 +140,6 @@ class FrenetProjector:
         return None
 
 
-def wrap_arc(delta_s: float, length_m: float) -> float:
-    """Arc-length difference wrapped into ``[-length/2, length/2)``."""
+def wrap_arc(delta_s: Arc, length_m: float) -> Arc:
+    """Arc-length difference(s) wrapped into ``[-length/2, length/2)``."""
     return (delta_s + 0.5 * length_m) % length_m - 0.5 * length_m
