@@ -11,7 +11,16 @@ from pettingzoo.test import parallel_api_test
 import saferace  # noqa: F401  - registers the tasks
 from saferace.agents.mpc import MPCExpert
 from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
-from saferace.agents.traffic_expert import NearOpponent, TrafficExpert, passing_side
+from saferace.agents.traffic_expert import (
+    HISTORY_S,
+    LATERAL_MPS,
+    PASS_WIDTH_M,
+    PREDICTION_MARGIN_M,
+    NearOpponent,
+    TrafficExpert,
+    following_speed_mps,
+    passing_side,
+)
 from saferace.envs.collisions import CarMotion, attribute_fault
 from saferace.envs.reference_lines import reference_line
 from saferace.envs.traffic import OpponentSpec, opponent_specs
@@ -438,34 +447,79 @@ def test_the_expert_in_traffic_follows_where_the_lane_has_no_room():
     assert abs(info["v_x_mps"] - opponent["speed_mps"]) < 0.5
 
 
-def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float):
-    """How far the traffic expert's plan moves the lane's bounds, and the cars it follows,
-    on a straight at 3 m/s, with an opponent ``gap_m`` ahead at 1 m/s."""
+def traffic_expert_on_the_straight() -> TrafficExpert:
+    """A traffic expert on the straight's lane, 1 m wide, with an opponent it drives beside."""
     env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=["external"])
     expert = make_agent("expert", env)
     assert isinstance(expert, TrafficExpert)
+    env.close()
+    return expert
+
+
+def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float):
+    """How far the traffic expert's plan moves the lane's bounds, which side it passes
+    on, and each stage's speed cap, on a straight at 3 m/s with an opponent ``gap_m`` ahead
+    at 1 m/s that has kept its line for a second."""
+    expert = traffic_expert_on_the_straight()
     horizon, dt = expert.settings.horizon, expert.settings.dt_s
     s_stage = 2.0 + 3.0 * dt * np.arange(horizon + 1)  # 3 m/s from s = 2 m
+    opponent = NearOpponent("car1", 2.0 + gap_m, opponent_e_y_m, 1.0)
+    for _ in range(round(HISTORY_S / dt)):
+        expert.remember(opponent)
     expert._ego_e_y = ego_e_y_m
-    expert._opponents = [NearOpponent("car1", 2.0 + gap_m, opponent_e_y_m, 1.0)]
+    offset = ego_e_y_m - opponent_e_y_m
+    side = expert.passing_side(opponent, 2.0, gap_m, offset)
+    in_line = gap_m > 0.0 and abs(offset) < PASS_WIDTH_M
+    expert._passes = [(opponent, side, following_speed_mps(gap_m, opponent) if in_line else np.inf)]
     alone = MPCExpert._lane_bounds(expert, s_stage, None)
     upper, lower = expert._lane_bounds(s_stage, None)
-    env.close()
-    return (upper - alone[0], lower - alone[1]), expert._follow
+    caps = expert._speed_caps_mps(s_stage[1:], None)
+    return (upper - alone[0], lower - alone[1]), side, caps, lower
 
 
 def test_alongside_the_expert_never_crosses_the_opponents_nose():
-    # the ego on the right, its side too narrow for it: it would pass on the left from behind
-    (moved_upper, moved_lower), follow = expert_bounds(1.5, -0.2, -0.12)
-    assert moved_lower.max() > 0.3 and not follow
+    # behind, the ego on the right with no room there: it passes on the left, moving over
+    # no faster than LATERAL_MPS, held at the following speed until its bound clears the car
+    (moved_upper, moved_lower), side, caps, lower = expert_bounds(1.5, -0.2, -0.12)
+    assert side == 1 and not moved_upper.any() and lower.max() > 0.3
+    reachable = -0.2 + LATERAL_MPS * 0.05 * np.arange(1, len(lower) + 1)
+    assert (lower <= reachable + 1e-9).all()
+    assert np.isfinite(caps[0]) and np.isinf(caps[-1])
     # alongside, crossing to the left would cut across the car: it keeps to its own side,
     # too narrow as it is, and drops back behind the car
-    (moved_upper, moved_lower), follow = expert_bounds(0.5, -0.2, -0.12)
-    assert not moved_lower.any() and moved_upper.min() < -0.1
-    assert len(follow) == 1 and follow[0][1] == 1.0
+    (moved_upper, moved_lower), side, caps, _ = expert_bounds(0.4, -0.2, -0.12)
+    assert side == -1 and not moved_lower.any() and moved_upper.min() < -0.1
+    assert caps[0] == pytest.approx(1.0)  # the opponent's speed: no gap left to close
     # alongside and ahead, it keeps to its side and never brakes for a car behind it
-    (moved_upper, moved_lower), follow = expert_bounds(-0.5, -0.2, -0.12)
-    assert not moved_lower.any() and moved_upper.min() < -0.1 and not follow
+    (moved_upper, moved_lower), side, caps, _ = expert_bounds(-0.4, -0.2, -0.12)
+    assert side == -1 and not moved_lower.any() and np.isinf(caps).all()
+
+
+def test_the_expert_predicts_an_opponent_on_the_line_it_has_kept():
+    expert = traffic_expert_on_the_straight()
+    racing = expert.racing_line
+    ahead = np.array([20.0, 30.0, 40.0])  # into the turns, where the racing line moves over
+    s_values = np.linspace(0.0, 1.0, round(HISTORY_S / expert.settings.dt_s))
+    on_racing = [
+        NearOpponent("car1", 10.0 + s, float(racing.offset_at(10.0 + s)) + 0.1, 1.0)
+        for s in s_values
+    ]
+    for opponent in on_racing:
+        expert.remember(opponent)
+    low, high = expert.predicted_band(on_racing[-1], ahead)
+    np.testing.assert_allclose(low, racing.offset_at(ahead) + 0.1 - PREDICTION_MARGIN_M)
+    np.testing.assert_allclose(high - low, 2.0 * PREDICTION_MARGIN_M)
+    expert = traffic_expert_on_the_straight()
+    steady = NearOpponent("car1", 11.0, 0.25, 1.0)
+    expert.remember(steady)  # a short history: between its line and the racing line's shape
+    along_racing = racing.offset_at(ahead) + 0.25 - racing.offset_at(11.0)
+    low, high = expert.predicted_band(steady, ahead)
+    np.testing.assert_allclose(low, np.minimum(0.25, along_racing) - PREDICTION_MARGIN_M)
+    np.testing.assert_allclose(high, np.maximum(0.25, along_racing) + PREDICTION_MARGIN_M)
+    for _ in s_values:
+        expert.remember(steady)  # its offset from the centre line kept: on that line
+    low, high = expert.predicted_band(steady, ahead)
+    np.testing.assert_allclose(low, 0.25 - PREDICTION_MARGIN_M)
 
 
 def test_thepassing_side_is_the_ego_cars_own_if_it_has_room():

@@ -1,40 +1,67 @@
 """The expert MPC in traffic: it plans around the opponents in ``info``, passing where the
-lane has room and following where it has not.
+lane has room for the whole pass and following where it has not.
 
-Each opponent is predicted to go on along its current line at its speed along its
-heading (``speed cos(e_psi)``; the filter's car barriers also divide by the Frenet
-frame's stretch). At every stage of the plan where the ego car's predicted arc length is
-within ``PASS_LENGTH_M`` of an opponent's, the opponent takes the band ``e_y_o
-+- PASS_WIDTH_M`` of the lane: the stage's lateral bound moves to the side the car passes
-on (the side it is on now if that has room, else the other; once alongside, its own
-whatever the room: it never cuts across the opponent's nose), and the plan overtakes.
-Where the side it may take has no room beside an opponent ahead, the plan follows: every
-stage's speed is capped at the opponent's plus what closes the gap to ``FOLLOW_GAP_M`` in
-``FOLLOW_TIME_S``. A car behind it is never followed (braking for it would only invite it
-in). The bounds are soft, as the lane's are; the safety filter's car barriers are what
-guarantee clearance.
+**Whether to pass, and on which side**, is decided every step over a horizon longer than
+the MPC's (``PASS_HORIZON_S``, the time a pass at 80% of the ego's speed takes): the ego
+is predicted along the track at its reference speed, each opponent at its speed along its
+heading (``speed cos(e_psi)``), and laterally on the line it has kept for the last
+``HISTORY_S``: its offset from the centre line or from the racing line, whichever has
+varied less (a car on the racing line sweeps across the lane from one corner to the next),
+give or take ``PREDICTION_MARGIN_M``; with less history, anywhere between the two. The ego
+passes on a side with room beside that band wherever the two
+cars are predicted alongside (within ``PASS_LENGTH_M``, and ``LEAD_IN_M`` before that, so
+that it moves over early and gently): the side it is on if that has room, else the other;
+once alongside, its own whatever the room (it never cuts across the opponent's nose). In
+the MPC's plan, the stages alongside get the lateral bound of that side.
+
+**Following**: while the ego is not laterally clear of an opponent ahead, its speed is
+capped so that braking at ``FOLLOW_BRAKING_MPS2`` it stops behind the opponent braking as
+hard, ``FOLLOW_GAP_M`` between centres: it closes in, moves over where it passes, and
+accelerates past only once clear. A car behind it is never followed (braking for it would
+only invite it in). The bounds and caps are soft, as the lane's are; the safety filter's
+car barriers are what guarantee clearance.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
 from saferace.agents.mpc import MPCExpert
+from saferace.envs.reference_lines import reference_line
 from saferace.safety.car_barriers import BUMPER_HALF_LENGTH_M, BUMPER_HALF_WIDTH_M
 from saferace.track.frenet import wrap_arc
+from saferace.track.raceline import ReferenceLine
 
 #: Along the track, the ego is beside an opponent while their centres are this close (m):
 #: a bumper's length plus a margin.
-PASS_LENGTH_M = 2.0 * BUMPER_HALF_LENGTH_M + 0.3
+PASS_LENGTH_M = 2.0 * BUMPER_HALF_LENGTH_M + 0.15
 #: Across it, the ego's centre keeps this far from the opponent's (m): a bumper's width plus
 #: a margin.
 PASS_WIDTH_M = 2.0 * BUMPER_HALF_WIDTH_M + 0.08
-#: Following: the gap between centres it keeps (m), and how fast it closes a larger one (s).
-FOLLOW_GAP_M = 1.0
-FOLLOW_TIME_S = 1.0
+#: Behind an opponent, the ego keeps to its passing side from this far before it is beside
+#: (m), so that it moves over while still behind.
+LEAD_IN_M = 1.0
+#: The fastest the bounds ask the car to move over (m/s): a pass chosen late is a gentle
+#: move over while the following cap holds the car back, never a swerve.
+LATERAL_MPS = 0.8
+#: How far ahead a pass is planned (s), sampled every ``PASS_STEP_S``.
+PASS_HORIZON_S = 4.0
+PASS_STEP_S = 0.1
+#: After giving up a pass, the ego follows for this long before choosing a side again (s).
+RETRY_AFTER_S = 1.0
+#: How long a history of each opponent's offsets tells the line it keeps (s), and the margin
+#: around that line's prediction (m).
+HISTORY_S = 1.0
+PREDICTION_MARGIN_M = 0.03
+#: Following: the gap between centres it stops at (m) and the braking it plans with (m/s^2;
+#: the car brakes at about 4).
+FOLLOW_GAP_M = 0.8
+FOLLOW_BRAKING_MPS2 = 3.0
 #: Opponents further ahead than this (m) or behind are ignored.
 LOOK_AHEAD_M = 12.0
 LOOK_BEHIND_M = 1.0
@@ -44,51 +71,146 @@ class TrafficExpert(MPCExpert):
     """The expert MPC that passes or follows the opponents in ``info["opponents"]``."""
 
     speed_rows = True
-    #: This step's opponents near the car (set by :meth:`act`), and those it follows
-    #: ``(gap, v_o)`` (set with the plan's lane bounds, read by its caps).
-    _opponents: list[NearOpponent] = []  # noqa: RUF012 - replaced, never mutated
-    _follow: list[tuple[float, float]] = []  # noqa: RUF012 - replaced, never mutated
+    #: This step's opponents near the car with their passing sides, and the speed cap of
+    #: those it follows (set by :meth:`act`).
+    _passes: list[tuple[NearOpponent, int, float]] = []  # noqa: RUF012 - replaced, never mutated
+    _stage_caps_mps = np.full(0, np.inf)
+    _ego_e_y = 0.0
+
+    @cached_property
+    def racing_line(self) -> ReferenceLine:
+        """The line opponents are predicted to drift to."""
+        return reference_line(self.track, "racing")
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        #: Each opponent's last offsets from the centre line and from the racing line, and
+        #: the side the ego passes it on.
+        self._histories: dict[str, deque[tuple[float, float]]] = {}
+        self._sides: dict[str, int] = {}
+        #: When the ego may next choose a side after giving one up (s).
+        self._retry_at_s: dict[str, float] = {}
+        self._time_s = 0.0
 
     def act(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
-        self._opponents = opponents_near(info.get("opponents", ()))
-        self._ego_e_y = float(info["e_y_m"])
+        if info.get("time_s", 0.0) == 0.0:
+            self._histories, self._sides, self._retry_at_s = {}, {}, {}
+        self._time_s = float(info.get("time_s", 0.0))
+        ego_s = float(info["s_m"])
+        self._ego_e_y = ego_e_y = float(info["e_y_m"])
+        self._passes = []
+        for opponent in opponents_near(info.get("opponents", ())):
+            self.remember(opponent)
+            gap = float(wrap_arc(opponent.s_m - ego_s, self.track.length_m))
+            offset = ego_e_y - opponent.e_y_m
+            side = self.passing_side(opponent, ego_s, gap, offset)
+            self._sides[opponent.name] = side
+            in_line_ahead = gap > 0.0 and abs(offset) < PASS_WIDTH_M
+            cap = following_speed_mps(gap, opponent) if in_line_ahead else np.inf
+            self._passes.append((opponent, side, cap))
         return super().act(observation, info)
 
-    def _lane_bounds(self, s_stage: np.ndarray, plan_x: np.ndarray):
-        upper, lower = super()._lane_bounds(s_stage, plan_x)
-        self._follow = []
-        times = self.settings.dt_s * np.arange(1, len(s_stage))
-        for opponent in self._opponents:
-            gaps = wrap_arc(
-                opponent.s_m + opponent.v_mps * times - s_stage[1:], self.track.length_m
+    def passing_side(self, opponent: NearOpponent, ego_s: float, gap: float, offset: float) -> int:
+        """+1 to pass ``opponent`` on the left, -1 on the right, 0 to follow it: the side
+        it chose before while that keeps room, else :func:`passing_side` (but not within
+        ``RETRY_AFTER_S`` of giving a side up: the car first falls in behind)."""
+        if gap < PASS_LENGTH_M:  # alongside or behind: its own side, never across the nose
+            return 1 if offset > 0.0 else -1
+        times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
+        s_opponent = opponent.s_m + opponent.v_mps * times
+        gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
+        beside = np.abs(gaps) < PASS_LENGTH_M
+        upper, lower = self.lane_limits(s_opponent[beside])
+        band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
+        left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
+        right_room = (band_low - PASS_WIDTH_M - lower).min(initial=np.inf)
+        chosen = self._sides.get(opponent.name, 0)
+        if chosen and (left_room if chosen > 0 else right_room) >= 0.0:
+            return chosen
+        if chosen:  # the pass no longer fits: fall in behind before choosing again
+            self._retry_at_s[opponent.name] = self._time_s + RETRY_AFTER_S
+        if self._time_s < self._retry_at_s.get(opponent.name, 0.0):
+            return 0
+        return passing_side(offset, left_room, right_room)
+
+    def reference_progress_m(self, s_m: float, times_s: np.ndarray) -> np.ndarray:
+        """The ego's arc length at ``times_s`` (even steps from 0) driving at its reference
+        speed."""
+        step_s = float(times_s[0])
+        positions = np.empty(len(times_s))
+        for index in range(len(times_s)):
+            speed = self.settings.speed_scale * float(
+                self.reference.speed_at(s_m % self.track.length_m)
             )
-            beside = np.abs(gaps) < PASS_LENGTH_M
-            if not beside.any():
-                continue
-            e_y_o = opponent.e_y_m
-            left_room = upper[beside] - (e_y_o + PASS_WIDTH_M)
-            right_room = (e_y_o - PASS_WIDTH_M) - lower[beside]
-            offset = self._ego_e_y - opponent.e_y_m
-            rooms = (left_room.min(), right_room.min())
-            if abs(gaps[0]) < PASS_LENGTH_M:  # alongside: its own side, never across the nose
-                side = 1 if offset > 0.0 else -1
-                boxed = rooms[0 if side > 0 else 1] < 0.0
-            else:
-                side = passing_side(offset, *rooms)
-                boxed = side == 0
+            s_m += speed * step_s
+            positions[index] = s_m
+        return positions
+
+    def remember(self, opponent: NearOpponent) -> None:
+        """Add the opponent's offsets from the centre line and the racing line to its
+        history."""
+        history = self._histories.setdefault(
+            opponent.name, deque(maxlen=round(HISTORY_S / self.settings.dt_s))
+        )
+        racing = float(self.racing_line.offset_at(opponent.s_m % self.track.length_m))
+        history.append((opponent.e_y_m, opponent.e_y_m - racing))
+
+    def predicted_band(
+        self, opponent: NearOpponent, s_m: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(lowest, highest)`` lateral offset of ``opponent`` at arc lengths ``s_m``, on
+        the line its history shows (module docstring)."""
+        history = np.array(self._histories[opponent.name])
+        on_current = np.full(len(s_m), opponent.e_y_m)
+        on_racing = (
+            np.asarray(self.racing_line.offset_at(s_m % self.track.length_m)) + history[-1, 1]
+        )
+        if len(history) < (self._histories[opponent.name].maxlen or 0):
+            low, high = np.minimum(on_current, on_racing), np.maximum(on_current, on_racing)
+        else:
+            keeps_centre_offset = history[:, 0].std() <= history[:, 1].std()
+            low = high = on_current if keeps_centre_offset else on_racing
+        return low - PREDICTION_MARGIN_M, high + PREDICTION_MARGIN_M
+
+    def lane_limits(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(upper, lower)`` of the ego's lateral offset at arc lengths ``s_m`` (the plan's
+        lane bounds)."""
+        return MPCExpert._lane_bounds(
+            self, np.concatenate([[0.0], s_m % self.track.length_m]), None
+        )
+
+    def _lane_bounds(self, s_stage: np.ndarray, plan_x: np.ndarray):
+        """The lane's bounds, moved to the passing side of each opponent beside the stage;
+        also sets each stage's speed cap: the following speed of the opponents it is not
+        yet bounded clear of."""
+        upper, lower = super()._lane_bounds(s_stage, plan_x)
+        times = self.settings.dt_s * np.arange(1, len(s_stage))
+        self._stage_caps_mps = np.full(len(times), np.inf)
+        for opponent, side, cap in self._passes:
+            s_opponent = opponent.s_m + opponent.v_mps * times
+            gaps = wrap_arc(s_opponent - s_stage[1:], self.track.length_m)
+            # once within reach, every stage until past it: dropping back frees none
+            reach_m = PASS_LENGTH_M + LEAD_IN_M
+            started = wrap_arc(opponent.s_m - s_stage[0], self.track.length_m) < reach_m
+            beside = (gaps > -PASS_LENGTH_M) & ((gaps < reach_m) | started)
+            held = gaps > -PASS_LENGTH_M  # the stages it follows the opponent in
+            band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
+            reachable = LATERAL_MPS * times[beside]  # how far over the car can have moved
             if side > 0:
-                lower[beside] = np.maximum(lower[beside], e_y_o + PASS_WIDTH_M)
+                clear = band_high + PASS_WIDTH_M
+                wanted = np.minimum(clear, self._ego_e_y + reachable)
+                lower[beside] = np.maximum(lower[beside], wanted)
             elif side < 0:
-                upper[beside] = np.minimum(upper[beside], e_y_o - PASS_WIDTH_M)
-            if boxed and gaps[0] > 0.0:  # no room beside a car ahead: follow it
-                self._follow.append((float(gaps[0]), opponent.v_mps))
+                clear = band_low - PASS_WIDTH_M
+                wanted = np.maximum(clear, self._ego_e_y - reachable)
+                upper[beside] = np.minimum(upper[beside], wanted)
+            if side:
+                held[beside] = wanted != clear
+            self._stage_caps_mps[held] = np.minimum(self._stage_caps_mps[held], cap)
         return upper, lower
 
     def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
-        caps = np.full(len(s_m), np.inf)
-        for gap, v_o in self._follow:
-            caps[:] = np.minimum(caps, max(0.0, v_o + (gap - FOLLOW_GAP_M) / FOLLOW_TIME_S))
-        return caps
+        return self._stage_caps_mps
 
 
 @dataclass(frozen=True)
@@ -110,6 +232,13 @@ def opponents_near(opponents) -> list[NearOpponent]:
             v_o = opponent["speed_mps"] * float(np.cos(opponent["e_psi_rad"]))
             near.append(NearOpponent(opponent["name"], opponent["s_m"], opponent["e_y_m"], v_o))
     return near
+
+
+def following_speed_mps(gap_m: float, opponent: NearOpponent) -> float:
+    """The fastest the ego may go ``gap_m`` behind ``opponent`` and still stop
+    ``FOLLOW_GAP_M`` behind it when both brake at ``FOLLOW_BRAKING_MPS2``."""
+    closable_m = max(gap_m - FOLLOW_GAP_M, 0.0)
+    return float(np.sqrt(max(opponent.v_mps, 0.0) ** 2 + 2.0 * FOLLOW_BRAKING_MPS2 * closable_m))
 
 
 def passing_side(ego_offset_m: float, left_room_m: float, right_room_m: float) -> int:
