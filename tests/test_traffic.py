@@ -13,12 +13,10 @@ from saferace.agents.mpc import MPCExpert
 from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
 from saferace.agents.traffic_expert import (
     HISTORY_S,
-    LATERAL_MPS,
-    PASS_WIDTH_M,
+    MOVE_OVER_SLOPE,
     PREDICTION_MARGIN_M,
     NearOpponent,
     TrafficExpert,
-    following_speed_mps,
     passing_side,
 )
 from saferace.envs.collisions import CarMotion, attribute_fault
@@ -467,10 +465,8 @@ def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float):
     for _ in range(round(HISTORY_S / dt)):
         expert.remember(opponent)
     expert._ego_e_y = ego_e_y_m
-    offset = ego_e_y_m - opponent_e_y_m
-    side = expert.passing_side(opponent, 2.0, gap_m, offset)
-    in_line = gap_m > 0.0 and abs(offset) < PASS_WIDTH_M
-    expert._passes = [(opponent, side, following_speed_mps(gap_m, opponent) if in_line else np.inf)]
+    expert._passes = [plan := expert.plan_for(opponent, 2.0)]
+    side = plan.side
     alone = MPCExpert._lane_bounds(expert, s_stage, None)
     upper, lower = expert._lane_bounds(s_stage, None)
     caps = expert._speed_caps_mps(s_stage[1:], None)
@@ -479,17 +475,17 @@ def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float):
 
 def test_alongside_the_expert_never_crosses_the_opponents_nose():
     # behind, the ego on the right with no room there: it passes on the left, moving over
-    # no faster than LATERAL_MPS, held at the following speed until its bound clears the car
+    # no steeper than MOVE_OVER_SLOPE, held at the following speed until its bound clears the car
     (moved_upper, moved_lower), side, caps, lower = expert_bounds(1.5, -0.2, -0.12)
     assert side == 1 and not moved_upper.any() and lower.max() > 0.3
-    reachable = -0.2 + LATERAL_MPS * 0.05 * np.arange(1, len(lower) + 1)
+    reachable = -0.2 + MOVE_OVER_SLOPE * 3.0 * 0.05 * np.arange(1, len(lower) + 1)
     assert (lower <= reachable + 1e-9).all()
     assert np.isfinite(caps[0]) and np.isinf(caps[-1])
     # alongside, crossing to the left would cut across the car: it keeps to its own side,
     # too narrow as it is, and drops back behind the car
     (moved_upper, moved_lower), side, caps, _ = expert_bounds(0.4, -0.2, -0.12)
     assert side == -1 and not moved_lower.any() and moved_upper.min() < -0.1
-    assert caps[0] == pytest.approx(1.0)  # the opponent's speed: no gap left to close
+    assert caps[0] < 1.0  # slower than the car: it drops back
     # alongside and ahead, it keeps to its side and never brakes for a car behind it
     (moved_upper, moved_lower), side, caps, _ = expert_bounds(-0.4, -0.2, -0.12)
     assert side == -1 and not moved_lower.any() and np.isinf(caps).all()

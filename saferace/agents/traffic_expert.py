@@ -46,12 +46,15 @@ PASS_WIDTH_M = 2.0 * BUMPER_HALF_WIDTH_M + 0.08
 #: Behind an opponent, the ego keeps to its passing side from this far before it is beside
 #: (m), so that it moves over while still behind.
 LEAD_IN_M = 1.0
-#: The fastest the bounds ask the car to move over (m/s): a pass chosen late is a gentle
-#: move over while the following cap holds the car back, never a swerve.
-LATERAL_MPS = 0.8
+#: The steepest the bounds ask the car to move over (m across per m along, 0.8 m/s at
+#: 4 m/s): a pass chosen late is a gentle move over while the following cap holds the car
+#: back, never a swerve, and a car standing still is not asked to move sideways.
+MOVE_OVER_SLOPE = 0.2
 #: How far ahead a pass is planned (s), sampled every ``PASS_STEP_S``.
 PASS_HORIZON_S = 4.0
 PASS_STEP_S = 0.1
+#: The acceleration a planned pass assumes, up to the reference speed (m/s^2).
+PASS_ACCEL_MPS2 = 2.0
 #: After giving up a pass, the ego follows for this long before choosing a side again (s).
 RETRY_AFTER_S = 1.0
 #: How long a history of each opponent's offsets tells the line it keeps (s), and the margin
@@ -62,6 +65,8 @@ PREDICTION_MARGIN_M = 0.03
 #: the car brakes at about 4).
 FOLLOW_GAP_M = 0.8
 FOLLOW_BRAKING_MPS2 = 3.0
+#: Closer than the following gap, the ego drops back this fast per metre short (1/s).
+FALL_BACK_PER_S = 2.0
 #: Opponents further ahead than this (m) or behind are ignored.
 LOOK_AHEAD_M = 12.0
 LOOK_BEHIND_M = 1.0
@@ -71,11 +76,13 @@ class TrafficExpert(MPCExpert):
     """The expert MPC that passes or follows the opponents in ``info["opponents"]``."""
 
     speed_rows = True
-    #: This step's opponents near the car with their passing sides, and the speed cap of
-    #: those it follows (set by :meth:`act`).
-    _passes: list[tuple[NearOpponent, int, float]] = []  # noqa: RUF012 - replaced, never mutated
+    #: This step's plan for each opponent near the car (set by :meth:`act`).
+    _passes: list[PassPlan] = []  # noqa: RUF012 - replaced, never mutated
     _stage_caps_mps = np.full(0, np.inf)
+    _offset_targets = np.zeros(0)
+    _target_sides = np.zeros(0, dtype=int)
     _ego_e_y = 0.0
+    _ego_speed_mps = 0.0
 
     @cached_property
     def racing_line(self) -> ReferenceLine:
@@ -88,60 +95,83 @@ class TrafficExpert(MPCExpert):
         #: the side the ego passes it on.
         self._histories: dict[str, deque[tuple[float, float]]] = {}
         self._sides: dict[str, int] = {}
-        #: When the ego may next choose a side after giving one up (s).
-        self._retry_at_s: dict[str, float] = {}
+        #: The side the ego gave up on each opponent, and until when it falls in behind (s).
+        self._given_up: dict[str, tuple[int, float]] = {}
         self._time_s = 0.0
 
     def act(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
         if info.get("time_s", 0.0) == 0.0:
-            self._histories, self._sides, self._retry_at_s = {}, {}, {}
+            self._histories, self._sides, self._given_up = {}, {}, {}
         self._time_s = float(info.get("time_s", 0.0))
         ego_s = float(info["s_m"])
-        self._ego_e_y = ego_e_y = float(info["e_y_m"])
+        self._ego_e_y = float(info["e_y_m"])
+        self._ego_speed_mps = float(info["v_x_mps"])
         self._passes = []
         for opponent in opponents_near(info.get("opponents", ())):
             self.remember(opponent)
-            gap = float(wrap_arc(opponent.s_m - ego_s, self.track.length_m))
-            offset = ego_e_y - opponent.e_y_m
-            side = self.passing_side(opponent, ego_s, gap, offset)
-            self._sides[opponent.name] = side
-            in_line_ahead = gap > 0.0 and abs(offset) < PASS_WIDTH_M
-            cap = following_speed_mps(gap, opponent) if in_line_ahead else np.inf
-            self._passes.append((opponent, side, cap))
+            self._passes.append(self.plan_for(opponent, ego_s))
         return super().act(observation, info)
 
-    def passing_side(self, opponent: NearOpponent, ego_s: float, gap: float, offset: float) -> int:
-        """+1 to pass ``opponent`` on the left, -1 on the right, 0 to follow it: the side
-        it chose before while that keeps room, else :func:`passing_side` (but not within
-        ``RETRY_AFTER_S`` of giving a side up: the car first falls in behind)."""
-        if gap < PASS_LENGTH_M:  # alongside or behind: its own side, never across the nose
-            return 1 if offset > 0.0 else -1
+    def plan_for(self, opponent: NearOpponent, ego_s: float) -> PassPlan:
+        """This step's :class:`PassPlan` for ``opponent`` (after :meth:`remember`)."""
+        gap = float(wrap_arc(opponent.s_m - ego_s, self.track.length_m))
+        offset = self._ego_e_y - opponent.e_y_m
+        if gap <= 0.0:  # ahead of it: keep to its own side, never brake for it
+            return PassPlan(opponent, 1 if offset > 0.0 else -1, np.inf, False)
+        rooms = self.pass_rooms(opponent, ego_s)
+        side = self.passing_side(opponent, gap, offset, rooms)
+        self._sides[opponent.name] = side
+        held_back = side == 0 or rooms[0 if side > 0 else 1] < 0.0
+        return PassPlan(opponent, side, following_speed_mps(gap, opponent), held_back)
+
+    def pass_rooms(self, opponent: NearOpponent, ego_s: float) -> tuple[float, float]:
+        """``(left, right)``: the least room (m) beside ``opponent`` for the ego's centre
+        wherever the two are predicted alongside within ``PASS_HORIZON_S`` (negative: none)."""
         times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
         s_opponent = opponent.s_m + opponent.v_mps * times
         gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
-        beside = np.abs(gaps) < PASS_LENGTH_M
+        beside = (gaps > 0.0) & (gaps < PASS_LENGTH_M)  # behind, until level: then the line is its
         upper, lower = self.lane_limits(s_opponent[beside])
         band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
         left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
         right_room = (band_low - PASS_WIDTH_M - lower).min(initial=np.inf)
+        return float(left_room), float(right_room)
+
+    def passing_side(
+        self, opponent: NearOpponent, gap: float, offset: float, rooms: tuple[float, float]
+    ) -> int:
+        """+1 to pass ``opponent``, ``gap`` ahead, on the left, -1 on the right, 0 to follow
+        it: alongside, its own side; behind, the side it chose before while that keeps
+        room, else :func:`passing_side` (but not within ``RETRY_AFTER_S`` of giving a side
+        up: the car first falls in behind)."""
+        if gap < PASS_LENGTH_M:  # alongside: its own side, never across the nose
+            return 1 if offset > 0.0 else -1
         chosen = self._sides.get(opponent.name, 0)
-        if chosen and (left_room if chosen > 0 else right_room) >= 0.0:
+        if chosen and rooms[0 if chosen > 0 else 1] >= 0.0:
             return chosen
         if chosen:  # the pass no longer fits: fall in behind before choosing again
-            self._retry_at_s[opponent.name] = self._time_s + RETRY_AFTER_S
-        if self._time_s < self._retry_at_s.get(opponent.name, 0.0):
+            self._given_up[opponent.name] = (chosen, self._time_s + RETRY_AFTER_S)
+        if self.falling_in_from(opponent.name):
             return 0
-        return passing_side(offset, left_room, right_room)
+        return passing_side(offset, *rooms)
+
+    def falling_in_from(self, name: str) -> int:
+        """The side the ego gave up passing opponent ``name`` on while it falls in behind
+        (``RETRY_AFTER_S``), else 0."""
+        side, until_s = self._given_up.get(name, (0, 0.0))
+        return side if self._time_s < until_s else 0
 
     def reference_progress_m(self, s_m: float, times_s: np.ndarray) -> np.ndarray:
-        """The ego's arc length at ``times_s`` (even steps from 0) driving at its reference
-        speed."""
+        """The ego's arc length at ``times_s`` (even steps from 0) accelerating from its
+        speed at ``PASS_ACCEL_MPS2`` to its reference speed."""
         step_s = float(times_s[0])
         positions = np.empty(len(times_s))
+        speed = self._ego_speed_mps
         for index in range(len(times_s)):
-            speed = self.settings.speed_scale * float(
+            reference = self.settings.speed_scale * float(
                 self.reference.speed_at(s_m % self.track.length_m)
             )
+            speed = min(speed + PASS_ACCEL_MPS2 * step_s, reference)
             s_m += speed * step_s
             positions[index] = s_m
         return positions
@@ -186,7 +216,11 @@ class TrafficExpert(MPCExpert):
         upper, lower = super()._lane_bounds(s_stage, plan_x)
         times = self.settings.dt_s * np.arange(1, len(s_stage))
         self._stage_caps_mps = np.full(len(times), np.inf)
-        for opponent, side, cap in self._passes:
+        lane_upper, lane_lower = upper.copy(), lower.copy()
+        self._offset_targets = np.zeros(len(times))
+        self._target_sides = np.zeros(len(times), dtype=int)
+        for plan in self._passes:
+            opponent, side = plan.opponent, plan.side
             s_opponent = opponent.s_m + opponent.v_mps * times
             gaps = wrap_arc(s_opponent - s_stage[1:], self.track.length_m)
             # once within reach, every stage until past it: dropping back frees none
@@ -195,22 +229,54 @@ class TrafficExpert(MPCExpert):
             beside = (gaps > -PASS_LENGTH_M) & ((gaps < reach_m) | started)
             held = gaps > -PASS_LENGTH_M  # the stages it follows the opponent in
             band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
-            reachable = LATERAL_MPS * times[beside]  # how far over the car can have moved
+            travelled_m = s_stage[1:][beside] - s_stage[0]
+            reachable = MOVE_OVER_SLOPE * travelled_m  # how far over the car can have moved
+            falling_in = self.falling_in_from(opponent.name)
             if side > 0:
                 clear = band_high + PASS_WIDTH_M
                 wanted = np.minimum(clear, self._ego_e_y + reachable)
                 lower[beside] = np.maximum(lower[beside], wanted)
+                middle = 0.5 * (np.maximum(clear, lane_lower[beside]) + lane_upper[beside])
+                self._offset_targets[beside] = np.minimum(middle, self._ego_e_y + reachable)
+                self._target_sides[beside] = side
             elif side < 0:
                 clear = band_low - PASS_WIDTH_M
                 wanted = np.maximum(clear, self._ego_e_y - reachable)
                 upper[beside] = np.minimum(upper[beside], wanted)
-            if side:
+                middle = 0.5 * (np.minimum(clear, lane_upper[beside]) + lane_lower[beside])
+                self._offset_targets[beside] = np.maximum(middle, self._ego_e_y - reachable)
+                self._target_sides[beside] = side
+            elif falling_in > 0:  # back behind it from the left, as gently as it moved over
+                lower[beside] = np.maximum(lower[beside], self._ego_e_y - reachable)
+            elif falling_in < 0:
+                upper[beside] = np.minimum(upper[beside], self._ego_e_y + reachable)
+            if side and not plan.held_back:
                 held[beside] = wanted != clear
-            self._stage_caps_mps[held] = np.minimum(self._stage_caps_mps[held], cap)
+            self._stage_caps_mps[held] = np.minimum(self._stage_caps_mps[held], plan.cap_mps)
         return upper, lower
+
+    def _offset_reference(self, s_ref: np.ndarray) -> np.ndarray:
+        """The reference line's offset, but beside an opponent the middle of the room on the
+        passing side, where the reference line is nearer the opponent than that."""
+        offsets = np.asarray(self.reference.offset_at(s_ref), dtype=float)
+        targets, sides = self._offset_targets, self._target_sides
+        further = np.where(sides > 0, np.maximum(offsets, targets), np.minimum(offsets, targets))
+        return np.where(sides == 0, offsets, further)
 
     def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
         return self._stage_caps_mps
+
+
+@dataclass(frozen=True)
+class PassPlan:
+    """What the ego does about one opponent this step: the side it passes on (+1 left, -1
+    right, 0 follow), the speed that follows it (inf for a car behind), and whether that
+    speed holds on every stage (no room to pass) or only until the bounds clear the car."""
+
+    opponent: NearOpponent
+    side: int
+    cap_mps: float
+    held_back: bool
 
 
 @dataclass(frozen=True)
@@ -235,10 +301,14 @@ def opponents_near(opponents) -> list[NearOpponent]:
 
 
 def following_speed_mps(gap_m: float, opponent: NearOpponent) -> float:
-    """The fastest the ego may go ``gap_m`` behind ``opponent`` and still stop
-    ``FOLLOW_GAP_M`` behind it when both brake at ``FOLLOW_BRAKING_MPS2``."""
-    closable_m = max(gap_m - FOLLOW_GAP_M, 0.0)
-    return float(np.sqrt(max(opponent.v_mps, 0.0) ** 2 + 2.0 * FOLLOW_BRAKING_MPS2 * closable_m))
+    """The fastest the ego may go ``gap_m`` behind ``opponent``: to stop ``FOLLOW_GAP_M``
+    behind it when both brake at ``FOLLOW_BRAKING_MPS2``; closer, slower than it, to drop
+    back at ``FALL_BACK_PER_S`` times the shortfall."""
+    v_o = max(opponent.v_mps, 0.0)
+    closable_m = gap_m - FOLLOW_GAP_M
+    if closable_m < 0.0:
+        return max(v_o + FALL_BACK_PER_S * closable_m, 0.0)
+    return float(np.sqrt(v_o**2 + 2.0 * FOLLOW_BRAKING_MPS2 * closable_m))
 
 
 def passing_side(ego_offset_m: float, left_room_m: float, right_room_m: float) -> int:

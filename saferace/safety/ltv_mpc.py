@@ -242,11 +242,11 @@ class FrenetMPC:
             plan_x[:N], plan_u, kappas, dt, self.params.steer_time_constant_s
         )
         s_ref = s_stage[1:]
+        upper, lower = self._lane_bounds(s_stage, plan_x)
         reference = np.zeros((N, n))
-        reference[:, 0] = self.reference.offset_at(s_ref)
+        reference[:, 0] = self._offset_reference(s_ref)
         reference[:, 1] = self.reference.heading_offset_at(s_ref)
         reference[:, model.speed_index] = st.speed_scale * self.reference.speed_at(s_ref)
-        upper, lower = self._lane_bounds(s_stage, plan_x)
 
         q = np.zeros(L.size)
         q[: N * n] = -2.0 * (reference * self._q_state).ravel()
@@ -371,6 +371,11 @@ class FrenetMPC:
         w_right, w_left = self.track.widths(s_stage[1:])
         clearance = self.half_width_m + self.settings.lane_margin_m
         return w_left - clearance, -(w_right - clearance)
+
+    def _offset_reference(self, s_ref: np.ndarray) -> np.ndarray:
+        """Each stage's reference lateral offset at its arc length (after
+        :meth:`_lane_bounds`): the reference line's."""
+        return self.reference.offset_at(s_ref)
 
     def _input_bounds(self, plan_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(u_min, u_max)`` of each stage ``(N, m)``: the drivetrain's limits (copies, for
