@@ -12,11 +12,14 @@ import saferace  # noqa: F401  - registers the tasks
 from saferace.agents.mpc import MPCExpert
 from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
 from saferace.agents.traffic_expert import (
+    FOLLOW_BRAKING_MPS2,
+    FOLLOW_GAP_M,
     HISTORY_S,
     MOVE_OVER_SLOPE,
     PREDICTION_MARGIN_M,
     NearOpponent,
     TrafficExpert,
+    following_speed_mps,
     passing_side,
 )
 from saferace.envs.collisions import CarMotion, attribute_fault
@@ -445,6 +448,36 @@ def test_the_expert_in_traffic_follows_where_the_lane_has_no_room():
     assert abs(info["v_x_mps"] - opponent["speed_mps"]) < 0.5
 
 
+def test_the_expert_in_traffic_stops_behind_a_stopped_car_and_goes_on_when_it_does():
+    env = gym.make(
+        "saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=[external(2.0, 0.0, 0.5)]
+    )
+    expert = make_agent("expert", env)
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    speeds, gaps = [], []
+    for step in range(120):
+        env.unwrapped.traffic.set_external_actions(
+            {"car1": BRAKE if step < 60 else np.array([0.0, 1.0])}
+        )
+        observation, _, terminated, _, info = env.step(expert.act(observation, info))
+        assert not terminated and not info["collisions"]
+        speeds.append(info["v_x_mps"])
+        gaps.append(info["opponents"][0]["gap_m"])
+    assert min(speeds[40:60]) < 0.1 and min(gaps) > 0.6  # stopped behind it, not against it
+    assert speeds[-1] > 1.0  # and went on when it did
+
+
+def test_the_following_speed_stops_behind_a_car_braking_as_hard():
+    opponent = NearOpponent("car1", 0.0, 0.0, 3.0)
+    for gap in (FOLLOW_GAP_M, 1.5, 4.0):
+        speed = following_speed_mps(gap, opponent)
+        stopping_m = speed**2 / (2.0 * FOLLOW_BRAKING_MPS2)
+        opponent_stopping_m = 3.0**2 / (2.0 * FOLLOW_BRAKING_MPS2)
+        assert stopping_m == pytest.approx(opponent_stopping_m + gap - FOLLOW_GAP_M)
+    assert following_speed_mps(0.5, opponent) < 3.0  # closer: slower than it, to drop back
+    assert following_speed_mps(0.1, NearOpponent("car1", 0.0, 0.0, 0.0)) == 0.0
+
+
 def traffic_expert_on_the_straight() -> TrafficExpert:
     """A traffic expert on the straight's lane, 1 m wide, with an opponent it drives beside."""
     env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=["external"])
@@ -454,13 +487,13 @@ def traffic_expert_on_the_straight() -> TrafficExpert:
     return expert
 
 
-def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float):
+def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float, speed_mps: float = 3.0):
     """How far the traffic expert's plan moves the lane's bounds, which side it passes
-    on, and each stage's speed cap, on a straight at 3 m/s with an opponent ``gap_m`` ahead
-    at 1 m/s that has kept its line for a second."""
+    on, each stage's speed cap and the lower bounds, on a straight at ``speed_mps`` with an
+    opponent ``gap_m`` ahead at 1 m/s that has kept its line for a second."""
     expert = traffic_expert_on_the_straight()
     horizon, dt = expert.settings.horizon, expert.settings.dt_s
-    s_stage = 2.0 + 3.0 * dt * np.arange(horizon + 1)  # 3 m/s from s = 2 m
+    s_stage = 2.0 + speed_mps * dt * np.arange(horizon + 1)  # from s = 2 m
     opponent = NearOpponent("car1", 2.0 + gap_m, opponent_e_y_m, 1.0)
     for _ in range(round(HISTORY_S / dt)):
         expert.remember(opponent)
@@ -480,6 +513,8 @@ def test_alongside_the_expert_never_crosses_the_opponents_nose():
     assert side == 1 and not moved_upper.any() and lower.max() > 0.3
     reachable = -0.2 + MOVE_OVER_SLOPE * 3.0 * 0.05 * np.arange(1, len(lower) + 1)
     assert (lower <= reachable + 1e-9).all()
+    *_, lower_at_rest = expert_bounds(1.5, -0.2, -0.12, speed_mps=0.0)
+    assert lower_at_rest.max() <= -0.2 + 1e-9  # a car at rest is not asked to move sideways
     assert np.isfinite(caps[0]) and np.isinf(caps[-1])
     # alongside, crossing to the left would cut across the car: it keeps to its own side,
     # too narrow as it is, and drops back behind the car

@@ -1,25 +1,29 @@
 """The expert MPC in traffic: it plans around the opponents in ``info``, passing where the
-lane has room for the whole pass and following where it has not.
+lane has room for the pass and following where it has not.
 
-**Whether to pass, and on which side**, is decided every step over a horizon longer than
-the MPC's (``PASS_HORIZON_S``, the time a pass at 80% of the ego's speed takes): the ego
-is predicted along the track at its reference speed, each opponent at its speed along its
-heading (``speed cos(e_psi)``), and laterally on the line it has kept for the last
-``HISTORY_S``: its offset from the centre line or from the racing line, whichever has
-varied less (a car on the racing line sweeps across the lane from one corner to the next),
-give or take ``PREDICTION_MARGIN_M``; with less history, anywhere between the two. The ego
-passes on a side with room beside that band wherever the two
-cars are predicted alongside (within ``PASS_LENGTH_M``, and ``LEAD_IN_M`` before that, so
-that it moves over early and gently): the side it is on if that has room, else the other;
-once alongside, its own whatever the room (it never cuts across the opponent's nose). In
-the MPC's plan, the stages alongside get the lateral bound of that side.
+- **Prediction.** Each opponent goes on at its speed along its heading (``speed
+  cos(e_psi)``), on the line it has kept for the last ``HISTORY_S``: its offset from the
+  centre line or from the racing line, whichever has varied less (a car on the racing
+  line sweeps across the lane from one corner to the next), give or take
+  ``PREDICTION_MARGIN_M``; with less history, anywhere between the two.
+- **Whether to pass** is decided every step over ``PASS_HORIZON_S``, longer than the
+  MPC's plan: the ego, accelerating at ``PASS_ACCEL_MPS2`` to its reference speed, passes
+  on a side that keeps its centre ``PASS_WIDTH_M`` from the opponent's band, inside the
+  lane, wherever it is predicted beside the opponent and behind it, until level (from there
+  on the line is its own: a car that moves across into it is at fault). It takes the side
+  it is on if that has room, else the other, keeps a side it chose while that has room,
+  and after giving one up falls in behind for ``RETRY_AFTER_S``.
+- **Passing.** From ``LEAD_IN_M`` before it is beside the opponent until past it, the
+  plan's lateral bound keeps it on its side of the band, moving over no steeper than
+  ``MOVE_OVER_SLOPE``, and its line there is the middle of the room left. Once alongside
+  it keeps its own side whatever the room: it never cuts across the opponent's nose.
+- **Following.** Until the bounds clear the car ahead (on every stage where it follows, or
+  has no room beside it) the speed is capped so that braking at ``FOLLOW_BRAKING_MPS2`` it
+  stops ``FOLLOW_GAP_M`` behind the opponent braking as hard; closer, it drops back. A car
+  behind it is never followed (braking for it would only invite it in).
 
-**Following**: while the ego is not laterally clear of an opponent ahead, its speed is
-capped so that braking at ``FOLLOW_BRAKING_MPS2`` it stops behind the opponent braking as
-hard, ``FOLLOW_GAP_M`` between centres: it closes in, moves over where it passes, and
-accelerates past only once clear. A car behind it is never followed (braking for it would
-only invite it in). The bounds and caps are soft, as the lane's are; the safety filter's
-car barriers are what guarantee clearance.
+The bounds and caps are soft, as the lane's are; the safety filter's car barriers are what
+guarantee clearance.
 """
 
 from __future__ import annotations
@@ -130,8 +134,8 @@ class TrafficExpert(MPCExpert):
         times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
         s_opponent = opponent.s_m + opponent.v_mps * times
         gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
-        beside = (gaps > 0.0) & (gaps < PASS_LENGTH_M)  # behind, until level: then the line is its
-        upper, lower = self.lane_limits(s_opponent[beside])
+        beside = (gaps > 0.0) & (gaps < PASS_LENGTH_M)  # behind it, until level
+        upper, lower = self.lane_limits(s_opponent[beside] % self.track.length_m)
         band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
         left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
         right_room = (band_low - PASS_WIDTH_M - lower).min(initial=np.inf)
@@ -202,13 +206,6 @@ class TrafficExpert(MPCExpert):
             low = high = on_current if keeps_centre_offset else on_racing
         return low - PREDICTION_MARGIN_M, high + PREDICTION_MARGIN_M
 
-    def lane_limits(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(upper, lower)`` of the ego's lateral offset at arc lengths ``s_m`` (the plan's
-        lane bounds)."""
-        return MPCExpert._lane_bounds(
-            self, np.concatenate([[0.0], s_m % self.track.length_m]), None
-        )
-
     def _lane_bounds(self, s_stage: np.ndarray, plan_x: np.ndarray):
         """The lane's bounds, moved to the passing side of each opponent beside the stage;
         also sets each stage's speed cap: the following speed of the opponents it is not
@@ -258,7 +255,7 @@ class TrafficExpert(MPCExpert):
     def _offset_reference(self, s_ref: np.ndarray) -> np.ndarray:
         """The reference line's offset, but beside an opponent the middle of the room on the
         passing side, where the reference line is nearer the opponent than that."""
-        offsets = np.asarray(self.reference.offset_at(s_ref), dtype=float)
+        offsets = super()._offset_reference(s_ref)
         targets, sides = self._offset_targets, self._target_sides
         further = np.where(sides > 0, np.maximum(offsets, targets), np.minimum(offsets, targets))
         return np.where(sides == 0, offsets, further)

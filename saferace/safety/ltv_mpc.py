@@ -366,16 +366,21 @@ class FrenetMPC:
     def _lane_bounds(
         self, s_stage: np.ndarray, plan_x: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """``(upper, lower)`` of each stage's lateral offset: the lane less the car's half
-        width and the settings' margin at the stages' predicted arc lengths."""
-        w_right, w_left = self.track.widths(s_stage[1:])
+        """``(upper, lower)`` of each stage's lateral offset at the stages' predicted arc
+        lengths (:meth:`lane_limits`)."""
+        return self.lane_limits(s_stage[1:])
+
+    def lane_limits(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(upper, lower)`` of the car's lateral offset at arc lengths ``s_m``: the lane
+        less the car's half width and the settings' margin."""
+        w_right, w_left = self.track.widths(s_m)
         clearance = self.half_width_m + self.settings.lane_margin_m
         return w_left - clearance, -(w_right - clearance)
 
     def _offset_reference(self, s_ref: np.ndarray) -> np.ndarray:
         """Each stage's reference lateral offset at its arc length (after
         :meth:`_lane_bounds`): the reference line's."""
-        return self.reference.offset_at(s_ref)
+        return np.asarray(self.reference.offset_at(s_ref), dtype=float)
 
     def _input_bounds(self, plan_x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(u_min, u_max)`` of each stage ``(N, m)``: the drivetrain's limits (copies, for
