@@ -23,6 +23,7 @@ import tempfile
 from multiprocessing import Pool
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from saferace.eval.tables import markdown_table
@@ -36,7 +37,7 @@ OPPONENTS = {
 }
 RANDOM_TRACK_SEEDS = (4242, 9137, 777, 2468, 5151)
 LAPS, MAX_STEPS = 2, 2400  # 120 s at 20 Hz
-#: The ego has passed once it is this far ahead of the opponent's start-relative position (m).
+#: The ego has passed once it leads the opponent by this much (m; ``ego_lead_m``).
 PASSED_LEAD_M = 0.5
 
 
@@ -45,6 +46,8 @@ def run(job: tuple[str, str, int, int]) -> dict:
     import gymnasium as gym
 
     from saferace.eval.agents import make_agent
+    from saferace.eval.runner import run_episode
+    from saferace.track import Track
 
     track, opponent, start, starts = job
     env = gym.make(
@@ -54,32 +57,22 @@ def run(job: tuple[str, str, int, int]) -> dict:
         max_laps=LAPS,
         max_steps=MAX_STEPS,
         terminate_on_collision=False,
+        start_s_m=Track.load(track).length_m * start / starts,
     )
-    agent = make_agent("expert", env)
-    start_s_m = env.unwrapped.track.length_m * start / starts
-    observation, info = env.reset(seed=0, options={"start_s_m": start_s_m})
-    passed_s = None
-    caused = suffered = outside_steps = 0
-    while True:
-        observation, _, terminated, truncated, info = env.step(agent.act(observation, info))
-        if passed_s is None and info["opponents"][0]["ego_lead_m"] > PASSED_LEAD_M:
-            passed_s = info["time_s"]
-        for collision in info["collisions"]:
-            caused += collision["at_fault"] == "car0"
-            suffered += collision["at_fault"] != "car0"
-        outside_steps += info["outside_lane"]
-        if terminated or truncated:
-            break
+    result = run_episode(env, make_agent("expert", env), seed=0)
     env.close()
+    lead_m = np.asarray(result.steps["opponents_lead_m"], dtype=float)[:, 0]
+    ahead = np.flatnonzero(lead_m > PASSED_LEAD_M)
+    summary = result.summary
     return {
         "track": Path(track).stem,
         "opponent": opponent,
-        "start_s_m": start_s_m,
-        "passed_s": passed_s,
-        "ego_caused": caused,
-        "opponent_caused": suffered,
-        "outside_lane_s": outside_steps * env.unwrapped.control_dt_s,
-        "finished": info["lap"] >= LAPS,
+        "start": start,
+        "passed_s": float(result.steps["time_s"][ahead[0]]) if len(ahead) else None,
+        "ego_caused": summary["at_fault_collisions"],
+        "opponent_caused": summary["collisions"] - summary["at_fault_collisions"],
+        "outside_lane_s": summary["time_outside_lane_s"],
+        "finished": summary["laps_completed"] >= LAPS,
     }
 
 
