@@ -3,6 +3,8 @@ the Overtake task and the PettingZoo parallel env."""
 
 from __future__ import annotations
 
+from collections import deque
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -36,7 +38,7 @@ from saferace.safety.car_barriers import (
     opponent_predictions,
 )
 from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.models import param_values
+from saferace.safety.models import MIN_SPEED_MPS, param_values
 from saferace.safety.vehicle_params import load_params
 from saferace.track import Track
 
@@ -493,11 +495,12 @@ def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float, speed_m
     opponent ``gap_m`` ahead at 1 m/s that has kept its line for a second."""
     expert = traffic_expert_on_the_straight()
     horizon, dt = expert.settings.horizon, expert.settings.dt_s
-    s_stage = 2.0 + speed_mps * dt * np.arange(horizon + 1)  # from s = 2 m
+    plan_speed_mps = max(speed_mps, MIN_SPEED_MPS)  # as the MPC raises a plan's speeds
+    s_stage = 2.0 + plan_speed_mps * dt * np.arange(horizon + 1)  # from s = 2 m
     opponent = NearOpponent("car1", 2.0 + gap_m, opponent_e_y_m, 1.0)
     for _ in range(round(HISTORY_S / dt)):
         expert.remember(opponent)
-    expert._ego_e_y = ego_e_y_m
+    expert._ego_e_y, expert._ego_speed_mps = ego_e_y_m, speed_mps
     expert._passes = [plan := expert.plan_for(opponent, 2.0)]
     side = plan.side
     alone = MPCExpert._lane_bounds(expert, s_stage, None)
@@ -509,9 +512,9 @@ def expert_bounds(gap_m: float, ego_e_y_m: float, opponent_e_y_m: float, speed_m
 def test_alongside_the_expert_never_crosses_the_opponents_nose():
     # behind, the ego on the right with no room there: it passes on the left, moving over
     # no steeper than MOVE_OVER_SLOPE, held at the following speed until its bound clears the car
-    (moved_upper, moved_lower), side, caps, lower = expert_bounds(1.5, -0.2, -0.12)
-    assert side == 1 and not moved_upper.any() and lower.max() > 0.3
-    reachable = -0.2 + MOVE_OVER_SLOPE * 3.0 * 0.05 * np.arange(1, len(lower) + 1)
+    (moved_upper, moved_lower), side, caps, lower = expert_bounds(1.5, -0.2, -0.12, 4.0)
+    assert side == 1 and not moved_upper.any() and lower.max() > 0.15  # 0.35 m over
+    reachable = -0.2 + MOVE_OVER_SLOPE * 4.0 * 0.05 * np.arange(1, len(lower) + 1)
     assert (lower <= reachable + 1e-9).all()
     *_, lower_at_rest = expert_bounds(1.5, -0.2, -0.12, speed_mps=0.0)
     assert lower_at_rest.max() <= -0.2 + 1e-9  # a car at rest is not asked to move sideways
@@ -530,30 +533,40 @@ def test_the_expert_predicts_an_opponent_on_the_line_it_has_kept():
     expert = traffic_expert_on_the_straight()
     racing = expert.racing_line
     ahead = np.array([20.0, 30.0, 40.0])  # into the turns, where the racing line moves over
-    s_values = np.linspace(0.0, 1.0, round(HISTORY_S / expert.settings.dt_s))
-    on_racing = [
-        NearOpponent("car1", 10.0 + s, float(racing.offset_at(10.0 + s)) + 0.1, 1.0)
-        for s in s_values
-    ]
+    # a second along s = 29-30 m, where the racing line moves 0.3 m across the lane
+    s_values = 29.0 + np.linspace(0.0, 1.0, round(HISTORY_S / expert.settings.dt_s))
+    on_racing = [NearOpponent("car1", s, float(racing.offset_at(s)) + 0.1, 1.0) for s in s_values]
     for opponent in on_racing:
         expert.remember(opponent)
     low, high = expert.predicted_band(on_racing[-1], ahead)
     np.testing.assert_allclose(low, racing.offset_at(ahead) + 0.1 - PREDICTION_MARGIN_M)
     np.testing.assert_allclose(high - low, 2.0 * PREDICTION_MARGIN_M)
     expert = traffic_expert_on_the_straight()
-    steady = NearOpponent("car1", 11.0, 0.25, 1.0)
-    expert.remember(steady)  # a short history: between its line and the racing line's shape
-    along_racing = racing.offset_at(ahead) + 0.25 - racing.offset_at(11.0)
-    low, high = expert.predicted_band(steady, ahead)
+    steady = [NearOpponent("car1", s, 0.25, 1.0) for s in s_values]
+    expert.remember(steady[0])  # a short history: between its line and the racing line's shape
+    along_racing = racing.offset_at(ahead) + 0.25 - racing.offset_at(s_values[0])
+    low, high = expert.predicted_band(steady[0], ahead)
     np.testing.assert_allclose(low, np.minimum(0.25, along_racing) - PREDICTION_MARGIN_M)
     np.testing.assert_allclose(high, np.maximum(0.25, along_racing) + PREDICTION_MARGIN_M)
-    for _ in s_values:
-        expert.remember(steady)  # its offset from the centre line kept: on that line
-    low, high = expert.predicted_band(steady, ahead)
+    for opponent in steady:
+        expert.remember(opponent)  # its offset from the centre line kept: on that line
+    low, high = expert.predicted_band(steady[-1], ahead)
     np.testing.assert_allclose(low, 0.25 - PREDICTION_MARGIN_M)
 
 
-def test_thepassing_side_is_the_ego_cars_own_if_it_has_room():
+def test_the_expert_forgets_an_opponent_out_of_reach():
+    env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=[external(20.0)])
+    expert = make_agent("expert", env)
+    assert isinstance(expert, TrafficExpert)
+    observation, info = env.reset(seed=0)
+    expert._histories["car1"] = deque([(0.3, 0.3)] * 20, maxlen=20)  # from a lap before
+    expert._sides["car1"] = 1
+    info = {**info, "time_s": 1.0}  # not an episode's start
+    expert.act(observation, info)  # car1 is 20 m ahead: out of reach
+    assert "car1" not in expert._histories and "car1" not in expert._sides
+
+
+def test_the_passing_side_is_the_ego_cars_own_if_it_has_room():
     assert passing_side(0.1, left_room_m=0.05, right_room_m=0.2) == 1
     assert passing_side(-0.1, left_room_m=0.05, right_room_m=0.2) == -1
     assert passing_side(0.1, left_room_m=-0.01, right_room_m=0.2) == -1

@@ -53,7 +53,7 @@ LEAD_IN_M = 1.0
 #: The steepest the bounds ask the car to move over (m across per m along, 0.8 m/s at
 #: 4 m/s): a pass chosen late is a gentle move over while the following cap holds the car
 #: back, never a swerve, and a car standing still is not asked to move sideways.
-MOVE_OVER_SLOPE = 0.2
+MOVE_OVER_SLOPE = 0.15
 #: How far ahead a pass is planned (s), sampled every ``PASS_STEP_S``.
 PASS_HORIZON_S = 4.0
 PASS_STEP_S = 0.1
@@ -85,6 +85,7 @@ class TrafficExpert(MPCExpert):
     _stage_caps_mps = np.full(0, np.inf)
     _offset_targets = np.zeros(0)
     _target_sides = np.zeros(0, dtype=int)
+    _reachable_m = np.zeros(0)
     _ego_e_y = 0.0
     _ego_speed_mps = 0.0
 
@@ -110,8 +111,13 @@ class TrafficExpert(MPCExpert):
         ego_s = float(info["s_m"])
         self._ego_e_y = float(info["e_y_m"])
         self._ego_speed_mps = float(info["v_x_mps"])
+        near = opponents_near(info.get("opponents", ()))
+        names = {opponent.name for opponent in near}
+        for states in (self._histories, self._sides, self._given_up):  # out of reach: forget
+            for name in set(states) - names:
+                del states[name]
         self._passes = []
-        for opponent in opponents_near(info.get("opponents", ())):
+        for opponent in near:
             self.remember(opponent)
             self._passes.append(self.plan_for(opponent, ego_s))
         return super().act(observation, info)
@@ -120,13 +126,15 @@ class TrafficExpert(MPCExpert):
         """This step's :class:`PassPlan` for ``opponent`` (after :meth:`remember`)."""
         gap = float(wrap_arc(opponent.s_m - ego_s, self.track.length_m))
         offset = self._ego_e_y - opponent.e_y_m
-        if gap <= 0.0:  # ahead of it: keep to its own side, never brake for it
+        if gap <= -PASS_LENGTH_M:  # past it: free to take any line
+            return PassPlan(opponent, 0, np.inf, False)
+        if gap <= 0.0:  # alongside and ahead: keep to its own side, never brake for it
             return PassPlan(opponent, 1 if offset > 0.0 else -1, np.inf, False)
         rooms = self.pass_rooms(opponent, ego_s)
-        side = self.passing_side(opponent, gap, offset, rooms)
+        side = self.choose_side(opponent, gap, offset, rooms)
         self._sides[opponent.name] = side
-        held_back = side == 0 or rooms[0 if side > 0 else 1] < 0.0
-        return PassPlan(opponent, side, following_speed_mps(gap, opponent), held_back)
+        follows = side == 0 or rooms[0 if side > 0 else 1] < 0.0
+        return PassPlan(opponent, side, following_speed_mps(gap, opponent), follows)
 
     def pass_rooms(self, opponent: NearOpponent, ego_s: float) -> tuple[float, float]:
         """``(left, right)``: the least room (m) beside ``opponent`` for the ego's centre
@@ -134,14 +142,17 @@ class TrafficExpert(MPCExpert):
         times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
         s_opponent = opponent.s_m + opponent.v_mps * times
         gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
-        beside = (gaps > 0.0) & (gaps < PASS_LENGTH_M)  # behind it, until level
+        before = np.concatenate([[wrap_arc(opponent.s_m - ego_s, self.track.length_m)], gaps[:-1]])
+        # behind it, until level (or level within a sample: a fast car closing on a slow one)
+        crossed = (before > 0.0) & (gaps <= 0.0) & (before - gaps < 0.5 * self.track.length_m)
+        beside = ((gaps > 0.0) & (gaps < PASS_LENGTH_M)) | crossed
         upper, lower = self.lane_limits(s_opponent[beside] % self.track.length_m)
         band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
         left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
         right_room = (band_low - PASS_WIDTH_M - lower).min(initial=np.inf)
         return float(left_room), float(right_room)
 
-    def passing_side(
+    def choose_side(
         self, opponent: NearOpponent, gap: float, offset: float, rooms: tuple[float, float]
     ) -> int:
         """+1 to pass ``opponent``, ``gap`` ahead, on the left, -1 on the right, 0 to follow
@@ -216,6 +227,8 @@ class TrafficExpert(MPCExpert):
         lane_upper, lane_lower = upper.copy(), lower.copy()
         self._offset_targets = np.zeros(len(times))
         self._target_sides = np.zeros(len(times), dtype=int)
+        travelled_m = np.minimum(s_stage[1:] - s_stage[0], self._ego_speed_mps * times)
+        self._reachable_m = MOVE_OVER_SLOPE * travelled_m  # the plan's speeds are >= 0.5 m/s
         for plan in self._passes:
             opponent, side = plan.opponent, plan.side
             s_opponent = opponent.s_m + opponent.v_mps * times
@@ -226,8 +239,7 @@ class TrafficExpert(MPCExpert):
             beside = (gaps > -PASS_LENGTH_M) & ((gaps < reach_m) | started)
             held = gaps > -PASS_LENGTH_M  # the stages it follows the opponent in
             band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
-            travelled_m = s_stage[1:][beside] - s_stage[0]
-            reachable = MOVE_OVER_SLOPE * travelled_m  # how far over the car can have moved
+            reachable = self._reachable_m[beside]  # how far over the car can have moved
             falling_in = self.falling_in_from(opponent.name)
             if side > 0:
                 clear = band_high + PASS_WIDTH_M
@@ -247,18 +259,22 @@ class TrafficExpert(MPCExpert):
                 lower[beside] = np.maximum(lower[beside], self._ego_e_y - reachable)
             elif falling_in < 0:
                 upper[beside] = np.minimum(upper[beside], self._ego_e_y + reachable)
-            if side and not plan.held_back:
+            if side and not plan.follows:
                 held[beside] = wanted != clear
             self._stage_caps_mps[held] = np.minimum(self._stage_caps_mps[held], plan.cap_mps)
         return upper, lower
 
     def _offset_reference(self, s_ref: np.ndarray) -> np.ndarray:
         """The reference line's offset, but beside an opponent the middle of the room on the
-        passing side, where the reference line is nearer the opponent than that."""
+        passing side, where the reference line is nearer the opponent than that; and back to
+        the line no steeper than ``MOVE_OVER_SLOPE`` (after a pass: no swerve)."""
         offsets = super()._offset_reference(s_ref)
         targets, sides = self._offset_targets, self._target_sides
         further = np.where(sides > 0, np.maximum(offsets, targets), np.minimum(offsets, targets))
-        return np.where(sides == 0, offsets, further)
+        offsets = np.where(sides == 0, offsets, further)
+        return np.clip(
+            offsets, self._ego_e_y - self._reachable_m, self._ego_e_y + self._reachable_m
+        )
 
     def _speed_caps_mps(self, s_m: np.ndarray, states: np.ndarray) -> np.ndarray:
         return self._stage_caps_mps
@@ -266,14 +282,15 @@ class TrafficExpert(MPCExpert):
 
 @dataclass(frozen=True)
 class PassPlan:
-    """What the ego does about one opponent this step: the side it passes on (+1 left, -1
-    right, 0 follow), the speed that follows it (inf for a car behind), and whether that
-    speed holds on every stage (no room to pass) or only until the bounds clear the car."""
+    """What the ego does about one opponent this step: the side it keeps to (+1 left, -1
+    right, 0 none), the speed that follows it (inf for a car it is level with or ahead of),
+    and whether it follows (that speed holds on every stage: no side, or no room on its
+    side) or only until the bounds clear the car."""
 
     opponent: NearOpponent
     side: int
     cap_mps: float
-    held_back: bool
+    follows: bool
 
 
 @dataclass(frozen=True)
