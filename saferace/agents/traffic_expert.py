@@ -50,9 +50,10 @@ PASS_WIDTH_M = 2.0 * BUMPER_HALF_WIDTH_M + 0.08
 #: Behind an opponent, the ego keeps to its passing side from this far before it is beside
 #: (m), so that it moves over while still behind.
 LEAD_IN_M = 1.0
-#: The steepest the bounds ask the car to move over (m across per m along, 0.8 m/s at
-#: 4 m/s): a pass chosen late is a gentle move over while the following cap holds the car
-#: back, never a swerve, and a car standing still is not asked to move sideways.
+#: The steepest the bounds and the line ask the car to move over (m across per m along at
+#: its speed, 0.6 m/s at 4 m/s): a pass chosen late is a gentle move over while the
+#: following cap holds the car back, and the way back to its line after a pass no swerve;
+#: a car standing still is not asked to move sideways.
 MOVE_OVER_SLOPE = 0.15
 #: How far ahead a pass is planned (s), sampled every ``PASS_STEP_S``.
 PASS_HORIZON_S = 4.0
