@@ -36,26 +36,27 @@ OPPONENTS = {
     "braking": "braking:gap_m=2,speed_factor=0.8",
 }
 RANDOM_TRACK_SEEDS = (4242, 9137, 777, 2468, 5151)
-LAPS, MAX_STEPS = 2, 2400  # 120 s at 20 Hz
+LAPS, MAX_SECONDS = 2, 120.0
 #: The ego has passed once it leads the opponent by this much (m; ``ego_lead_m``).
 PASSED_LEAD_M = 0.5
 
 
 def run(job: tuple[str, str, int, int]) -> dict:
     """One run's row: when it passed, what it and the opponent caused, the lane, the laps."""
-    import gymnasium as gym
-
     from saferace.eval.agents import make_agent
-    from saferace.eval.runner import run_episode
+    from saferace.eval.filters import FilterConfig
+    from saferace.eval.runner import make_task_env, max_steps_for, run_episode
     from saferace.track import Track
 
     track, opponent, start, starts = job
-    env = gym.make(
-        "saferace/Overtake-v0",
-        track=track,
+    env = make_task_env(
+        "Overtake",
+        track,
+        LAPS,
+        FilterConfig(),
+        seed=0,
         opponents=[OPPONENTS[opponent]],
-        max_laps=LAPS,
-        max_steps=MAX_STEPS,
+        max_steps=max_steps_for(MAX_SECONDS),
         terminate_on_collision=False,
         start_s_m=Track.load(track).length_m * start / starts,
     )

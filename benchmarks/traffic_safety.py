@@ -37,23 +37,25 @@ OPPONENTS = {
     "braking": "braking:gap_m=3,speed_factor=0.8",
 }
 RANDOM_TRACK_SEEDS = (4242, 9137)
-LAPS, MAX_STEPS = 2, 1600  # 80 s at 20 Hz
+LAPS, MAX_SECONDS = 2, 80.0
 
 
 def run(job: tuple[str, str, str, bool]) -> dict:
     """One run's row: what the ego caused, what the opponent caused, the lane, the laps."""
-    import gymnasium as gym
-
     from saferace.eval.agents import make_agent
+    from saferace.eval.filters import FilterConfig
+    from saferace.eval.runner import make_task_env, max_steps_for
     from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 
     track, agent_name, opponent, filtered = job
-    env = gym.make(
-        "saferace/RacingLine-v0",
-        track=track,
+    env = make_task_env(
+        "RacingLine",
+        track,
+        LAPS,
+        FilterConfig(),
+        seed=0,
         opponents=[OPPONENTS[opponent]],
-        max_laps=LAPS,
-        max_steps=MAX_STEPS,
+        max_steps=max_steps_for(MAX_SECONDS),
     )
     if filtered:
         env = SafetyFilter(env, **GAIN_PRESETS["grip"])
