@@ -1,9 +1,9 @@
 """Reckless agents and the expert in traffic, behind the CBF filter and without it.
 
 Each run: one agent (``drift``, ``weave``, ``speeding``, ``expert``) on the racing-line task
-with one opponent 3 m ahead (``expert`` at 80% of the racing line's speed, ``pure-pursuit``
-on the centre line and ``lane-changer`` and ``blocker`` at 60%, ``braking`` at 80%), two
-laps or 80 s, seed 0, on each track given (default: the built-in ones and random tracks
+with one opponent 3 m ahead (``expert`` and ``racer`` at 80% of the racing line's speed,
+``pure-pursuit`` on the centre line and ``lane-changer`` and ``blocker`` at 60%, ``braking``
+at 80%), two laps or 80 s, seed 0, on each track given (default: the built-in ones and random tracks
 4242 and 9137). It prints, per opponent and per agent, the runs with a collision the ego
 caused, the collisions the opponent caused, the time outside the lane and the runs that
 finished, and lists every filtered run that collided or left the lane. Target: behind the
@@ -31,6 +31,7 @@ from saferace.track.random_track import write_random_track
 AGENTS = ("drift", "weave", "speeding", "expert")
 OPPONENTS = {
     "expert": "expert:gap_m=3,speed_factor=0.8",
+    "racer": "racer:gap_m=3,speed_factor=0.8",
     "pure-pursuit": "pure-pursuit:gap_m=3,speed_factor=0.6,lateral_offset_m=0",
     "lane-changer": "lane-changer:gap_m=3,speed_factor=0.6",
     "blocker": "blocker:gap_m=3,speed_factor=0.6",

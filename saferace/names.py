@@ -20,7 +20,7 @@ TRAFFIC_TASK_IDS = {"Overtake": "saferace/Overtake-v0"}
 DRIVING_TASKS: tuple[str, ...] = (*TASKS, *TRAFFIC_TASK_IDS)
 #: The opponent specs' form on the command line and in configs.
 OPPONENTS_HELP = (
-    "other cars on track, POLICY[:FIELD=VALUE,...]: expert, pure-pursuit, lane-changer, "
+    "other cars on track, POLICY[:FIELD=VALUE,...]: expert, racer, pure-pursuit, lane-changer, "
     "blocker, braking (fields gap_m, start_offset_m, speed_factor, lateral_offset_m)"
 )
 

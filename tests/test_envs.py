@@ -96,8 +96,10 @@ def test_pickle_round_trip_continues_identically(task_id: str):
         assert_same(original, clone)
 
 
-def test_pickled_expert_opponent_continues_to_the_solvers_tolerance():
-    for original, clone in pickled_and_stepped("saferace/Overtake-v0"):
+@pytest.mark.parametrize("opponent", ["expert", "racer"])
+def test_pickled_mpc_opponent_continues_to_the_solvers_tolerance(opponent: str):
+    results = pickled_and_stepped("saferace/Overtake-v0", opponents=[f"{opponent}:gap_m=2"])
+    for original, clone in results:
         opponents = zip(original[4]["opponents"], clone[4]["opponents"], strict=True)
         cars = [(original[4], clone[4]), *opponents]
         for mine, theirs in cars:

@@ -149,7 +149,7 @@ def opponent_alone(track: str, opponent: str, steps: int = 180) -> list[dict]:
 
 @pytest.mark.parametrize("track", ["technical", "varying"])
 @pytest.mark.parametrize(
-    "opponent", ["expert", "pure-pursuit", "lane-changer", "blocker", "braking"]
+    "opponent", ["expert", "racer", "pure-pursuit", "lane-changer", "blocker", "braking"]
 )
 def test_every_opponent_policy_drives_inside_its_lane(track: str, opponent: str):
     states = opponent_alone(track, f"{opponent}:lateral_offset_m=0.25")
@@ -200,6 +200,63 @@ def test_the_blocker_covers_the_line_of_a_car_close_behind():
         observation, _, _, _, info = env.step(action)
         offsets.append(info["opponents"][0]["e_y_m"])
     assert offsets[-1] > 0.1
+
+
+def held_alongside(policy: str) -> tuple[list[dict], list[float]]:
+    """The collisions, and the lateral distances between the cars in the left turn at the
+    straight's end (where the racing line crosses to the left, from s = 15 m), while the
+    ego holds 0.15 m left of the centre line 0.2 m behind a ``policy`` opponent on the
+    racing line."""
+    env = gym.make(
+        "saferace/CenterLine-v0",
+        track=STRAIGHT_TRACK,
+        opponents=[f"{policy}:gap_m=0.3,start_offset_m=-0.35,speed_factor=0.7"],
+    )
+    driver = PurePursuit.for_env(env)
+    observation, info = env.reset(seed=0, options={"start_s_m": 8.0, "start_speed_mps": 3.0})
+    collisions, apart_m = [], []
+    for _ in range(45):
+        (opponent,) = info["opponents"]
+        action = driver.act(observation, info)
+        action[0] += 0.8 * (0.15 - info["e_y_m"])
+        action[1] = 3.0 * (opponent["gap_m"] - 0.2) + 2.0 * (
+            opponent["speed_mps"] - info["v_x_mps"]
+        )
+        observation, _, _, _, info = env.step(action)
+        collisions += info["collisions"]
+        if info["s_m"] > 15.0:
+            apart_m.append(info["e_y_m"] - info["opponents"][0]["e_y_m"])
+    assert len(apart_m) > 10
+    return collisions, apart_m
+
+
+def test_the_racer_leaves_room_to_a_car_alongside_where_the_expert_does_not():
+    collisions, apart_m = held_alongside("racer")
+    assert collisions == [] and min(apart_m) > 0.37  # bumpers 0.31 m wide
+    collisions, apart_m = held_alongside("expert")  # blind: turns in across the ego
+    assert [collision["at_fault"] for collision in collisions] == ["car1"]
+
+
+def test_the_expert_passes_a_racer_where_it_follows_the_blind_expert():
+    def lead_after_a_lap(policy: str) -> float:
+        env = gym.make(
+            "saferace/Overtake-v0",
+            track="oval",
+            opponents=[f"{policy}:gap_m=2,speed_factor=0.8"],
+            max_laps=1,
+            terminate_on_collision=False,
+        )
+        expert = make_agent("expert", env)
+        observation, info = env.reset(seed=0)
+        done = False
+        while not done:
+            observation, _, terminated, truncated, info = env.step(expert.act(observation, info))
+            assert not info["collisions"]
+            done = terminated or truncated
+        return info["opponents"][0]["ego_lead_m"]
+
+    assert lead_after_a_lap("racer") > 0.5  # passed, on the inside of a turn
+    assert -3.0 < lead_after_a_lap("expert") < 0.0  # followed: its line leaves no room
 
 
 def test_overtake_task_penalises_and_ends_on_an_at_fault_collision():

@@ -1,6 +1,11 @@
 """Opponent drivers: the other cars of a race, each driven from ground truth and seeded.
 
-- ``expert``: the expert MPC on the racing line at ``speed_factor`` of its speed profile.
+- ``expert``: the expert MPC on the racing line at ``speed_factor`` of its speed profile,
+  blind to the other cars.
+- ``racer``: the traffic expert (:mod:`saferace.agents.traffic_expert`) at ``speed_factor``:
+  it passes and follows the other cars, and leaves a car alongside it room, as the racing
+  rule that collisions are judged by asks (a car moving across into one alongside is at
+  fault); its ``info`` says so (``leaves_room``).
 - ``pure-pursuit``: pure pursuit at a fixed ``lateral_offset_m`` from the centre line.
 - ``lane-changer``: pure pursuit that switches between the lanes at ``+-lateral_offset_m``
   after seeded intervals, as AWS DeepRacer's head-to-bot cars do.
@@ -20,6 +25,7 @@ import numpy as np
 
 from saferace.agents.mpc import MPCExpert
 from saferace.agents.pure_pursuit import PurePursuit, PurePursuitSettings
+from saferace.agents.traffic_expert import TrafficExpert
 from saferace.envs.reference_lines import reference_line
 from saferace.envs.traffic import OpponentSpec
 from saferace.safety.ltv_mpc import MPCSettings
@@ -173,13 +179,45 @@ class ExpertOpponent(_Restorable, MPCExpert):
         self._solver = None
 
 
+class RacerOpponent(_Restorable, TrafficExpert):
+    """The traffic expert on the racing line at the spec's speed factor: it passes and
+    follows the other cars as the ego's expert does, and keeps its side of a car alongside
+    it (within ``PASS_LENGTH_M`` behind), so it leaves that car room. Restored as
+    :class:`ExpertOpponent` is, with the cars it remembers."""
+
+    leaves_room = True
+    state_attributes: tuple[str, ...] = (
+        *ExpertOpponent.state_attributes,
+        "_histories",
+        "_sides",
+        "_given_up",
+        "_time_s",
+    )
+
+    def reset(self, rng: np.random.Generator | None = None) -> None:
+        """As :meth:`ExpertOpponent.reset` (the traffic expert forgets the other cars at
+        the episode's first step)."""
+        super().reset()
+        self._solver = None
+
+    def act(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
+        """The traffic expert's action, the other cars (``info["cars"]``) its opponents."""
+        length = self.track.length_m
+        others = [
+            other | {"gap_m": wrap_arc(other["s_m"] - info["s_m"], length)}
+            for other in info.get("cars", ())
+        ]
+        return super().act(observation, info | {"opponents": others})
+
+
 def make_opponent(spec: OpponentSpec, env) -> Any:
     """The driver of an opponent ``spec`` in ``env``."""
     base = env.unwrapped
-    if spec.policy == "expert":
+    if spec.policy in ("expert", "racer"):
+        driver = ExpertOpponent if spec.policy == "expert" else RacerOpponent
         settings = MPCSettings(dt_s=base.control_dt_s, speed_scale=spec.speed_factor)
         racing = reference_line(base.track, "racing")
-        return ExpertOpponent(base.track, racing, settings=settings, drivetrain=base.params)
+        return driver(base.track, racing, settings=settings, drivetrain=base.params)
     if spec.policy == "pure-pursuit":
         return OffsetPursuit(env, spec)
     if spec.policy == "lane-changer":

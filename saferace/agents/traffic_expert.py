@@ -10,7 +10,9 @@ lane has room for the pass and following where it has not.
   MPC's plan: the ego, accelerating at ``PASS_ACCEL_MPS2`` to its reference speed, passes
   on a side that keeps its centre ``PASS_WIDTH_M`` from the opponent's band, inside the
   lane, wherever it is predicted beside the opponent and behind it, until level (from there
-  on the line is its own: a car that moves across into it is at fault). It takes the side
+  on the line is its own: a car that moves across into it is at fault), or, behind a car
+  that leaves room (``leaves_room`` in its info: a ``racer``), until alongside it, within
+  ``PASS_LENGTH_M``: from there that car keeps its side. It takes the side
   it is on if that has room, else the other, keeps a side it chose while that has room,
   and after giving one up falls in behind for ``RETRY_AFTER_S``.
 - **Passing.** From ``LEAD_IN_M`` before it is beside the opponent until past it, the
@@ -139,14 +141,17 @@ class TrafficExpert(MPCExpert):
 
     def pass_rooms(self, opponent: NearOpponent, ego_s: float) -> tuple[float, float]:
         """``(left, right)``: the least room (m) beside ``opponent`` for the ego's centre
-        wherever the two are predicted alongside within ``PASS_HORIZON_S`` (negative: none)."""
+        wherever the two are predicted alongside within ``PASS_HORIZON_S`` (negative: none):
+        behind it, until level, or until alongside it if it leaves room."""
         times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
         s_opponent = opponent.s_m + opponent.v_mps * times
         gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
         before = np.concatenate([[wrap_arc(opponent.s_m - ego_s, self.track.length_m)], gaps[:-1]])
-        # behind it, until level (or level within a sample: a fast car closing on a slow one)
-        crossed = (before > 0.0) & (gaps <= 0.0) & (before - gaps < 0.5 * self.track.length_m)
-        beside = ((gaps > 0.0) & (gaps < PASS_LENGTH_M)) | crossed
+        # behind it, until level or alongside one that leaves room (or there within a
+        # sample: a fast car closing on a slow one)
+        until = PASS_LENGTH_M if opponent.leaves_room else 0.0
+        crossed = (before > until) & (gaps <= until) & (before - gaps < 0.5 * self.track.length_m)
+        beside = ((gaps > until) & (gaps < PASS_LENGTH_M)) | crossed
         upper, lower = self.lane_limits(s_opponent[beside] % self.track.length_m)
         band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
         left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
@@ -297,12 +302,13 @@ class PassPlan:
 @dataclass(frozen=True)
 class NearOpponent:
     """An opponent within reach: its name, arc length, lateral offset and speed along the
-    track."""
+    track, and whether it leaves room to a car alongside it (``info``'s ``leaves_room``)."""
 
     name: str
     s_m: float
     e_y_m: float
     v_mps: float
+    leaves_room: bool = False
 
 
 def opponents_near(opponents) -> list[NearOpponent]:
@@ -311,7 +317,10 @@ def opponents_near(opponents) -> list[NearOpponent]:
     for opponent in opponents:
         if -LOOK_BEHIND_M < opponent["gap_m"] < LOOK_AHEAD_M:
             v_o = opponent["speed_mps"] * float(np.cos(opponent["e_psi_rad"]))
-            near.append(NearOpponent(opponent["name"], opponent["s_m"], opponent["e_y_m"], v_o))
+            leaves_room = bool(opponent.get("leaves_room", False))
+            near.append(
+                NearOpponent(opponent["name"], opponent["s_m"], opponent["e_y_m"], v_o, leaves_room)
+            )
     return near
 
 

@@ -75,9 +75,10 @@ class RacingEnv(gym.Env):
 
     ## Traffic
     ``opponents``: other rc10s, each an :class:`~saferace.envs.traffic.OpponentSpec`, a dict
-    of its fields or ``"POLICY[:FIELD=VALUE,...]"`` (``expert``, ``pure-pursuit``,
+    of its fields or ``"POLICY[:FIELD=VALUE,...]"`` (``expert``, ``racer``, ``pure-pursuit``,
     ``lane-changer``, ``blocker``, ``braking``; seeded, driven from ground truth), seen by the
-    onboard camera. ``info`` then has ``opponents`` (pose, Frenet state, speed, ``gap_m``),
+    onboard camera. ``info`` then has ``opponents`` (pose, Frenet state, speed, ``gap_m``,
+    ``leaves_room``: whether it leaves room to a car alongside),
     ``collisions`` (started this step: cars, time, relative speed, the car at fault; the ego
     is ``car0``) and ``at_fault_collisions``; each costs ``collision_penalty`` of reward
     (``reward_collision``) and ends the episode with ``terminate_on_collision``.

@@ -27,7 +27,15 @@ from saferace.track.frenet import wrap_arc
 
 #: Policies that drive an opponent (``saferace.agents.opponents``), and ``external``: the
 #: caller gives its actions (:meth:`Traffic.set_external_actions`).
-OPPONENT_POLICIES = ("expert", "pure-pursuit", "lane-changer", "blocker", "braking", "external")
+OPPONENT_POLICIES = (
+    "expert",
+    "racer",
+    "pure-pursuit",
+    "lane-changer",
+    "blocker",
+    "braking",
+    "external",
+)
 EXTERNAL = "external"
 #: The ego car's name in collisions and in the other cars' view (opponents are car1, car2...).
 EGO = "car0"
@@ -249,9 +257,10 @@ class Traffic:
         }
 
     def opponents_info(self, ego_s_m: float, ego_progress_m: float) -> list[dict[str, Any]]:
-        """Each opponent's pose, Frenet state, speed, gap ahead of the ego (m, along the
-        centre line, within half a lap) and ``ego_lead_m``: how far the ego has driven past
-        it since the start, laps counted (negative while it has not)."""
+        """Each opponent's pose, Frenet state, speed, whether its driver leaves room to a car
+        alongside (``leaves_room``), gap ahead of the ego (m, along the centre line, within
+        half a lap) and ``ego_lead_m``: how far the ego has driven past it since the start,
+        laps counted (negative while it has not)."""
         length = self.env.track.length_m
         return [
             {
@@ -273,6 +282,7 @@ class Traffic:
                 )
             }
             | {
+                "leaves_room": bool(getattr(car.policy, "leaves_room", False)),
                 "gap_m": wrap_arc(car.state["s_m"] - ego_s_m, length),
                 "ego_lead_m": ego_progress_m - car.progress_m - car.gap_m,
             }
@@ -312,7 +322,13 @@ class Traffic:
 def _summary(name: str, state: Mapping[str, Any]) -> dict[str, Any]:
     """What a car's driver knows of another car: where it is and how fast it goes."""
     speed = state.get("speed_mps", math.hypot(state["v_x_mps"], state["v_y_mps"]))
-    return {"name": name, "s_m": state["s_m"], "e_y_m": state["e_y_m"], "speed_mps": speed}
+    return {
+        "name": name,
+        "s_m": state["s_m"],
+        "e_y_m": state["e_y_m"],
+        "e_psi_rad": state["e_psi_rad"],
+        "speed_mps": speed,
+    }
 
 
 def _load_factory():
