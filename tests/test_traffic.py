@@ -237,6 +237,18 @@ def test_the_racer_leaves_room_to_a_car_alongside_where_the_expert_does_not():
     assert [collision["at_fault"] for collision in collisions] == ["car1"]
 
 
+def test_every_driver_is_told_which_cars_leave_room():
+    env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=["racer", "expert"])
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.zeros(2))
+    assert [opponent["leaves_room"] for opponent in info["opponents"]] == [True, False]
+    seen_by_car2 = env.unwrapped.traffic.cars[1].state["cars"]
+    assert {car["name"]: car["leaves_room"] for car in seen_by_car2} == {
+        "car0": False,
+        "car1": True,
+    }
+
+
 def test_the_expert_passes_a_racer_where_it_follows_the_blind_expert():
     def lead_after_a_lap(policy: str) -> float:
         env = gym.make(

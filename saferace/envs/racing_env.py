@@ -78,10 +78,9 @@ class RacingEnv(gym.Env):
     of its fields or ``"POLICY[:FIELD=VALUE,...]"`` (``expert``, ``racer``, ``pure-pursuit``,
     ``lane-changer``, ``blocker``, ``braking``; seeded, driven from ground truth), seen by the
     onboard camera. ``info`` then has ``opponents`` (pose, Frenet state, speed, ``gap_m``,
-    ``leaves_room``: whether it leaves room to a car alongside),
-    ``collisions`` (started this step: cars, time, relative speed, the car at fault; the ego
-    is ``car0``) and ``at_fault_collisions``; each costs ``collision_penalty`` of reward
-    (``reward_collision``) and ends the episode with ``terminate_on_collision``.
+    ``leaves_room``), ``collisions`` (started this step: cars, time, relative speed, the car
+    at fault; the ego is ``car0``) and ``at_fault_collisions``; one the ego causes costs
+    ``collision_penalty`` (``reward_collision``) and ends the episode (``terminate_on_collision``).
 
     ## Starting state
     On the reference line at centerline arc length ``start_s_m`` (default 0, the

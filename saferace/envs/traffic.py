@@ -279,10 +279,10 @@ class Traffic:
                     "speed_mps",
                     "progress_m",
                     "outside_lane",
+                    "leaves_room",
                 )
             }
             | {
-                "leaves_room": bool(getattr(car.policy, "leaves_room", False)),
                 "gap_m": wrap_arc(car.state["s_m"] - ego_s_m, length),
                 "ego_lead_m": ego_progress_m - car.progress_m - car.gap_m,
             }
@@ -316,11 +316,13 @@ class Traffic:
             "progress_m": car.progress_m,
             "outside_lane": bool(e_y + half > w_left or e_y - half < -w_right),
             "fully_outside_lane": bool(e_y - half > w_left or e_y + half < -w_right),
+            "leaves_room": bool(getattr(car.policy, "leaves_room", False)),
         }
 
 
 def _summary(name: str, state: Mapping[str, Any]) -> dict[str, Any]:
-    """What a car's driver knows of another car: where it is and how fast it goes."""
+    """What a car's driver knows of another car: where it is, how fast it goes, and whether
+    it leaves room to a car alongside."""
     speed = state.get("speed_mps", math.hypot(state["v_x_mps"], state["v_y_mps"]))
     return {
         "name": name,
@@ -328,6 +330,7 @@ def _summary(name: str, state: Mapping[str, Any]) -> dict[str, Any]:
         "e_y_m": state["e_y_m"],
         "e_psi_rad": state["e_psi_rad"],
         "speed_mps": speed,
+        "leaves_room": state.get("leaves_room", False),
     }
 
 
