@@ -3,13 +3,13 @@
 Each run: `Overtake-v0` (2 m behind one opponent at 80% of the racing line's speed: the
 expert MPC on the racing line, blind to other cars; the ``racer``, the expert in traffic,
 which leaves room to a car alongside; or the car that brakes hard at seeded intervals),
-two laps,
-`terminate_on_collision=False`, seed 0, started at ``--starts`` even fractions of the lap,
-on each track given (default: the built-in ones, random tracks 4242, 9137, 777, 2468 and
-5151, and the benchmark's two evaluation tracks). It prints, per track and opponent, the
-runs in which the ego got 0.5 m ahead of the opponent, the collisions the ego caused and
-those the opponent caused, the time outside the lane and the runs that finished. Target:
-no collision the ego causes; a pass wherever the lane leaves room for one.
+two laps, `terminate_on_collision=False`, seed 0, started at ``--starts`` even fractions
+of the lap, on each track given (default: the built-in ones, random tracks 4242, 9137,
+777, 2468 and 5151, and the benchmark's two evaluation tracks). It prints, per track and
+opponent, the runs in which the ego got 0.5 m ahead of the opponent, the collisions the
+ego caused and those the opponent caused, the time outside the lane and the runs that
+finished. Target: no collision the ego causes; a pass wherever the lane leaves room for
+one.
 
     python benchmarks/overtaking.py [--tracks NAME|CSV ...] [--opponents NAME ...]
                                     [--starts N] [--workers N] [--out rows.jsonl]

@@ -96,14 +96,26 @@ def test_pickle_round_trip_continues_identically(task_id: str):
         assert_same(original, clone)
 
 
-@pytest.mark.parametrize("opponent", ["expert", "racer"])
+@pytest.mark.parametrize("opponent", ["expert:gap_m=2", "racer:gap_m=-0.7"])
 def test_pickled_mpc_opponent_continues_to_the_solvers_tolerance(opponent: str):
-    results = pickled_and_stepped("saferace/Overtake-v0", opponents=[f"{opponent}:gap_m=2"])
+    results = pickled_and_stepped("saferace/Overtake-v0", opponents=[opponent])
     for original, clone in results:
         opponents = zip(original[4]["opponents"], clone[4]["opponents"], strict=True)
         cars = [(original[4], clone[4]), *opponents]
         for mine, theirs in cars:
             assert np.hypot(mine["x_m"] - theirs["x_m"], mine["y_m"] - theirs["y_m"]) < 0.01
+
+
+def test_a_pickled_racer_remembers_the_cars_it_saw():
+    env = gym.make("saferace/Overtake-v0", track="varying", opponents=["racer:gap_m=-0.7"])
+    env.unwrapped.reset(seed=1)
+    for _ in range(20):
+        env.unwrapped.step(np.array([0.05, 1.0]))
+    racer = env.unwrapped.traffic.cars[0].policy
+    assert racer._histories["car0"]  # the ego ahead, within its reach
+    twin = pickle.loads(pickle.dumps(env.unwrapped)).traffic.cars[0].policy
+    assert list(twin._histories["car0"]) == list(racer._histories["car0"])
+    assert (twin._sides, twin._given_up) == (racer._sides, racer._given_up)
 
 
 @pytest.mark.parametrize("track", [*builtin_track_names(), "unseen"])

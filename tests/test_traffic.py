@@ -237,6 +237,23 @@ def test_the_racer_leaves_room_to_a_car_alongside_where_the_expert_does_not():
     assert [collision["at_fault"] for collision in collisions] == ["car1"]
 
 
+def test_behind_a_car_that_leaves_room_a_pass_needs_room_only_until_alongside():
+    rooms = {}
+    for leaves_room in (False, True):
+        expert = traffic_expert_on_the_straight()
+        racing = expert.racing_line
+        # at 2 m/s on the racing line, which crosses to the left into the turn after s = 15 m
+        for s in np.linspace(14.5, 15.5, round(HISTORY_S / expert.settings.dt_s)):
+            expert.remember(NearOpponent("car1", s, float(racing.offset_at(s)), 2.0, leaves_room))
+        opponent = NearOpponent("car1", 15.5, float(racing.offset_at(15.5)), 2.0, leaves_room)
+        expert._ego_speed_mps = 3.0
+        rooms[leaves_room] = expert.pass_rooms(opponent, 14.7)  # 0.8 m behind
+    # on the left the car crosses into the ego's line before it is level, not before it is
+    # alongside; on the right, the lane's edge, there is no room either way
+    assert rooms[False][0] < 0.0 < rooms[True][0]
+    assert rooms[False][1] == rooms[True][1] < 0.0
+
+
 def test_every_driver_is_told_which_cars_leave_room():
     env = gym.make("saferace/RacingLine-v0", track=STRAIGHT_TRACK, opponents=["racer", "expert"])
     env.reset(seed=0)

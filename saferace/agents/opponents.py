@@ -3,9 +3,9 @@
 - ``expert``: the expert MPC on the racing line at ``speed_factor`` of its speed profile,
   blind to the other cars.
 - ``racer``: the traffic expert (:mod:`saferace.agents.traffic_expert`) at ``speed_factor``:
-  it passes and follows the other cars, and leaves a car alongside it room, as the racing
-  rule that collisions are judged by asks (a car moving across into one alongside is at
-  fault); its ``info`` says so (``leaves_room``).
+  it passes and follows the other cars, and leaves a car alongside it room, as racing rules
+  ask (the fault rule blames a car that moves across into one alongside); its ``info``
+  says so (``leaves_room``).
 - ``pure-pursuit``: pure pursuit at a fixed ``lateral_offset_m`` from the centre line.
 - ``lane-changer``: pure pursuit that switches between the lanes at ``+-lateral_offset_m``
   after seeded intervals, as AWS DeepRacer's head-to-bot cars do.
@@ -179,11 +179,13 @@ class ExpertOpponent(_Restorable, MPCExpert):
         self._solver = None
 
 
-class RacerOpponent(_Restorable, TrafficExpert):
+class RacerOpponent(ExpertOpponent, TrafficExpert):
     """The traffic expert on the racing line at the spec's speed factor: it passes and
     follows the other cars as the ego's expert does, and keeps its side of a car alongside
-    it (within ``PASS_LENGTH_M`` behind), so it leaves that car room. Restored as
-    :class:`ExpertOpponent` is, with the cars it remembers."""
+    it (within ``PASS_LENGTH_M`` behind), so it leaves that car room. Reset and restored as
+    :class:`ExpertOpponent` is, with the cars it remembers; it forgets them at an episode's
+    first step (:meth:`TrafficExpert.act`), not at a reset, which the MPC also calls after
+    a failed solve."""
 
     leaves_room = True
     state_attributes: tuple[str, ...] = (
@@ -191,14 +193,7 @@ class RacerOpponent(_Restorable, TrafficExpert):
         "_histories",
         "_sides",
         "_given_up",
-        "_time_s",
     )
-
-    def reset(self, rng: np.random.Generator | None = None) -> None:
-        """As :meth:`ExpertOpponent.reset` (the traffic expert forgets the other cars at
-        the episode's first step)."""
-        super().reset()
-        self._solver = None
 
     def act(self, observation: Any, info: dict[str, Any]) -> np.ndarray:
         """The traffic expert's action, the other cars (``info["cars"]``) its opponents."""

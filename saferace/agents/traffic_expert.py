@@ -141,17 +141,18 @@ class TrafficExpert(MPCExpert):
 
     def pass_rooms(self, opponent: NearOpponent, ego_s: float) -> tuple[float, float]:
         """``(left, right)``: the least room (m) beside ``opponent`` for the ego's centre
-        wherever the two are predicted alongside within ``PASS_HORIZON_S`` (negative: none):
-        behind it, until level, or until alongside it if it leaves room."""
+        where the ego is predicted beside it and behind, until level, within
+        ``PASS_HORIZON_S`` (negative: none); behind a car that leaves room, only where the
+        ego gets alongside (``PASS_LENGTH_M`` behind: one sample)."""
         times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
         s_opponent = opponent.s_m + opponent.v_mps * times
         gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
         before = np.concatenate([[wrap_arc(opponent.s_m - ego_s, self.track.length_m)], gaps[:-1]])
-        # behind it, until level or alongside one that leaves room (or there within a
-        # sample: a fast car closing on a slow one)
-        until = PASS_LENGTH_M if opponent.leaves_room else 0.0
-        crossed = (before > until) & (gaps <= until) & (before - gaps < 0.5 * self.track.length_m)
-        beside = ((gaps > until) & (gaps < PASS_LENGTH_M)) | crossed
+        # until level or alongside, where it gets there even between two samples (a fast
+        # car closing on a slow one); the first term is empty behind a car that leaves room
+        there = PASS_LENGTH_M if opponent.leaves_room else 0.0
+        crossed = (before > there) & (gaps <= there) & (before - gaps < 0.5 * self.track.length_m)
+        beside = ((gaps > there) & (gaps < PASS_LENGTH_M)) | crossed
         upper, lower = self.lane_limits(s_opponent[beside] % self.track.length_m)
         band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
         left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
