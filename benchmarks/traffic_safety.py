@@ -45,42 +45,29 @@ def run(job: tuple[str, str, str, bool]) -> dict:
     """One run's row: what the ego caused, what the opponent caused, the lane, the laps."""
     from saferace.eval.agents import make_agent
     from saferace.eval.filters import FilterConfig
-    from saferace.eval.runner import make_task_env, max_steps_for
-    from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
+    from saferace.eval.runner import make_task_env, max_steps_for, run_episode
 
     track, agent_name, opponent, filtered = job
     env = make_task_env(
         "RacingLine",
         track,
         LAPS,
-        FilterConfig(),
+        FilterConfig(kind="cbf", gains="grip") if filtered else FilterConfig(),
         seed=0,
         opponents=[OPPONENTS[opponent]],
         max_steps=max_steps_for(MAX_SECONDS),
     )
-    if filtered:
-        env = SafetyFilter(env, **GAIN_PRESETS["grip"])
-    agent = make_agent(agent_name, env)
-    observation, info = env.reset(seed=0)
-    caused = suffered = outside_steps = 0
-    while True:
-        observation, _, terminated, truncated, info = env.step(agent.act(observation, info))
-        for collision in info["collisions"]:
-            caused += collision["at_fault"] == "car0"
-            suffered += collision["at_fault"] != "car0"
-        outside_steps += info["outside_lane"]
-        if terminated or truncated:
-            break
+    episode = run_episode(env, make_agent(agent_name, env), seed=0).summary
     env.close()
     return {
         "track": Path(track).stem,
         "agent": agent_name,
         "opponent": opponent,
         "filter": filtered,
-        "ego_caused": caused,
-        "opponent_caused": suffered,
-        "outside_lane_s": outside_steps * env.unwrapped.control_dt_s,
-        "finished": info["lap"] >= LAPS,
+        "ego_caused": episode["at_fault_collisions"],
+        "opponent_caused": episode["collisions"] - episode["at_fault_collisions"],
+        "outside_lane_s": episode["time_outside_lane_s"],
+        "finished": episode["laps_completed"] >= LAPS,
     }
 
 

@@ -144,16 +144,17 @@ class TrafficExpert(MPCExpert):
         where the ego is predicted beside it and behind, until level, within
         ``PASS_HORIZON_S`` (negative: none); behind a car that leaves room, only where the
         ego gets alongside (``PASS_LENGTH_M`` behind: one sample)."""
+        length = self.track.length_m
         times = PASS_STEP_S * np.arange(1, round(PASS_HORIZON_S / PASS_STEP_S) + 1)
         s_opponent = opponent.s_m + opponent.v_mps * times
-        gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), self.track.length_m)
-        before = np.concatenate([[wrap_arc(opponent.s_m - ego_s, self.track.length_m)], gaps[:-1]])
+        gaps = wrap_arc(s_opponent - self.reference_progress_m(ego_s, times), length)
+        before = np.concatenate([[wrap_arc(opponent.s_m - ego_s, length)], gaps[:-1]])
         # until level or alongside, where it gets there even between two samples (a fast
         # car closing on a slow one); the first term is empty behind a car that leaves room
         there = PASS_LENGTH_M if opponent.leaves_room else 0.0
-        crossed = (before > there) & (gaps <= there) & (before - gaps < 0.5 * self.track.length_m)
+        crossed = (before > there) & (gaps <= there) & (before - gaps < 0.5 * length)
         beside = ((gaps > there) & (gaps < PASS_LENGTH_M)) | crossed
-        upper, lower = self.lane_limits(s_opponent[beside] % self.track.length_m)
+        upper, lower = self.lane_limits(s_opponent[beside] % length)
         band_low, band_high = self.predicted_band(opponent, s_opponent[beside])
         left_room = (upper - band_high - PASS_WIDTH_M).min(initial=np.inf)
         right_room = (band_low - PASS_WIDTH_M - lower).min(initial=np.inf)
