@@ -16,6 +16,7 @@ from saferace.safety.conformal import (
     clopper_pearson,
     conformal_quantile,
     coverage,
+    fit_spread_monitor,
     normalised_scores,
 )
 
@@ -71,6 +72,27 @@ def test_a_monitor_threshold_raises_on_at_most_alpha_of_exchangeable_frames():
     spread = np.std(rates) / math.sqrt(len(rates))
     assert np.mean(rates) <= ALPHA + 3 * spread
     assert np.mean(rates) >= ALPHA - 1 / 200 - 3 * spread  # and not needlessly quiet
+
+
+def test_the_spread_monitor_raises_on_alpha_of_like_frames_and_on_a_grown_spread():
+    rng = np.random.default_rng(3)
+
+    def spreads(n: int) -> np.ndarray:
+        return rng.lognormal(np.log([0.02, 0.01]), 0.3, (n, 2))
+
+    rates, grown_rates = [], []
+    for _ in range(100):
+        monitor = fit_spread_monitor(spreads(199), ALPHA)
+        like = spreads(400)
+        rates.append(np.mean([monitor.raises(sigma)[1] for sigma in like]))
+        like[:, 1] *= 3.0  # one output's spread tripled: the network is in doubt
+        grown_rates.append(np.mean([monitor.raises(sigma)[1] for sigma in like]))
+    spread = np.std(rates) / math.sqrt(len(rates))
+    assert ALPHA - 1 / 200 - 3 * spread <= np.mean(rates) <= ALPHA + 3 * spread
+    assert np.mean(grown_rates) > 0.9
+    monitor = fit_spread_monitor(np.array([[1.0, 4.0], [2.0, 2.0], [3.0, 1.0]]), 0.5)
+    assert monitor.reference == (2.0, 2.0)  # the median spread of each output
+    assert monitor.raises(np.array([1.0, 5.0])) == (2.5, monitor.threshold < 2.5)
 
 
 def test_adaptive_conformal_keeps_the_long_run_miss_rate_under_a_shift():

@@ -14,6 +14,7 @@ from saferace.errors import ConfigError
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.safety import predictive
 from saferace.safety.predictive import PredictiveSafetyFilter
+from saferace.safety.state_sources import true_lane_state
 from saferace.track.track_io import write_track_csv
 from tests.track_shapes import paperclip
 
@@ -226,6 +227,39 @@ def test_the_filter_config_builds_the_predictive_filter_with_its_own_model():
     assert set(safety["constraints"]) == set(predictive.PREDICTIVE_CONSTRAINTS)
     assert safety["tightening"]["lane_left"] > 0.05  # the noisy state's interval: z * 0.05 m
     env.close()
+
+
+class TruthInABox:
+    """The true lane state, held to the interval ``truth +- half``."""
+
+    def __init__(self, half: list[float]) -> None:
+        self.half = np.array(half)
+
+    def reset(self, seed: int | None = None) -> None:
+        """Nothing to reset."""
+
+    def samples(self, observation: dict[str, np.ndarray], info: dict) -> np.ndarray:
+        return true_lane_state(info)[None]
+
+    def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return samples[0] - self.half, samples[0] + self.half
+
+
+def test_an_interval_keeps_the_driven_car_its_half_width_further_from_the_edge():
+    """A driver steering hard left on ``lab``'s straight rides the lane's edge behind the
+    filter; known to +-0.12 m, the car rides there less those 0.12 m, not less nothing and
+    not far less."""
+    rides = {}
+    for half_m in (0.0, 0.12):
+        env = PredictiveSafetyFilter(
+            make_env(), state_source=TruthInABox([half_m, 0.0, 0.0]), uncertainty="robust"
+        )
+        env.reset(seed=0, options={"start_speed_mps": 2.0})
+        offsets = [env.step(np.array([0.35, 0.0]))[-1]["e_y_m"] for _ in range(40)]
+        rides[half_m] = max(offsets[20:])  # after it reached the edge
+        env.close()
+    assert rides[0.0] > 0.15  # the driver does push the car to the edge
+    assert rides[0.0] - 0.12 - 0.02 <= rides[0.12] <= rides[0.0] - 0.12 + 0.01, rides
 
 
 def test_noisy_state_tightens_the_lane_and_the_drift_agent_stays_inside(tmp_path: Path):

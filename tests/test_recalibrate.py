@@ -86,3 +86,29 @@ def test_an_adaptive_interval_needs_a_calibrated_checkpoint(
     with pytest.raises(ConfigError, match="adaptive"):
         FilterConfig(kind="cbf", adaptive="oracle")  # the truth needs no adapting
     env.close()
+
+
+def test_the_fitted_interval_covers_its_calibration_frames_as_promised(tiny_checkpoint):
+    """Split conformal's guarantee on the frames it was fitted on: ``mean +- scale * std``
+    of the very predictions it scored covers at least ``1 - alpha`` of them, and a scale a
+    fifth smaller covers fewer (the quantile is no looser than it must be)."""
+    from saferace.learning.calibration import CALIBRATED_OUTPUTS, fit_conformal
+    from saferace.learning.rounds import load_rounds
+    from saferace.learning.training import network_data
+    from saferace.learning.validation import predict_frames
+    from saferace.safety.conformal import coverage
+
+    checkpoint, data = tiny_checkpoint()
+    network, frames = load_checkpoint(checkpoint).state, load_rounds([data])
+    alpha = 0.2
+    calibration = fit_conformal(network, frames, alpha=alpha, n_samples=3, monitor="none")
+    state = network_data(frames)["state"]
+    prediction = predict_frames(network, state, n_samples=3)
+    lane = slice(0, len(CALIBRATED_OUTPUTS))
+    mean, std, truth = prediction.mean[:, lane], prediction.std[:, lane], state.targets[:, lane]
+
+    def covered(scale: float) -> float:
+        return coverage(mean - scale * std, mean + scale * std, truth)[0]
+
+    assert covered(calibration.scale) >= 1.0 - alpha
+    assert covered(0.8 * calibration.scale) < 1.0 - alpha

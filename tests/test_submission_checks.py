@@ -311,29 +311,54 @@ def test_verify_finds_the_edited_row_it_replays(honest_submission: Path, tmp_pat
     ), result.stderr
 
 
-def test_verify_finds_a_collision_hidden_with_its_scores_recomputed(
-    honest_submission: Path, tmp_path: Path
+def hide_the_collisions(row: dict) -> str:
+    row["at_fault_collisions"] = row["collisions"] = 0
+    return "collisions was 0, replayed "
+
+
+def shift_the_blame(row: dict) -> str:
+    """The collisions stay counted, but none is the agent's any more."""
+    was = row["at_fault_collisions"]
+    row["at_fault_collisions"] = 0
+    return f"at_fault_collisions was 0, replayed {was}"
+
+
+def claim_an_overtake(row: dict) -> str:
+    was = row["overtakes"]
+    row["overtakes"] = was + 1
+    return f"overtakes was {was + 1}, replayed {was}"
+
+
+#: An edit of a traffic row that its scores are recomputed after, and the rows it applies to.
+TRAFFIC_EDITS = {
+    hide_the_collisions: lambda row: bool(row.get("at_fault_collisions")),
+    shift_the_blame: lambda row: bool(row.get("at_fault_collisions")),
+    claim_an_overtake: lambda row: row.get("overtakes") == 0,
+}
+
+
+@pytest.mark.parametrize("edit", list(TRAFFIC_EDITS), ids=lambda edit: edit.__name__)
+def test_verify_finds_a_traffic_count_edited_with_its_scores_recomputed(
+    honest_submission: Path, tmp_path: Path, edit
 ):
     edited = json.loads(honest_submission.read_text())
     keys = [row["key"] for row in edited["rows"]]
     rows = dict(zip(keys, edited["rows"], strict=True))
-    seed = next(  # a draw that replays a run in which pure pursuit ran into the braking car
-        seed
-        for seed in range(1000)
-        if rows[choose_runs(keys, 1, seed)[0]].get("at_fault_collisions")
+    seed = next(  # a draw that replays a run the edit applies to
+        seed for seed in range(1000) if TRAFFIC_EDITS[edit](rows[choose_runs(keys, 1, seed)[0]])
     )
     [replayed] = choose_runs(keys, 1, seed)
     row = rows[replayed]
-    row["at_fault_collisions"] = row["collisions"] = 0
+    expected = edit(row)
     suite = load_suite()
     row.update(scored(row, RunSpec.of_row(row), suite))
     edited.update(totals(edited["rows"], suite))
-    path = tmp_path / "hidden.json"
+    path = tmp_path / "edited.json"
     path.write_text(json.dumps(edited))
     check_submission(json.loads(path.read_text()), str(path))  # consistent on its face
     result = verify_submission(path, runs=1, seed=seed, progress=False, records=tmp_path / "r")
     assert not result.passed
-    assert result.mismatches[0].startswith(f"run {replayed}: collisions was 0, replayed ")
+    assert result.mismatches[0].startswith(f"run {replayed}: {expected}"), result.mismatches
 
 
 def test_verify_refuses_an_agent_file_swapped_after_the_runs(

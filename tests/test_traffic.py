@@ -29,6 +29,7 @@ from saferace.envs.reference_lines import reference_line
 from saferace.envs.traffic import OpponentSpec, opponent_specs
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
+from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.multi import parallel_env
 from saferace.names import RC10_BUMPER_HALF_EXTENTS_M
 from saferace.safety.car_barriers import (
@@ -458,6 +459,28 @@ def test_the_car_barrier_brakes_for_a_car_braking_hard_ahead(opponent_noise_m: f
     assert not any(info["outside_lane"] for info in infos)
 
 
+def test_the_opponent_noise_asked_of_the_filter_config_widens_and_blurs_the_car_barrier():
+    """1.5 m behind a car, first step: the barrier's value is the same on every seed for a
+    filter that sees the opponents as they are; with 5 cm of noise (set through the filter
+    config, as every command does) the prediction differs per seed and the widened ellipse
+    leaves less room on every one."""
+    env = gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(1.5)])
+    first_values = {}
+    for noise_m in (0.0, 0.05):
+        config = FilterConfig(kind="cbf", gains="grip", opponent_noise_m=noise_m)
+        filtered = apply_filter(env, config, seed=0)
+        values = []
+        for seed in range(6):
+            filtered.reset(seed=seed, options={"start_speed_mps": 3.0})
+            info = filtered.step(np.array([0.0, 4.0]))[-1]
+            values.append(info["safety"]["barriers"]["car1"])
+        first_values[noise_m] = np.array(values)
+    exact, noisy = first_values[0.0], first_values[0.05]
+    assert np.ptp(exact) == 0.0 and np.ptp(noisy) > 0.1, noisy  # the predictions are noisy
+    assert noisy.max() < 0.8 * exact[0], (noisy, exact[0])  # and the semi-axes widened
+    env.close()
+
+
 def test_the_car_barrier_steers_away_from_a_car_alongside():
     env = SafetyFilter(
         gym.make("saferace/CenterLine-v0", track=STRAIGHT_TRACK, opponents=[external(0.0, 0.4)]),
@@ -466,7 +489,11 @@ def test_the_car_barrier_steers_away_from_a_car_alongside():
     env.reset(seed=0, options={"start_speed_mps": 2.0})
     collisions, infos = drive(env, np.array([0.2, 0.0]), {"car1": np.zeros(2)}, steps=30)
     assert collisions == []
-    assert infos[0]["safety"]["filtered_action"][0] < 0.18  # steered less to the left
+    first = infos[0]["safety"]
+    # Alone, the lane barrier lets 0.15 rad of the 0.2 through; beside the car the car barrier
+    # turns the car away to the right, without braking or handing over to a fallback.
+    assert first["filtered_action"][0] < 0.0, first["filtered_action"]
+    assert first["filtered_action"][1] > -1.0 and first["fallback"] == "", first
 
 
 def test_opponent_predictions_wrap_the_lap_and_take_the_speed_along_the_track():
