@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from cli_helpers import first_line
 
 from saferace.errors import SafeRaceError
 from saferace.eval.filter_config import FilterConfig
@@ -213,12 +214,15 @@ DaggerRun({out!r}, TINY, progress=False).run()
 """
 #: Printed by a run stopped at its point, where it waits to be killed.
 STOPPED = "stopped"
+#: Frames a killed drive had recorded (iteration 1 of TINY drives 10 to 20).
+FRAMES_BEFORE_THE_KILL = 5
 
 
 def stop_at(point: str, out: str) -> None:
     """Make this process's DAgger run in ``out`` print :data:`STOPPED` and wait at ``point``:
-    ``round 1`` (iteration 1 driven, its round not yet written) or ``resume 2`` (the first
-    epoch of iteration 2's training saved to its resume file), so a kill lands there."""
+    ``driving 1`` (iteration 1's car :data:`FRAMES_BEFORE_THE_KILL` steps into its drive)
+    or ``resume 2`` (the first epoch of iteration 2's training saved to its resume file),
+    so a kill lands there."""
     from saferace.learning import collect, training
     from saferace.learning.rounds import next_round_index
 
@@ -228,19 +232,21 @@ def stop_at(point: str, out: str) -> None:
         print(STOPPED, flush=True)
         time.sleep(3600)
 
-    write_round, save_atomically = collect.write_round, training.save_atomically
+    after_step, save_atomically = collect.LabellingDriver.after_step, training.save_atomically
 
-    def write_round_then(dataset_dir, *args, **kwargs):
-        if point == "round 1" and next_round_index(dataset_dir) == 1:
+    def after_step_then(driver, *args, **kwargs):
+        after_step(driver, *args, **kwargs)
+        driving_1 = point == "driving 1" and next_round_index(layout.data_dir) == 1
+        if driving_1 and len(driver.frames["image"]) == FRAMES_BEFORE_THE_KILL:
             wait()
-        return write_round(dataset_dir, *args, **kwargs)
 
     def save_then(state, path):
         save_atomically(state, path)
         if point == "resume 2" and Path(path) == layout.resume(2):
             wait()
 
-    collect.write_round, training.save_atomically = write_round_then, save_then
+    collect.LabellingDriver.after_step = after_step_then
+    training.save_atomically = save_then
 
 
 def kill_at(point: str, out: Path) -> None:
@@ -248,7 +254,7 @@ def kill_at(point: str, out: Path) -> None:
     script = RUNNER.format(tests=str(Path(__file__).parent), point=point, out=str(out))
     process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:
-        assert process.stdout.readline().strip() == STOPPED, f"the run never reached {point}"
+        assert first_line(process) == STOPPED, f"the run never reached {point}"
     finally:
         os.kill(process.pid, signal.SIGKILL)
         process.wait()
@@ -259,8 +265,9 @@ def test_killed_while_driving_and_while_training_it_ends_with_the_same_rounds(
 ):
     out = tmp_path / "killed"
     run = DaggerRun(out, TINY, progress=False)
-    kill_at("round 1", out)
+    kill_at("driving 1", out)
     assert run.layout.checkpoint(1).exists() and not run.layout.round(1).exists()
+    assert not list(run.layout.data_dir.glob(".partial-*"))  # killed before any write
     kill_at("resume 2", out)
     assert run.layout.resume(2).exists() and not run.layout.checkpoint(2).exists()
     losses = []  # one per gradient step the finishing run takes

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_helpers import first_line
 
 from saferace.errors import SafeRaceError
 from saferace.learning.rounds import (
@@ -133,7 +134,7 @@ def test_a_kill_mid_write_leaves_only_complete_rounds(tmp_path: Path):
     script = WRITER.format(tests=str(Path(__file__).parent), dataset=str(dataset))
     writer = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     try:
-        assert writer.stdout.readline().strip() == "stopped"
+        assert first_line(writer) == "stopped"
     finally:
         os.kill(writer.pid, signal.SIGKILL)
         writer.wait()

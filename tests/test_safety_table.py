@@ -62,6 +62,18 @@ def test_table_command_writes_tables_and_resumes(tmp_path: Path):
     assert (out / "reckless_paths.png").stat().st_size > 10_000
     second = run_cli(*args, "--out", str(out))  # everything is done: nothing runs again
     assert second.returncode == 0 and len(read_jsonl(out / "runs.jsonl")) == len(rows)
+    # Killed while writing its 30th row: 29 whole rows and a torn one are on disk.
+    lines = (out / "runs.jsonl").read_text().splitlines(keepends=True)
+    (out / "runs.jsonl").write_text("".join(lines[:29]) + lines[29][: len(lines[29]) // 2])
+    resumed = run_cli(*args, "--out", str(out))
+    assert resumed.returncode == 0, resumed.stderr
+    again = read_jsonl(out / "runs.jsonl")
+    assert len(again) == len(rows)  # the torn row and the rows after it ran again, once each
+
+    def measured(row: dict) -> tuple:
+        return row["agent"], row["task"], row["track_arg"], row["summary"], row["trajectory"]
+
+    assert sorted(map(measured, again), key=str) == sorted(map(measured, rows), key=str)
 
 
 def test_table_over_two_workers_gives_the_serial_rows(tmp_path: Path):

@@ -218,3 +218,30 @@ def test_the_filter_brakes_a_car_riding_the_centre_of_a_cut_turn(tmp_path: Path)
     assert on_line.barriers["speed"] > 0.0 > centred.barriers["speed"] + 0.5
     assert centred.filtered_action[1] < on_line.filtered_action[1] - 1.0
     env.close()
+
+
+def test_a_parallels_limit_is_its_circles_and_braked_for_on_the_straight_before_it(
+    tmp_path: Path,
+):
+    """In the middle of a 1.5 m half circle (left turn), the parallel ``e`` from the centre
+    runs on a circle of ``1.5 - e``: its limit is ``sqrt(a (1.5 - e))``, worked out here by
+    hand, not by the code that plans with it. On the straight before the turn no parallel
+    asks for more than braking at ``decel`` to the middle reaches. (The predictive filter's
+    tests check that its plans are held to these limits.)"""
+    from saferace.track.track_io import write_track_csv
+    from tests.track_shapes import paperclip
+
+    path = tmp_path / "paperclip.csv"
+    write_track_csv(path, *paperclip(legs_apart_m=3.0, straight_m=12.0), 0.6, 0.6)
+    env = gym.make("saferace/RacingLine-v0", track=str(path))
+    base = env.unwrapped
+    lateral_mps2, decel_mps2, radius_m = 4.0, 3.0, 1.5
+    limit = LaneSpeedLimit(base.track, base.reference, 1.0, decel_mps2, 5.0, lateral_mps2)
+    middle_s_m, entry_s_m = 12.0 + 0.5 * math.pi * radius_m, 12.0
+    for offset_m in (-0.5, -0.2, 0.0, 0.3, 0.5):
+        circle = math.sqrt(lateral_mps2 * (radius_m - offset_m))
+        assert limit.parallel_limit(middle_s_m, offset_m) == pytest.approx(circle, rel=1e-3)
+        to_middle_m = 2.0 + 0.5 * math.pi * (radius_m - offset_m)  # along the parallel
+        reach = math.sqrt(circle**2 + 2.0 * decel_mps2 * to_middle_m)
+        assert circle < limit.parallel_limit(entry_s_m - 2.0, offset_m) <= reach, offset_m
+    env.close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import platform
 import subprocess
 from collections.abc import Callable
@@ -11,7 +12,7 @@ from dataclasses import dataclass
 from functools import cache
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import gymnasium as gym
 import numpy as np
@@ -43,6 +44,7 @@ from saferace.track import Track, builtin_track_names
 from saferace.version import __version__
 
 TASK_IDS = {**LANE_TASK_IDS, **TRAFFIC_TASK_IDS}
+LOG = logging.getLogger(__name__)
 RECORDED_PACKAGES = ("mujoco", "numpy", "osqp", "gymnasium", "torch", "torchvision")
 
 
@@ -323,18 +325,40 @@ def _solve_times_ms(solve_times_s, step_times_s) -> dict[str, float]:
 
 
 def append_jsonl(path: str | Path, row: dict) -> None:
-    """Append one row and flush it to disk."""
+    """Append one row and flush it to disk; a torn last row (a write cut off by a kill) is
+    dropped first, so that the rows written after it stay readable."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a") as handle:
-        handle.write(json.dumps(row) + "\n")
+    with open(path, "ab+") as handle:
+        _drop_torn_tail(handle)
+        handle.write((json.dumps(row) + "\n").encode())
         handle.flush()
 
 
+def _drop_torn_tail(handle: BinaryIO) -> None:
+    """Truncate a file open for appending after its last newline."""
+    size = handle.seek(0, 2)
+    if not size:
+        return
+    handle.seek(size - 1)
+    if handle.read(1) == b"\n":
+        return
+    handle.seek(0)
+    handle.truncate(handle.read().rfind(b"\n") + 1)
+
+
 def read_jsonl(path: str | Path) -> list[dict]:
-    """Rows of a results file (blank lines skipped)."""
+    """Rows of a results file (blank lines skipped; a torn last row, a write cut off by a
+    kill, is left out with a warning)."""
     with open(path) as handle:
-        return [json.loads(line) for line in handle if line.strip()]
+        lines = handle.read().split("\n")
+    rows = [json.loads(line) for line in lines[:-1] if line.strip()]
+    if lines[-1].strip():
+        try:
+            rows.append(json.loads(lines[-1]))
+        except json.JSONDecodeError:
+            LOG.warning("%s: its last row was cut off (an interrupted run): left out", path)
+    return rows
 
 
 @cache
