@@ -9,7 +9,9 @@ import math
 import numpy as np
 import pytest
 
+from saferace.errors import SafeRaceError
 from saferace.safety.conformal import (
+    MAX_STORED_SCORES,
     AdaptiveConformal,
     ConformalCalibration,
     calibrate,
@@ -56,6 +58,39 @@ def test_the_quantile_is_the_ceil_rank_and_infinite_when_too_few():
     assert conformal_quantile(scores[:10], 0.05) == math.inf  # rank 11 of 10
     with pytest.raises(ValueError, match="alpha"):
         conformal_quantile(scores, 1.5)
+    assert conformal_quantile(scores[:19], 0.05) == 19.0  # rank 19 of 19: the largest
+    for edge in (0.0, 1.0):
+        with pytest.raises(ValueError, match="alpha"):
+            conformal_quantile(scores, edge)
+
+
+def test_coverage_counts_the_interval_closed_and_its_band_is_the_exact_one():
+    from scipy.stats import binomtest
+
+    truth = np.array([[0.0, 1.0], [1.0, 0.5], [2.0, 0.5], [0.5, 0.5]])
+    lower, upper = np.zeros(2), np.ones(2)
+    share, band = coverage(lower, upper, truth)
+    assert share == 0.75  # the ends belong to the interval; 2.0 lies outside
+    assert band == clopper_pearson(3, 4)
+    for successes, trials in ((3, 4), (0, 7), (7, 7), (37, 40)):
+        exact = binomtest(successes, trials).proportion_ci(0.95, method="exact")
+        expected = (exact.low, exact.high)
+        assert clopper_pearson(successes, trials) == pytest.approx(expected, abs=1e-9)
+    exact = binomtest(37, 40).proportion_ci(0.9, method="exact")
+    assert clopper_pearson(37, 40, 0.9) == pytest.approx((exact.low, exact.high), abs=1e-9)
+
+
+def test_a_calibration_keeps_its_extreme_scores_and_evenly_spaced_ranks():
+    rng = np.random.default_rng(4)
+    for frames in (30, 2500):
+        calibration = calibrate(*heteroscedastic(rng, frames), alpha=ALPHA, monitor_alpha=None)
+        kept = np.array(calibration.scores)
+        assert len(kept) == min(frames, MAX_STORED_SCORES) and np.all(np.diff(kept) >= 0)
+    mean, sigma, truth = heteroscedastic(np.random.default_rng(5), 2500)
+    scores = np.sort(normalised_scores(mean, sigma, truth))
+    kept = np.array(calibrate(mean, sigma, truth, ALPHA, None).scores)
+    assert kept[0] == scores[0] and kept[-1] == scores[-1]
+    assert kept[MAX_STORED_SCORES // 2] == pytest.approx(np.median(scores), rel=0.02)
 
 
 def test_normalised_scores_take_the_worst_output():
@@ -93,6 +128,24 @@ def test_the_spread_monitor_raises_on_alpha_of_like_frames_and_on_a_grown_spread
     monitor = fit_spread_monitor(np.array([[1.0, 4.0], [2.0, 2.0], [3.0, 1.0]]), 0.5)
     assert monitor.reference == (2.0, 2.0)  # the median spread of each output
     assert monitor.raises(np.array([1.0, 5.0])) == (2.5, monitor.threshold < 2.5)
+    at_threshold = np.array(monitor.reference) * monitor.threshold
+    assert monitor.raises(at_threshold) == (pytest.approx(monitor.threshold), False)  # above it
+
+
+def test_adaptive_conformal_edges_of_the_level():
+    scores = np.arange(1.0, 101.0)
+    with pytest.raises(SafeRaceError, match="gamma"):
+        AdaptiveConformal(scores, ALPHA, 0.0)
+    adaptive = AdaptiveConformal(scores, ALPHA, 0.01)
+    assert adaptive.scale == 96.0
+    for level, scale in ((0.0, math.inf), (-0.1, math.inf), (1.0, 0.0), (1.5, 0.0)):
+        adaptive.alpha_t = level
+        assert adaptive.scale == scale, level
+    adaptive.alpha_t = ALPHA
+    adaptive.update(missed=True)  # a miss lowers the level, widening the interval
+    assert adaptive.alpha_t == pytest.approx(ALPHA + 0.01 * (ALPHA - 1.0))
+    adaptive.update(missed=False)
+    assert adaptive.alpha_t == pytest.approx(ALPHA + 0.01 * (2 * ALPHA - 1.0))
 
 
 def test_adaptive_conformal_keeps_the_long_run_miss_rate_under_a_shift():
