@@ -3,7 +3,9 @@ need when it is missing."""
 
 from __future__ import annotations
 
+import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -42,3 +44,18 @@ def test_sb3_ppo_trains_through_the_filter_and_drives(tmp_path: Path):
     assert 0.0 < float(trained.group(2)) <= 100.0  # the filter was in the loop
     assert "evaluation:" in result.stdout
     assert (tmp_path / "ppo_saferace.zip").stat().st_size > 10_000
+
+
+def test_my_agent_loads_from_the_current_folder_through_the_console_script(tmp_path: Path):
+    """``saferace eval --agent my_agent:make`` beside ``my_agent.py``, as the docs show: the
+    console script (unlike ``python -m``) does not put the current folder on the path."""
+    shutil.copy(EXAMPLES / "my_agent.py", tmp_path)
+    console_script = Path(sys.executable).parent / "saferace"
+    result = subprocess.run(
+        [str(console_script), "eval", "--agent", "my_agent:make", "--track", "lab",
+         "--max-seconds", "2", "--out", "rows.jsonl"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    [row] = [json.loads(line) for line in (tmp_path / "rows.jsonl").read_text().splitlines()]
+    assert row["agent"] == "my_agent:make" and row["summary"]["mean_abs_deviation_m"] < 0.1

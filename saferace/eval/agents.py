@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
@@ -79,8 +81,12 @@ def agent_files(spec: str) -> list[Path]:
 
 
 def load_entry_point(path: str) -> Callable:
-    """The object named by ``MODULE:NAME``."""
+    """The object named by ``MODULE:NAME``; the module is found in the current folder too,
+    as ``python -m`` finds it (the ``saferace`` console script alone would not)."""
     module_name, _, name = path.partition(":")
+    here = os.getcwd()
+    if here not in sys.path and "" not in sys.path:
+        sys.path.append(here)
     try:
         return getattr(importlib.import_module(module_name), name)
     except (ImportError, AttributeError) as exc:
