@@ -51,3 +51,44 @@ def test_interval_points_are_the_corners_and_the_centre(degenerate: int, count: 
     np.testing.assert_allclose(points.min(axis=0), lower)
     np.testing.assert_allclose(points.max(axis=0), upper)
     np.testing.assert_allclose(points[-1], 0.5 * (lower + upper))
+
+
+class FixedSamples:
+    """The same samples every step, and the features a network saw (``None``: none)."""
+
+    def __init__(self, samples: np.ndarray, features: np.ndarray | None = None) -> None:
+        self._samples, self.last_features = samples, features
+
+    def reset(self, seed: int | None = None) -> None:
+        """Nothing to reset."""
+
+    def samples(self, observation: dict, info: dict) -> np.ndarray:
+        return self._samples
+
+
+def test_a_conformal_source_asks_its_calibrations_own_monitor():
+    from saferace.errors import SafeRaceError
+    from saferace.safety.conformal import SpreadMonitor, fit_feature_monitor
+
+    narrow = np.array([[0.0, 0.0, 0.5], [0.02, 0.01, 0.5]])  # spreads 0.01, 0.005
+    wide = np.array([[0.0, 0.0, 0.5], [0.2, 0.01, 0.5]])  # the offset's spread ten times
+    spread = SpreadMonitor(reference=(0.01, 0.005), threshold=2.0, alpha=0.05)
+    for samples, alarm in ((narrow, False), (wide, True)):
+        source = ConformalStateSource(
+            FixedSamples(samples), ConformalCalibration(0.05, 3.0, 99, spread)
+        )
+        score, raised = source.monitor(source.samples({}, INFO))
+        assert raised is alarm and score == pytest.approx(1.0 if not alarm else 10.0)
+    unmonitored = ConformalStateSource(FixedSamples(wide), ConformalCalibration(0.05, 3.0, 99))
+    assert unmonitored.monitor(wide) == (None, False)
+
+    rng = np.random.default_rng(0)
+    features = fit_feature_monitor(rng.normal(0.0, 1.0, (200, 8)), 0.05)
+    calibration = ConformalCalibration(0.05, 3.0, 99, features)
+    for seen, alarm in ((np.zeros(8), False), (np.full(8, 10.0), True)):
+        source = ConformalStateSource(FixedSamples(narrow, seen), calibration)
+        assert source.monitor(narrow) == features.raises(seen)
+        assert source.monitor(narrow)[1] is alarm
+    blind = ConformalStateSource(OracleStateSource(), calibration)
+    with pytest.raises(SafeRaceError, match="--monitor spread"):
+        blind.monitor(narrow)
