@@ -155,3 +155,25 @@ def test_a_fork_takes_the_state_networks_of_the_run_it_forks(tmp_path):
         assert config.training.state_uncertainty == method
     with pytest.raises(SafeRaceError, match="holds no DAgger run"):
         built_filter("dagger", "--fork-of", str(tmp_path / "nothing"))
+
+
+def test_tracks_lists_every_built_in_track_with_its_numbers_and_how_to_bring_a_csv(capsys):
+    from saferace.cli import main
+    from saferace.track import Track, builtin_track_names
+
+    assert main(["tracks"]) == 0
+    printed = capsys.readouterr().out
+    table = [line.split("|")[1:5] for line in printed.splitlines()[2:] if line.startswith("|")]
+    rows = {name.strip(): values for name, *values in table}
+    assert sorted(rows) == builtin_track_names()
+    for name, (length, width, radius) in rows.items():
+        track = Track.load(name)
+        assert float(length) == pytest.approx(track.length_m, abs=0.05)
+        assert float(radius) == pytest.approx(track.min_turn_radius_m(), abs=0.005)
+        assert float(width.split("-")[0]) <= float(width.split("-")[-1])
+    assert [rows[name][1].strip() for name in ("lab", "varying")] == ["0.80", "0.80-1.50"]
+    assert "x_m,y_m,w_tr_right_m,w_tr_left_m" in printed
+    with pytest.raises(SystemExit):
+        main(["track-info", "--help"])
+    usage = capsys.readouterr().out
+    assert all(name in usage for name in builtin_track_names())

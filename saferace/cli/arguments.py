@@ -20,9 +20,13 @@ from saferace.names import (
     SQUARED_SLACK,
     STATE_SOURCE_KINDS,
 )
+from saferace.track import builtin_track_names
 
 AGENT_HELP = "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY"
-TRACK_HELP = "built-in track name or track CSV path"
+TRACK_HELP = (
+    f"built-in track ({', '.join(builtin_track_names())}; saferace tracks describes them) or "
+    "track CSV path"
+)
 
 
 def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -> None:

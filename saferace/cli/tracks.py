@@ -1,4 +1,4 @@
-"""Track commands: ``raceline``, ``track-info`` and ``snapshots``."""
+"""Track commands: ``tracks``, ``raceline``, ``track-info`` and ``snapshots``."""
 
 from __future__ import annotations
 
@@ -9,8 +9,23 @@ from saferace.cli import example
 from saferace.cli.arguments import TRACK_HELP, add_track_arguments
 from saferace.errors import SafeRaceError
 
+#: How to drive a track of one's own, after the list of the built-in ones.
+OWN_TRACK_HOWTO = (
+    "Any command's --track (or track argument) takes one of these names or the path of a CSV "
+    "with the header x_m,y_m,w_tr_right_m,w_tr_left_m (a closed centre line with the lane's "
+    "widths right and left, as the TUM and F1TENTH track files have): "
+    "saferace track-info my_track.csv checks it."
+)
+
 
 def register(commands: argparse._SubParsersAction) -> None:
+    listing = commands.add_parser(
+        "tracks",
+        help="the built-in tracks: length, lane width, tightest turn; and how to use a CSV",
+        epilog=example("saferace tracks"),
+    )
+    listing.set_defaults(command=_tracks)
+
     raceline = commands.add_parser(
         "raceline",
         help="minimum-curvature racing line and speed profiles of a track",
@@ -85,6 +100,17 @@ def _plot(args: argparse.Namespace, report) -> None:
 
         plot_reference_lines(report.track, report.center, report.racing, args.plot)
         print(f"plot written to {args.plot}")
+
+
+def _tracks(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table
+    from saferace.track.report import builtin_track_rows
+
+    headers = ["track", "length [m]", "lane width [m]", "tightest centre-line radius [m]"]
+    print(markdown_table(headers, builtin_track_rows()))
+    print()
+    print(OWN_TRACK_HOWTO)
+    return 0
 
 
 def _raceline(args: argparse.Namespace) -> int:

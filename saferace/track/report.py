@@ -15,7 +15,7 @@ import numpy as np
 from saferace.errors import SafeRaceError
 from saferace.track.raceline import RacingLineSettings, ReferenceLine, center_line, racing_line
 from saferace.track.smoothing import SmoothingKeeps
-from saferace.track.track import Track
+from saferace.track.track import Track, builtin_track_names
 from saferace.track.vehicle_envelope import VehicleEnvelope
 
 
@@ -29,10 +29,7 @@ class TrackReport:
 
     @property
     def lane_width_range_m(self) -> tuple[float, float]:
-        s = self.track.centerline.knot_s_m[:-1]
-        w_right, w_left = self.track.widths(s)
-        width = w_right + w_left
-        return float(width.min()), float(width.max())
+        return lane_width_range_m(self.track)
 
     def rows(self) -> list[list]:
         """``[quantity, value]`` rows of the report."""
@@ -62,6 +59,26 @@ class TrackReport:
             ["racing line: faster by [%]", 100.0 * (1.0 - racing.lap_time_s / center.lap_time_s)],
             ["top speed, racing line [m/s]", float(np.max(racing.vx_mps))],
         ]
+
+
+def lane_width_range_m(track: Track) -> tuple[float, float]:
+    """The narrowest and widest lane of ``track`` over its points."""
+    w_right, w_left = track.widths(track.centerline.knot_s_m[:-1])
+    width = w_right + w_left
+    return float(width.min()), float(width.max())
+
+
+def builtin_track_rows() -> list[list]:
+    """``[name, length, lane width, tightest radius]`` of every built-in track."""
+    rows = []
+    for name in builtin_track_names():
+        track = Track.load(name)
+        narrowest, widest = lane_width_range_m(track)
+        width = (
+            f"{narrowest:.2f}" if widest - narrowest < 0.005 else f"{narrowest:.2f}-{widest:.2f}"
+        )
+        rows.append([name, f"{track.length_m:.1f}", width, f"{track.min_turn_radius_m():.2f}"])
+    return rows
 
 
 def track_report(
