@@ -153,6 +153,27 @@ def run_without(modules: tuple[str, ...], code: str, cwd: Path) -> subprocess.Co
     )  # fmt: skip
 
 
+def test_rerun_and_captum_load_only_to_record_and_to_draw_gradcam(tmp_path: Path):
+    """Driving without a recording and training need neither (rerun-sdk is 170 MB, and a
+    GPU machine's offline install leaves it behind)."""
+    result = run_without(
+        ("rerun", "captum"),
+        "from saferace.cli import main\n"
+        "import saferace.learning.commands\n"
+        "sys.exit(main(['drive', '--agent', 'expert', '--track', 'lab']))",
+        cwd=tmp_path,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    recording = run_without(
+        ("rerun",),
+        "from saferace.cli import main\n"
+        "main(['drive', '--agent', 'expert', '--track', 'lab', "
+        "'--rerun', 'x.rrd'])",
+        cwd=tmp_path,
+    )
+    assert recording.returncode != 0 and "rerun" in recording.stderr
+
+
 def test_a_command_needing_ray_names_the_extra(tmp_path: Path):
     out = tmp_path / "bench.json"
     result = run_without(

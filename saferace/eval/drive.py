@@ -11,7 +11,6 @@ import numpy as np
 from saferace.envs.unwrap import racing_env
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
-from saferace.eval.recording import EpisodeRecording
 from saferace.eval.runner import EpisodeResult, make_task_env, run_episode, task_id
 from saferace.eval.video import VideoWriter, onboard_panel, side_by_side
 from saferace.track.raceline import center_line, racing_line
@@ -48,6 +47,8 @@ def drive(
     writer = VideoWriter(video, fps=base.metadata["render_fps"]) if video else None
     recording = None
     if rerun:
+        from saferace.eval.recording import EpisodeRecording  # rerun-sdk only when recording
+
         recording = EpisodeRecording(
             rerun,
             base.track,

@@ -25,7 +25,6 @@ from saferace.eval.runner import run_episode, task_id
 from saferace.learning.agent import check_image_shape
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
 from saferace.learning.ensemble import StateEnsemble
-from saferace.learning.gradcam import gradcam_sheet, write_sheet
 from saferace.learning.plots import first_lap, plot_losses, plot_state_along_lap
 from saferace.learning.rounds import FrameSet, load_rounds
 from saferace.learning.training import TrainConfig, held_out_mask, network_data, train_networks
@@ -159,6 +158,8 @@ def gradcam_report(
         )
     finally:
         env.close()
+    from saferace.learning.gradcam import gradcam_sheet, write_sheet  # captum only here
+
     state = loaded.state.members[0] if isinstance(loaded.state, StateEnsemble) else loaded.state
     networks = {"control": loaded.control, "state": state}  # an ensemble's first member
     chosen = np.linspace(0, len(observations) - 1, frames).round().astype(int)
