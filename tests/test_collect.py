@@ -92,7 +92,7 @@ def test_collect_command_adds_rounds(tmp_path: Path):
     raw_image_bytes = 64 * 64 * 3  # 12 kB uncompressed
     assert bytes_per_frame < 0.5 * raw_image_bytes  # compressed: a frame and its labels
     bad = run_cli(*args, "--perturb", "-0.1", "--out", str(out))
-    assert bad.returncode == 2 and "--perturb needs a non-negative" in bad.stderr
+    assert bad.returncode == 2 and "--perturb: must be at least 0" in bad.stderr
 
 
 def test_a_round_over_two_workers_is_the_serial_round(tmp_path: Path):

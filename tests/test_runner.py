@@ -163,4 +163,5 @@ def test_eval_rows_and_leaderboard(tmp_path: Path):
 def test_leaderboard_without_results_is_a_clear_error(tmp_path: Path):
     result = run_cli("leaderboard", str(tmp_path / "missing.jsonl"))
     assert result.returncode == 2
-    assert "no results file" in result.stderr and "Traceback" not in result.stderr
+    assert "results: no such file or folder" in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1

@@ -79,5 +79,6 @@ def test_the_sweep_tabulates_and_plots_each_method_by_severity(tmp_path: Path, c
     assert shifted["coverage [%] (95% band)"].startswith("15.0 (")
     assert shifted["time outside lane [s]"] == pytest.approx(0.6) and shifted["runs outside"] == 2
     assert rows[("honest", "severity-5")]["runs outside"] == 0
-    assert main(["shift-sweep", str(honest), "--out", str(out)]) != 0
+    with pytest.raises(SystemExit, match="2"):
+        main(["shift-sweep", str(honest), "--out", str(out)])
     assert "LABEL=FOLDER" in capsys.readouterr().err

@@ -140,7 +140,7 @@ def test_the_filter_sees_the_opponents_with_the_noise_asked_for(tmp_path: Path):
     assert "opponents seen with 0.05 m noise" in result.stdout
     for refused, reason in (
         (("--opponent-noise", "0.05"), "need --filter cbf"),
-        (("--filter", "cbf", "--opponent-noise", "-1"), "must not be negative"),
+        (("--filter", "cbf", "--opponent-noise", "-1"), "--opponent-noise: must be at least 0"),
         (("--filter", "mpsf", "--opponent-noise", "0.05"), "the predictive filter (mpsf) has none"),
     ):
         result = run_cli(*common, *refused, "--out", str(tmp_path / "no.jsonl"))

@@ -12,7 +12,7 @@ import argparse
 import importlib
 import logging
 import sys
-from typing import Any
+from typing import Any, NoReturn
 
 from saferace.cli.options import FLAGS_KEY
 from saferace.errors import ConfigError, SafeRaceError
@@ -31,24 +31,27 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
         return super()._get_help_string(action)
 
 
-class _CommandParser(argparse.ArgumentParser):
-    """A command's parser: formats its help as the top-level parser does."""
+class _Parser(argparse.ArgumentParser):
+    """Formats its help with :class:`HelpFormatter`, and refuses bad arguments in one line
+    (``saferace eval: error: argument --laps: must be at least 1, got -1``) with exit
+    status 2; ``--help`` shows the usage."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``saferace`` parser with every command (also what the docs' reference renders)."""
-    parser = argparse.ArgumentParser(
-        prog="saferace", description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
-    )
+    parser = _Parser(prog="saferace", description=__doc__.split("\n\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     commands = parser.add_subparsers(
         required=True,
         metavar="COMMAND",
-        parser_class=_CommandParser,
+        parser_class=_Parser,
     )
     for name in COMMAND_MODULES:
         importlib.import_module(f"saferace.cli.{name}").register(commands)

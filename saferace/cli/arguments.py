@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from saferace.cli import values
 from saferace.cli.options import add_config_options
 from saferace.errors import SafeRaceError
 from saferace.names import (
@@ -38,14 +39,16 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
         choices=DRIVING_TASKS,
         help="the reference line to follow (Overtake: the racing line behind a slower car)",
     )
-    group.add_argument("--track", default="technical", help=TRACK_HELP)
+    group.add_argument("--track", type=values.track, default="technical", help=TRACK_HELP)
     group.add_argument("--agent", default=default_agent, help=AGENT_HELP)
-    group.add_argument("--laps", type=int, default=1, help="laps per episode")
-    group.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
+    group.add_argument("--laps", type=values.count, default=1, help="laps per episode")
+    group.add_argument(
+        "--image-size", type=values.image_size, default=64, help="onboard image height and width"
+    )
     group.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
     group.add_argument(
         "--mc-samples",
-        type=int,
+        type=values.count,
         default=MC_SAMPLES,
         help="MC-dropout samples per step of a learned agent",
     )
@@ -76,14 +79,14 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--state-noise",
-        type=float,
+        type=values.non_negative,
         nargs=2,
         metavar=("E_Y_M", "E_PSI_RAD"),
         help="the filter sees noisy state samples with these standard deviations",
     )
     group.add_argument(
         "--samples",
-        type=int,
+        type=values.count,
         help=f"state samples per step: of the noisy oracle (default {NOISY_SAMPLES}), or the "
         f"state network's MC-dropout samples (default {MC_SAMPLES})",
     )
@@ -138,10 +141,12 @@ def filter_config(args: argparse.Namespace):
 
 def add_track_arguments(parser: argparse.ArgumentParser) -> None:
     """A track to load and report on: the positional track and how to load it."""
-    parser.add_argument("track", help=TRACK_HELP)
-    parser.add_argument("--car-width-m", type=float, default=None, help="car width (default 0.30)")
+    parser.add_argument("track", type=values.track, help=TRACK_HELP)
     parser.add_argument(
-        "--margin-m", type=float, default=None, help="extra clearance (default 0.10)"
+        "--car-width-m", type=values.positive, default=None, help="car width (default 0.30)"
+    )
+    parser.add_argument(
+        "--margin-m", type=values.non_negative, default=None, help="extra clearance (default 0.10)"
     )
     parser.add_argument("--plot", type=Path, help="draw the track, both lines and speeds to a PNG")
     parser.add_argument(
@@ -151,7 +156,7 @@ def add_track_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--smooth-rms-m",
-        type=float,
+        type=values.positive,
         help="smooth a noisy centre line: a spline that moves its points by this RMS distance "
         "(e.g. 0.05)",
     )
@@ -180,7 +185,7 @@ def add_slack_argument(parser: argparse.ArgumentParser, where: str) -> None:
 
 def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("parallel runs")
-    group.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    group.add_argument("--workers", type=values.count, default=1, help="runs at once, in processes")
     group.add_argument(
         "--ray",
         nargs="?",

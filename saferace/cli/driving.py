@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from saferace.cli import example
+from saferace.cli import example, values
 from saferace.cli.arguments import (
     AGENT_HELP,
     add_device_argument,
@@ -35,7 +35,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         ),
     )
     add_episode_arguments(drive, default_agent="pure-pursuit")
-    drive.add_argument("--seed", type=int, default=0, help="seeds the episode and its agent")
+    drive.add_argument(
+        "--seed", type=values.seed, default=0, help="seeds the episode and its agent"
+    )
     drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
     add_filter_arguments(drive)
@@ -52,7 +54,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         ),
     )
     add_episode_arguments(evaluate, default_agent="expert")
-    evaluate.add_argument("--seeds", type=int, nargs="+", default=[0], help="one episode per seed")
+    evaluate.add_argument(
+        "--seeds", type=values.seed, nargs="+", default=[0], help="one episode per seed"
+    )
     evaluate.add_argument(
         "--model",
         default=DEFAULT_EXPERT_MODEL,
@@ -64,7 +68,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     add_filter_arguments(evaluate)
     evaluate.add_argument(
-        "--max-seconds", type=float, help="end an episode after this much simulated time"
+        "--max-seconds", type=values.positive, help="end an episode after this much simulated time"
     )
     add_device_argument(evaluate)
     evaluate.set_defaults(command=_eval)
@@ -79,7 +83,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     board.add_argument(
         "results",
-        type=Path,
+        type=values.existing,
         nargs="+",
         help="JSONL files written by saferace eval, or submission .json files of saferace "
         "benchmark",
@@ -107,7 +111,10 @@ def register(commands: argparse._SubParsersAction) -> None:
     bench.add_argument("--out", type=Path, required=True, help="the submission .json to write")
     add_parallel_arguments(bench)
     bench.add_argument(
-        "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of a learned agent"
+        "--mc-samples",
+        type=values.count,
+        default=MC_SAMPLES,
+        help="MC-dropout samples of a learned agent",
     )
     add_device_argument(bench)
     bench.set_defaults(command=_benchmark)
@@ -120,14 +127,21 @@ def register(commands: argparse._SubParsersAction) -> None:
             "saferace verify learned.json --all --workers 2",
         ),
     )
-    verify.add_argument("submission", type=Path, help="a submission .json of saferace benchmark")
+    verify.add_argument(
+        "submission", type=values.existing, help="a submission .json of saferace benchmark"
+    )
     how_many = verify.add_mutually_exclusive_group()
     how_many.add_argument(
-        "--runs", type=int, default=VERIFY_RUNS, help="replay this many runs, drawn at random"
+        "--runs",
+        type=values.count,
+        default=VERIFY_RUNS,
+        help="replay this many runs, drawn at random",
     )
     how_many.add_argument("--all", action="store_true", help="replay every run")
-    verify.add_argument("--seed", type=int, default=0, help="draws the runs to replay")
-    verify.add_argument("--workers", type=int, default=1, help="runs at once, in processes")
+    verify.add_argument("--seed", type=values.seed, default=0, help="draws the runs to replay")
+    verify.add_argument(
+        "--workers", type=values.count, default=1, help="runs at once, in processes"
+    )
     verify.add_argument("--records", type=Path, help=RECORDS_HELP)
     add_device_argument(verify)
     verify.set_defaults(command=_verify)

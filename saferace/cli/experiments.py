@@ -6,7 +6,7 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from saferace.cli import example
+from saferace.cli import example, values
 from saferace.cli.arguments import (
     add_device_argument,
     add_parallel_arguments,
@@ -77,7 +77,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     dagger.add_argument(
         "--fork-of",
-        type=Path,
+        type=values.existing,
         help="the unfiltered run to share iterations 0..K with (linked, not recomputed)",
     )
     dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
@@ -107,7 +107,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         "ensemble or a MIMO ensemble (see saferace train)",
     )
     add_slack_argument(tables, "every filtered run and drive")
-    tables.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run set per seed")
+    tables.add_argument(
+        "--seeds", type=values.seed, nargs="+", default=[0], help="one run set per seed"
+    )
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     add_device_argument(tables)
     tables.set_defaults(command=_paper_tables)

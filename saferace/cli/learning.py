@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from saferace.cli import example
+from saferace.cli import example, values
 from saferace.cli.arguments import (
     TRACK_HELP,
     add_device_argument,
@@ -49,7 +49,9 @@ def register(commands: argparse._SubParsersAction) -> None:
             "saferace train data/round_0000 data/round_0001 --epochs 3 --no-validation --out m.pt",
         ),
     )
-    train.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
+    train.add_argument(
+        "data", type=values.existing, nargs="+", help="dataset folders or round folders"
+    )
     train.add_argument("--out", type=Path, required=True, help="checkpoint to write (NAME.pt)")
     train.add_argument(
         "--stereo",
@@ -64,7 +66,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "on other rounds)",
     )
     train.add_argument(
-        "--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples to score"
+        "--samples", type=values.count, default=MC_SAMPLES, help="MC-dropout samples to score"
     )
     add_device_argument(train)
     train.set_defaults(command=_train)
@@ -74,10 +76,16 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="score a checkpoint's networks on rounds (e.g. of an unseen track)",
         epilog=example("saferace validate lab_mono.pt oval_data --out results/validate"),
     )
-    validate.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
-    validate.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
+    validate.add_argument(
+        "checkpoint", type=values.existing, help="a checkpoint written by saferace train"
+    )
+    validate.add_argument(
+        "data", type=values.existing, nargs="+", help="dataset folders or round folders"
+    )
     validate.add_argument("--out", type=Path, required=True, help="folder for tables and plots")
-    validate.add_argument("--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
+    validate.add_argument(
+        "--samples", type=values.count, default=MC_SAMPLES, help="MC-dropout samples"
+    )
     add_device_argument(validate)
     validate.set_defaults(command=_validate)
 
@@ -91,14 +99,24 @@ def register(commands: argparse._SubParsersAction) -> None:
         "calibration is written into the checkpoint, where every learned state source uses it.",
         epilog=example("saferace calibrate lab_mono.pt oval_data --alpha 0.05 --out lab_cal.pt"),
     )
-    calibrate.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
-    calibrate.add_argument("data", type=Path, nargs="+", help="dataset folders or round folders")
-    calibrate.add_argument("--alpha", type=float, default=CONFORMAL_ALPHA, help="allowed miss rate")
     calibrate.add_argument(
-        "--test-share", type=float, default=0.5, help="share of the frames kept to test on"
+        "checkpoint", type=values.existing, help="a checkpoint written by saferace train"
     )
-    calibrate.add_argument("--samples", type=int, default=MC_SAMPLES, help="MC-dropout samples")
-    calibrate.add_argument("--seed", type=int, default=0, help="seeds the split and the dropout")
+    calibrate.add_argument(
+        "data", type=values.existing, nargs="+", help="dataset folders or round folders"
+    )
+    calibrate.add_argument(
+        "--alpha", type=values.share, default=CONFORMAL_ALPHA, help="allowed miss rate"
+    )
+    calibrate.add_argument(
+        "--test-share", type=values.share, default=0.5, help="share of the frames kept to test on"
+    )
+    calibrate.add_argument(
+        "--samples", type=values.count, default=MC_SAMPLES, help="MC-dropout samples"
+    )
+    calibrate.add_argument(
+        "--seed", type=values.seed, default=0, help="seeds the split and the dropout"
+    )
     calibrate.add_argument(
         "--monitor",
         choices=OOD_MONITORS,
@@ -119,12 +137,16 @@ def register(commands: argparse._SubParsersAction) -> None:
         "both networks' outputs are drawn over frames spread over that lap.",
         epilog=example("saferace gradcam lab_mono.pt --track lab --out results/gradcam"),
     )
-    gradcam.add_argument("checkpoint", type=Path, help="a checkpoint written by saferace train")
+    gradcam.add_argument(
+        "checkpoint", type=values.existing, help="a checkpoint written by saferace train"
+    )
     gradcam.add_argument("--track", default="lab", help=TRACK_HELP)
     gradcam.add_argument(
         "--task", default="CenterLine", choices=TASKS, help="the line the expert follows"
     )
-    gradcam.add_argument("--frames", type=int, default=6, help="frames spread over the lap")
+    gradcam.add_argument(
+        "--frames", type=values.count, default=6, help="frames spread over the lap"
+    )
     gradcam.add_argument(
         "--layer",
         default="layer2",
@@ -140,7 +162,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="collection or DAgger rounds as a Minari dataset (needs saferace[minari])",
         epilog=example("saferace export-minari data --name saferace/lab-center-expert-v0"),
     )
-    export.add_argument("rounds", nargs="+", type=Path, help="round or dataset folders")
+    export.add_argument("rounds", nargs="+", type=values.existing, help="round or dataset folders")
     export.add_argument(
         "--name", required=True, help="dataset id, e.g. saferace/lab-racing-expert-v0"
     )

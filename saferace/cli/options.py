@@ -17,6 +17,8 @@ import types
 import typing
 from typing import Any
 
+from saferace.cli.values import CheckedNumber
+from saferace.config import Bounds
 from saferace.names import AUTO
 
 #: Where each command keeps, in its parsed arguments, the flags of its config fields.
@@ -42,7 +44,7 @@ def add_config_options(
         default = getattr(config, field.name)
         if field.default == AUTO:  # settled when the config is made, from the other options
             default = AUTO
-        kwargs = _argument(hints[field.name], default)
+        kwargs = _argument(hints[field.name], default, field.metadata.get("bounds"))
         for key in ("choices", "metavar"):
             if field.metadata[key] is not None:
                 kwargs[key] = field.metadata[key]
@@ -66,8 +68,9 @@ def config_from_args(config: Any, args: argparse.Namespace, prefix: str = "", **
     return dataclasses.replace(config, **values)
 
 
-def _argument(hint: Any, default: Any) -> dict[str, Any]:
-    """argparse keywords for a field annotated ``hint`` with ``default``."""
+def _argument(hint: Any, default: Any, bounds: Bounds | None) -> dict[str, Any]:
+    """argparse keywords for a field annotated ``hint`` with ``default`` (its numbers
+    checked against ``bounds`` where it has them)."""
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         (hint,) = (arg for arg in typing.get_args(hint) if arg is not type(None))
     if hint is bool:
@@ -76,5 +79,9 @@ def _argument(hint: Any, default: Any) -> dict[str, Any]:
         items = typing.get_args(hint)
         nargs: int | str = "+" if items[-1] is Ellipsis else len(items)
         listed = None if default is None else list(default)
-        return {"type": items[0], "nargs": nargs, "default": listed}
-    return {"type": hint, "default": default}
+        return {"type": _checked(items[0], bounds), "nargs": nargs, "default": listed}
+    return {"type": _checked(hint, bounds), "default": default}
+
+
+def _checked(number_type: Any, bounds: Bounds | None) -> Any:
+    return number_type if bounds is None else CheckedNumber(number_type, bounds)

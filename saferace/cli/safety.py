@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from saferace.cli import example
+from saferace.cli import example, values
 from saferace.cli.arguments import (
     TRACK_HELP,
     add_device_argument,
@@ -41,7 +41,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     table.add_argument("--tracks", nargs="*", help=f"{TRACK_HELP}s (default: all built-in)")
     table.add_argument(
         "--random-tracks",
-        type=int,
+        type=values.seed,
         nargs="*",
         default=[],
         metavar="SEED",
@@ -50,20 +50,23 @@ def register(commands: argparse._SubParsersAction) -> None:
     table.add_argument(
         "--out", type=Path, default=Path("results/safety"), help="folder of the tables and runs"
     )
-    table.add_argument("--laps", type=int, default=3, help="laps per run")
+    table.add_argument("--laps", type=values.count, default=3, help="laps per run")
     table.add_argument(
-        "--max-seconds", type=float, default=60.0, help="end a run after this much simulated time"
+        "--max-seconds",
+        type=values.positive,
+        default=60.0,
+        help="end a run after this much simulated time",
     )
     table.add_argument(
         "--state-noise",
-        type=float,
+        type=values.non_negative,
         nargs=2,
         default=list(DEFAULT_STATE_NOISE),
         metavar=("E_Y_M", "E_PSI_RAD"),
         help="standard deviations of the noisy state's rows",
     )
     table.add_argument(
-        "--samples", type=int, default=NOISY_SAMPLES, help="noisy state samples per step"
+        "--samples", type=values.count, default=NOISY_SAMPLES, help="noisy state samples per step"
     )
     table.add_argument(
         "--filter-model",
@@ -81,7 +84,10 @@ def register(commands: argparse._SubParsersAction) -> None:
         "constraints and on the mean",
     )
     table.add_argument(
-        "--mc-samples", type=int, default=MC_SAMPLES, help="MC-dropout samples of the network"
+        "--mc-samples",
+        type=values.count,
+        default=MC_SAMPLES,
+        help="MC-dropout samples of the network",
     )
     table.add_argument(
         "--filter-gains",
@@ -134,6 +140,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     sweep.add_argument(
         "methods",
         nargs="+",
+        type=values.labelled_folder,
         metavar="LABEL=FOLDER",
         help="a method's label and the saferace robustness folder it drove in",
     )
@@ -197,9 +204,6 @@ def _robustness(args: argparse.Namespace) -> int:
 def _shift_sweep(args: argparse.Namespace) -> int:
     from saferace.experiments.shift_sweep import write_sweep_report
 
-    folders = dict(method.partition("=")[::2] for method in args.methods)
-    if any(not label or not folder for label, folder in folders.items()):
-        raise SafeRaceError("name each method as LABEL=FOLDER, e.g. ensemble=results/ens")
-    print(write_sweep_report(folders, args.out))
+    print(write_sweep_report(dict(args.methods), args.out))
     print(f"shift_sweep.md, .csv and .png written to {args.out}")
     return 0

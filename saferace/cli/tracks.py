@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from saferace.cli import example
+from saferace.cli import example, values
 from saferace.cli.arguments import TRACK_HELP, add_track_arguments
 from saferace.errors import SafeRaceError
 
@@ -66,7 +66,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--out", type=Path, default=Path("results/snapshots"), help="folder for the PNGs"
     )
     shots.add_argument("--tracks", nargs="*", help=f"{TRACK_HELP}s (default: all built-in)")
-    shots.add_argument("--image-size", type=int, default=64, help="onboard image height and width")
+    shots.add_argument(
+        "--image-size", type=values.image_size, default=64, help="onboard image height and width"
+    )
     shots.add_argument(
         "--randomize",
         metavar="PRESET",
@@ -74,7 +76,11 @@ def register(commands: argparse._SubParsersAction) -> None:
         "(none, mild, strong) draws for --seeds",
     )
     shots.add_argument(
-        "--seeds", type=int, nargs="+", default=[0, 1, 2, 3], help="a look per seed (--randomize)"
+        "--seeds",
+        type=values.seed,
+        nargs="+",
+        default=[0, 1, 2, 3],
+        help="a look per seed (--randomize)",
     )
     shots.set_defaults(command=_snapshots)
 

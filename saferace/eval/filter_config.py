@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from saferace.config import setting
+from saferace.config import COUNT, NON_NEGATIVE, POSITIVE, Bounds, check_bounds, setting
 from saferace.errors import ConfigError
 from saferace.names import (
     ADAPTIVE_FEEDBACK as FEEDBACK_KINDS,
@@ -69,14 +69,17 @@ class FilterConfig:
         None,
         "the filter sees noisy state samples with these standard deviations",
         metavar=("E_Y_M", "E_PSI_RAD"),
+        bounds=NON_NEGATIVE,
     )
-    samples: int = setting(NOISY_SAMPLES, "state samples per step")
+    samples: int = setting(NOISY_SAMPLES, "state samples per step", bounds=COUNT)
     probabilistic: bool = setting(
         True,
         "filter on the samples' mean instead of with chance constraints",
         flag="--deterministic",
     )
-    eta: float = setting(0.95, "the chance constraints' confidence level")
+    eta: float = setting(
+        0.95, "the chance constraints' confidence level", bounds=Bounds(minimum=0.5, below=1)
+    )
     gains: str = setting(
         AUTO,
         "the filter's settings: the paper's gain, the same with the steering held within the "
@@ -99,6 +102,7 @@ class FilterConfig:
         "widen the state samples' spread about their mean by these factors (a calibration of "
         "the state network's, see `saferace dagger --calibrate-spread`)",
         metavar=("E_Y", "E_PSI", "KAPPA"),
+        bounds=POSITIVE,
     )
     uncertainty: str = setting(
         AUTO,
@@ -138,9 +142,11 @@ class FilterConfig:
         "filter's car barriers see, which widen by it (0: their true positions)",
         flag="--opponent-noise",
         metavar="M",
+        bounds=NON_NEGATIVE,
     )
 
     def __post_init__(self) -> None:
+        check_bounds(self)
         learned = self.state_source is not None
         chance_options = not self.probabilistic or self.spread_scale or self.fuse_odometry
         if self.uncertainty == AUTO:
@@ -165,10 +171,6 @@ class FilterConfig:
                 "uncertainty",
                 f"must be one of {', '.join(UNCERTAINTY_MODES)}, got {self.uncertainty!r}",
             )
-        if self.opponent_noise_m < 0.0:
-            raise ConfigError(
-                "opponent_noise_m", f"must not be negative, got {self.opponent_noise_m}"
-            )
         if self.kind == "mpsf" and self.opponent_noise_m:
             raise ConfigError(
                 "opponent_noise_m",
@@ -187,13 +189,10 @@ class FilterConfig:
                 "model",
                 f"must be one of {', '.join(VEHICLE_MODELS)}, got {self.model!r}",
             )
-        if self.state_noise is not None and (
-            len(self.state_noise) != 2 or min(self.state_noise) < 0
-        ):
+        if self.state_noise is not None and len(self.state_noise) != 2:
             raise ConfigError(
                 "state_noise",
-                f"must be two non-negative standard deviations (e_y_m, e_psi_rad), got "
-                f"{self.state_noise}",
+                f"must be two standard deviations (e_y_m, e_psi_rad), got {self.state_noise}",
             )
         if self.samples < (2 if self.state_noise is not None else 1):
             raise ConfigError(
@@ -223,12 +222,9 @@ class FilterConfig:
             raise ConfigError(
                 "fuse_odometry", "fuses an uncertain state source (noisy or learned), not the truth"
             )
-        if self.spread_scale is not None and (
-            len(self.spread_scale) != 3 or min(self.spread_scale) <= 0.0
-        ):
+        if self.spread_scale is not None and len(self.spread_scale) != 3:
             raise ConfigError(
-                "spread_scale",
-                f"must be 3 positive factors (e_y, e_psi, kappa), got {self.spread_scale}",
+                "spread_scale", f"must be 3 factors (e_y, e_psi, kappa), got {self.spread_scale}"
             )
 
     @property

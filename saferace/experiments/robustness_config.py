@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from saferace.config import setting
+from saferace.config import COUNT, IMAGE_SIZE, NON_NEGATIVE, POSITIVE, check_bounds, setting
 from saferace.errors import ConfigError
 from saferace.eval.filter_config import FilterConfig
 from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, TASKS, VEHICLE_MODELS
@@ -34,9 +34,11 @@ class RobustnessConfig:
         "severity-5",
         metavar="LOOK",
     )
-    seeds: tuple[int, ...] = setting((0, 1, 2), "a look per seed")
-    laps: int = setting(1, "laps per run")
-    max_seconds: float | None = setting(60.0, "end a run after this much simulated time")
+    seeds: tuple[int, ...] = setting((0, 1, 2), "a look per seed", bounds=NON_NEGATIVE)
+    laps: int = setting(1, "laps per run", bounds=COUNT)
+    max_seconds: float | None = setting(
+        60.0, "end a run after this much simulated time", bounds=POSITIVE
+    )
     physics: bool = setting(False, "the car varies with the same preset too")
     safety: FilterConfig = field(default_factory=FilterConfig)
     monitor_state_source: str | None = setting(
@@ -46,16 +48,17 @@ class RobustnessConfig:
         metavar="learned:CKPT",
     )
     model: str = setting(DEFAULT_EXPERT_MODEL, "the expert's vehicle model", choices=VEHICLE_MODELS)
-    image_size: int = setting(64, "onboard image height and width")
+    image_size: int = setting(64, "onboard image height and width", bounds=IMAGE_SIZE)
     stereo: bool = setting(False, "stereo camera pair (6 channels)")
-    mc_samples: int = setting(MC_SAMPLES, "MC-dropout samples per step of a learned agent")
+    mc_samples: int = setting(
+        MC_SAMPLES, "MC-dropout samples per step of a learned agent", bounds=COUNT
+    )
 
     def __post_init__(self) -> None:
+        check_bounds(self)
         for name in ("tracks", "presets", "seeds"):
             if not getattr(self, name):
                 raise ConfigError(name, "must name at least one")
-        if self.laps < 1:
-            raise ConfigError("laps", f"must be at least 1, got {self.laps}")
         source = self.monitor_state_source
         if source is not None and not source.startswith("learned:"):
             raise ConfigError("monitor_state_source", f"must be learned:CHECKPOINT, got {source}")

@@ -11,7 +11,7 @@ import math
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
-from saferace.config import setting
+from saferace.config import COUNT, IMAGE_SIZE, NON_NEGATIVE, POSITIVE, Bounds, check_bounds, setting
 from saferace.errors import ConfigError
 from saferace.eval.filter_config import FilterConfig
 from saferace.names import (
@@ -42,12 +42,13 @@ class TrainConfig:
     other is taken unchanged from ``init``.
     """
 
-    epochs: int = setting(10, "passes over the training frames per network")
+    epochs: int = setting(10, "passes over the training frames per network", bounds=COUNT)
     min_steps: int = setting(
         0,
         "at least N gradient steps per training, adding epochs while the frames are few",
         flag="--min-train-steps",
         metavar="N",
+        bounds=NON_NEGATIVE,
     )
     max_steps: int = setting(
         0,
@@ -55,16 +56,18 @@ class TrainConfig:
         "iteration costs the same however large the aggregate",
         flag="--max-train-steps",
         metavar="N",
+        bounds=NON_NEGATIVE,
     )
-    batch_size: int = setting(32, "frames per Adam step")
-    learning_rate: float = setting(1e-3, "Adam's learning rate", flag="--lr")
-    seed: int = setting(0, "seeds the weights, the shuffling and the dropout")
+    batch_size: int = setting(32, "frames per Adam step", bounds=COUNT)
+    learning_rate: float = setting(1e-3, "Adam's learning rate", flag="--lr", bounds=POSITIVE)
+    seed: int = setting(0, "seeds the weights, the shuffling and the dropout", bounds=NON_NEGATIVE)
     val_stretch: tuple[float, float] | None = setting(
         (0.55, 0.7),
         "the stretch of the lap held out for validation, as fractions of the lap",
         metavar=("START", "END"),
+        bounds=Bounds(minimum=0, maximum=1),
     )
-    dropout: float = setting(0.2, "dropout of the heads")
+    dropout: float = setting(0.2, "dropout of the heads", bounds=Bounds(minimum=0, below=1))
     init: str | None = setting(None, "warm-start from this checkpoint")
     backbone_weights: str | None = setting(
         None, "a torchvision ResNet-18 state dict (e.g. ImageNet) to start both backbones from"
@@ -77,7 +80,10 @@ class TrainConfig:
         choices=STATE_UNCERTAINTY_METHODS,
     )
     ensemble_members: int = setting(
-        5, "state networks in an ensemble (subnetworks in a MIMO one)", metavar="K"
+        5,
+        "state networks in an ensemble (subnetworks in a MIMO one)",
+        metavar="K",
+        bounds=Bounds(minimum=2),
     )
     augment: bool = setting(
         False,
@@ -90,19 +96,17 @@ class TrainConfig:
         "and keep its best epoch's weights (0: train every epoch, keep the last)",
         flag="--early-stop",
         metavar="N",
+        bounds=NON_NEGATIVE,
     )
     networks: tuple[str, ...] = NETWORKS
 
     def __post_init__(self) -> None:
+        check_bounds(self)
         if self.state_uncertainty not in (*STATE_UNCERTAINTY_METHODS, AUTO):
             raise ConfigError(
                 "state_uncertainty",
                 f"must be one of {', '.join(STATE_UNCERTAINTY_METHODS)}, "
                 f"got {self.state_uncertainty!r}",
-            )
-        if self.ensemble_members < 2:
-            raise ConfigError(
-                "ensemble_members", f"must be at least 2, got {self.ensemble_members}"
             )
         start, end = self.val_stretch or (0.0, 1.0)
         if not 0.0 <= start < end <= 1.0:
@@ -110,18 +114,10 @@ class TrainConfig:
                 "val_stretch",
                 f"must be fractions of the lap 0 <= start < end <= 1, got {self.val_stretch}",
             )
-        for name in ("epochs", "batch_size", "learning_rate"):
-            if getattr(self, name) <= 0:
-                raise ConfigError(name, f"must be positive, got {getattr(self, name)}")
-        for name in ("min_steps", "max_steps", "patience"):
-            if getattr(self, name) < 0:
-                raise ConfigError(name, f"must not be negative, got {getattr(self, name)}")
         if self.max_steps and self.min_steps > self.max_steps:
             raise ConfigError("min_steps", f"{self.min_steps} is above max_steps {self.max_steps}")
         if self.patience and self.val_stretch is None:
             raise ConfigError("patience", "needs held-out frames to stop on (a --val-stretch)")
-        if not 0.0 <= self.dropout < 1.0:
-            raise ConfigError("dropout", f"must be in [0, 1), got {self.dropout}")
         if not set(self.networks) <= set(NETWORKS) or not self.networks:
             raise ConfigError("networks", f"must be some of {NETWORKS}, got {self.networks}")
         if set(self.networks) != set(NETWORKS) and not self.init:
@@ -161,23 +157,17 @@ class Perturbation:
         "stays the expert's",
         flag="--perturb",
         metavar="STEER_STD_RAD",
+        bounds=NON_NEGATIVE,
     )
     correlation_time_s: float = setting(
         0.5,
         "how long a push of the steering noise lasts (its correlation time)",
         flag="--perturb-correlation-s",
+        bounds=POSITIVE,
     )
 
     def __post_init__(self) -> None:
-        if self.steer_std_rad < 0.0:
-            raise ConfigError(
-                "steer_std_rad",
-                f"needs a non-negative steering std (rad), got {self.steer_std_rad}",
-            )
-        if self.correlation_time_s <= 0.0:
-            raise ConfigError(
-                "correlation_time_s", f"must be positive, got {self.correlation_time_s}"
-            )
+        check_bounds(self)
 
 
 @dataclass(frozen=True)
@@ -185,9 +175,11 @@ class EpisodeSettings:
     """How every episode of a collection is driven and recorded: laps, time, camera, the
     labelling expert, the look, and the part of the lap kept for training."""
 
-    laps: int = setting(3, "laps per episode")
-    max_seconds: float | None = setting(None, "end an episode after this much simulated time")
-    image_size: int = setting(64, "onboard image height and width (pixels)")
+    laps: int = setting(3, "laps per episode", bounds=COUNT)
+    max_seconds: float | None = setting(
+        None, "end an episode after this much simulated time", bounds=POSITIVE
+    )
+    image_size: int = setting(64, "onboard image height and width (pixels)", bounds=IMAGE_SIZE)
     stereo: bool = setting(False, "stereo camera pair (6 channels)")
     expert_model: str = setting(
         DEFAULT_EXPERT_MODEL,
@@ -195,9 +187,13 @@ class EpisodeSettings:
         flag="--model",
         choices=VEHICLE_MODELS,
     )
-    mc_samples: int = setting(MC_SAMPLES, "MC-dropout samples per step of a learned driver")
+    mc_samples: int = setting(
+        MC_SAMPLES, "MC-dropout samples per step of a learned driver", bounds=COUNT
+    )
     train_fraction: float = setting(
-        1.0, "keep frames on this first part of the lap; the rest is held out, never trained on"
+        1.0,
+        "keep frames on this first part of the lap; the rest is held out, never trained on",
+        bounds=Bounds(above=0, maximum=1),
     )
     randomize: str = setting(
         "none",
@@ -208,13 +204,7 @@ class EpisodeSettings:
     )
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.train_fraction <= 1.0:
-            raise ConfigError("train_fraction", f"must be in (0, 1], got {self.train_fraction}")
-        for name in ("laps", "image_size", "mc_samples"):
-            if getattr(self, name) < 1:
-                raise ConfigError(name, f"must be at least 1, got {getattr(self, name)}")
-        if self.max_seconds is not None and self.max_seconds <= 0:
-            raise ConfigError("max_seconds", f"must be positive, got {self.max_seconds}")
+        check_bounds(self)
 
 
 @dataclass(frozen=True)
@@ -231,7 +221,7 @@ class CollectionConfig:
         "RacingLine", "the reference line to follow (Overtake: in traffic)", choices=DRIVING_TASKS
     )
     track: str = setting("technical", "built-in track name or track CSV path")
-    seeds: tuple[int, ...] = setting((0,), "one episode per seed")
+    seeds: tuple[int, ...] = setting((0,), "one episode per seed", bounds=NON_NEGATIVE)
     opponents: tuple[str, ...] = setting(
         (), OPPONENTS_HELP + "; the expert labels passing or following them", metavar="SPEC"
     )
@@ -241,6 +231,7 @@ class CollectionConfig:
     beta: float = 0.0
 
     def __post_init__(self) -> None:
+        check_bounds(self)
         if not 0.0 <= self.beta <= 1.0:
             raise ConfigError("beta", f"must be in [0, 1], got {self.beta}")
         if not self.seeds:
@@ -282,9 +273,12 @@ class DaggerConfig:
     opponents: tuple[str, ...] = setting(
         (), OPPONENTS_HELP + "; the expert labels passing or following them", metavar="SPEC"
     )
-    iterations: int = setting(10, "iterations after the expert's")
+    iterations: int = setting(10, "iterations after the expert's", bounds=NON_NEGATIVE)
     filter_from: int = setting(
-        2, "the iterations after K drive through the filter (the paper's k)", metavar="K"
+        2,
+        "the iterations after K drive through the filter (the paper's k)",
+        metavar="K",
+        bounds=NON_NEGATIVE,
     )
     warm_start: bool = setting(
         True,
@@ -295,23 +289,26 @@ class DaggerConfig:
         0.0,
         "steering noise on the expert's iteration 0 (the paper's expert drove clean)",
         metavar="STEER_STD_RAD",
+        bounds=NON_NEGATIVE,
     )
     beta_rampdown: int = setting(
         0,
         "the expert acts on a share 1 - i/R of iteration i's steps (0: never, as the paper)",
         metavar="R",
+        bounds=NON_NEGATIVE,
     )
     calibrate_spread: bool = setting(
         False,
         "widen the state network's MC-dropout spread by the factor that matches it to its "
         "error on the previous round, which it never saw",
     )
-    episodes: int = setting(1, "drives per iteration (the first is reported)")
+    episodes: int = setting(1, "drives per iteration (the first is reported)", bounds=COUNT)
     training: TrainConfig = field(default_factory=_dagger_training)
     collection: EpisodeSettings = field(default_factory=_dagger_collection)
     filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source="learned"))
 
     def __post_init__(self) -> None:
+        check_bounds(self)
         if self.training.state_uncertainty == AUTO:
             honest = self.perceived and self.filter.uncertainty == "robust"
             method = "ensemble" if honest else "mc-dropout"
@@ -320,13 +317,6 @@ class DaggerConfig:
             raise ConfigError(
                 "task", f"must be one of {', '.join(DRIVING_TASKS)}, got {self.task!r}"
             )
-        if self.episodes < 1:
-            raise ConfigError("episodes", f"must be at least 1, got {self.episodes}")
-        for name in ("iterations", "filter_from", "beta_rampdown"):
-            if getattr(self, name) < 0:
-                raise ConfigError(name, f"must not be negative, got {getattr(self, name)}")
-        if self.expert_perturb < 0:
-            raise ConfigError("expert_perturb", f"must not be negative, got {self.expert_perturb}")
         if self.training.val_stretch is not None:
             raise ConfigError(
                 "val_stretch",

@@ -1,0 +1,102 @@
+"""Every command refuses a bad value of any of its checked options where it parses it (a
+number out of its range or no number, an input file that is not there, an unknown track):
+exit status 2 and one line that names the option, before any work starts."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import pytest
+
+from saferace.cli import build_parser, main, values
+from saferace.cli.values import CheckedNumber
+
+PARSER = build_parser()
+COMMANDS = next(a for a in PARSER._actions if isinstance(a, argparse._SubParsersAction)).choices
+#: A value each kind of checked option refuses, besides a negative number for numbers.
+BAD_VALUES = {
+    "number": "abc",
+    "existing": "/no/such/file.json",
+    "track": "no_such_track",
+    "labelled folder": "ensemble=/no/such/folder",
+}
+
+
+#: Values that parse for each kind (anything else: this file, which exists).
+GOOD_VALUES = {"track": "lab", "labelled folder": "here=."}
+
+
+def kind(action: argparse.Action) -> str | None:
+    """Which kind of checked value ``action`` takes (None: unchecked or a switch)."""
+    if isinstance(action.type, CheckedNumber) or action.type in (int, float):
+        return "number"
+    if action.type is values.existing:
+        return "existing"
+    if action.type is values.track:
+        return "track"
+    if action.type is values.labelled_folder:
+        return "labelled folder"
+    return None
+
+
+def count(action: argparse.Action) -> int:
+    return action.nargs if isinstance(action.nargs, int) else 1
+
+
+def name(action: argparse.Action) -> str:
+    """How argparse names ``action`` in its errors."""
+    if action.option_strings:
+        return action.option_strings[-1]
+    return action.metavar if isinstance(action.metavar, str) else action.dest
+
+
+def arguments(command: str, tested: argparse.Action, bad: str) -> list[str]:
+    """The command's line with ``bad`` for ``tested`` and values that parse for its other
+    positionals and required options (no work starts: the bad value is refused first)."""
+    given = [bad] * count(tested)
+    argv = [command, *tested.option_strings[-1:], *given] if tested.option_strings else [command]
+    for action in COMMANDS[command]._actions:
+        good = [GOOD_VALUES.get(kind(action), __file__)] * count(action)
+        if action is tested and not action.option_strings:
+            argv += given
+        elif action is not tested and not action.option_strings and action.dest != "help":
+            argv += good
+        elif action is not tested and action.required:
+            argv += [action.option_strings[-1], *good]
+    return argv
+
+
+CASES = [
+    (command, action, bad)
+    for command in COMMANDS
+    for action in COMMANDS[command]._actions
+    if (checked := kind(action)) is not None
+    for bad in (("-1", BAD_VALUES["number"]) if checked == "number" else (BAD_VALUES[checked],))
+]
+
+
+def case_id(case: object) -> str:
+    return name(case) if isinstance(case, argparse.Action) else str(case)
+
+
+def test_the_walk_covers_every_command_and_kind_of_value():
+    covered = {(command, kind(action)) for command, action, _ in CASES}
+    assert len(CASES) >= 150
+    assert {("eval", "number"), ("train", "existing"), ("raceline", "track")} <= covered
+    assert {command for command, _ in covered} >= set(COMMANDS) - {"tracks", "sysid"}
+
+
+@pytest.mark.parametrize(("command", "action", "bad"), CASES, ids=case_id)
+def test_a_bad_value_is_refused_in_one_line_naming_its_option(
+    command: str, action: argparse.Action, bad: str, capsys: pytest.CaptureFixture
+):
+    started = time.perf_counter()
+    try:
+        code = main(arguments(command, action, bad))
+    except SystemExit as exit:
+        code = exit.code
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, lines
+    assert len(lines) == 1 and name(action).replace("_", "-") in lines[0].replace("_", "-"), lines
+    assert time.perf_counter() - started < 1.0  # refused before any work
