@@ -279,3 +279,37 @@ def test_noisy_state_tightens_the_lane_and_the_drift_agent_stays_inside(tmp_path
     assert free["summary"]["time_outside_lane_s"] > 0.0
     assert row["summary"]["time_outside_lane_s"] == 0.0
     assert row["filter_solver"]["solve_median_ms"] > 0.0
+
+
+def test_a_decision_reports_its_margins_now_and_over_the_plan_and_the_filter_counts_them():
+    """Fed the truth on ``lab``: a gentle nominal passes unchanged, a hard left turn is
+    corrected; every decision's margins are the lane's and the heading bound's at the car
+    (from the env's own state) and the least over its plan, and the counts add up."""
+    env = PredictiveSafetyFilter(make_env())
+    _, after = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    track, planner, half = env.unwrapped.track, env.planner, env.half_width_m
+    decisions = []
+    for nominal in [[0.0, 0.5]] * 4 + [[0.45, 2.0]] * 12:
+        before, after = after, env.step(np.array(nominal))[-1]  # decided on the state before
+        decision = after["safety"]
+        decisions.append(decision)
+        w_right, w_left = (float(w) for w in track.widths(before["s_m"]))
+        e_y, e_psi, v_x = before["e_y_m"], before["e_psi_rad"], before["v_x_mps"]
+        assert decision["barriers"]["lane_left"] == pytest.approx(w_left - e_y - half)
+        assert decision["barriers"]["lane_right"] == pytest.approx(w_right + e_y - half)
+        bound = planner.terminal_heading_rad + planner.terminal_heading_per_mps * v_x
+        assert decision["barriers"]["terminal_heading"] == pytest.approx(bound - abs(e_psi))
+    states, s_plan = planner.plan_states, planner.plan_arc_lengths
+    w_right, w_left = track.widths(s_plan)
+    over_plan = decisions[-1]["constraints"]
+    assert over_plan["lane_left"] == pytest.approx(np.min(w_left - states[:, 0]) - half)
+    assert over_plan["lane_right"] == pytest.approx(np.min(w_right + states[:, 0]) - half)
+    gentle, hard = decisions[:4], decisions[4:]
+    for decision in gentle:  # certified as asked: the drivetrain's command is the agent's
+        assert not decision["intervened"] and decision["status"] == "certified"
+        np.testing.assert_allclose(decision["filtered_action"], [0.0, 0.5], atol=0.01)
+    assert all(d["filtered_action"][0] < 0.45 for d in hard if d["intervened"])
+    assert env.steps == len(decisions)
+    assert env.interventions == sum(d["intervened"] for d in decisions) >= 4
+    assert env.fallbacks == sum(bool(d["fallback"]) for d in decisions)
+    env.close()

@@ -17,8 +17,11 @@ from saferace.eval.filter_config import FilterConfig
 from saferace.eval.runner import make_task_env, run_episode
 from saferace.safety.fallback import (
     DISTRUST_BRAKE_MPS2,
+    FALLBACK_LATERAL_MPS2,
+    MIN_HEADING_RAD,
     fallback_accel_bounds,
     fitting_speed_mps,
+    interval_margin_m,
 )
 from saferace.safety.filter import SafetyFilter
 from saferace.safety.intervals import interval_points
@@ -149,6 +152,30 @@ def test_the_fitting_speed_falls_with_the_margin_and_is_a_stop_without_one():
     assert fallback_accel_bounds(3.0, 0.0, 0.05) == (-DISTRUST_BRAKE_MPS2, -DISTRUST_BRAKE_MPS2)
     low, high = fallback_accel_bounds(0.2, 0.5, 0.05)
     assert low < 0.0 < high == pytest.approx(6.0)
+
+
+def test_the_fitting_speed_and_the_braking_towards_it_in_numbers_worked_by_hand():
+    # Offsets -0.1..0.05 in a lane 0.4 m to either side, a car 0.15 m half wide: 0.30 m to
+    # the right edge at worst, 0.15 m left after the car's half width.
+    lower, upper = np.array([-0.1, -0.02]), np.array([0.05, 0.1])
+    assert interval_margin_m(lower, upper, 0.4, 0.4, 0.15) == pytest.approx(0.15)
+    assert interval_margin_m(lower, upper, 0.4, 0.3, 0.15) == pytest.approx(0.05)
+    lateral = FALLBACK_LATERAL_MPS2
+    by_hand = math.sqrt(2 * lateral * 0.15) / math.sin(0.1)  # the worst heading, 0.1 rad
+    assert fitting_speed_mps(lower, upper, 0.4, 0.4, 0.15, 0.3) == pytest.approx(by_hand)
+    sideways = np.array([0.05, 2.0])  # past pi/2 the sine is taken at pi/2
+    assert fitting_speed_mps(lower, sideways, 0.4, 0.4, 0.15, 0.3) == pytest.approx(
+        math.sqrt(2 * lateral * 0.15)
+    )
+    square = np.array([0.05, 0.0])  # square to the lane: the least heading still counts
+    assert fitting_speed_mps(-square, square, 0.4, 0.4, 0.15, 0.3) == pytest.approx(
+        math.sqrt(2 * lateral * 0.2) / math.sin(MIN_HEADING_RAD)
+    )
+    at_the_edge = np.array([0.25, 0.0])  # no margin left, none missing: creep on
+    assert fitting_speed_mps(-at_the_edge, at_the_edge, 0.5, 0.5, 0.25, 0.3) == 0.3
+    dt = 0.05
+    assert fallback_accel_bounds(1.0, 1.0, dt) == (-DISTRUST_BRAKE_MPS2, 0.0)  # at the target
+    assert fallback_accel_bounds(0.1, 0.0, dt) == (pytest.approx(-2.0), pytest.approx(-2.0))
 
 
 def test_the_oracle_makes_the_robust_filter_the_deterministic_one():
