@@ -91,12 +91,18 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
     certified = env.certify(observation, info, np.array([0.0, 1.0]))
     assert not certified.fallback and certified.status == "certified"
     expected = env.planner.plan_states
-    tail = env._tail_inputs[0].copy()
-    at_plan = {**info, "e_y_m": float(expected[1, 0]), "e_psi_rad": float(expected[1, 1])}
+    tail = env._tail_inputs.copy()
     too_fast = {**observation, "velocity": np.array([9.0, 0.0, 0.0], dtype=np.float32)}
-    decision = env.certify(too_fast, at_plan, np.array([0.0, 1.0]))
-    assert decision.fallback == "infeasible" and decision.status == "uncertified"
-    assert decision.filtered_action == pytest.approx(np.clip(tail, env.lower, env.upper))
+    for step in (1, 2):  # the tail's inputs in turn, while the car is where it expects
+        at_plan = {
+            **info, "e_y_m": float(expected[step, 0]), "e_psi_rad": float(expected[step, 1])
+        }  # fmt: skip
+        decision = env.certify(too_fast, at_plan, np.array([0.0, 1.0]))
+        assert decision.fallback == "infeasible" and decision.status == "uncertified"
+        assert decision.filtered_action == pytest.approx(
+            np.clip(tail[step - 1], env.lower, env.upper)
+        )
+    assert len(env._tail_inputs) == len(tail) - 2
     elsewhere = {**at_plan, "e_y_m": at_plan["e_y_m"] + 0.15}  # not where the plan expects
     replanned = env.certify(too_fast, elsewhere, np.array([0.0, 1.0]))
     assert replanned.fallback == "infeasible"
@@ -230,10 +236,12 @@ def test_the_filter_config_builds_the_predictive_filter_with_its_own_model():
 
 
 class TruthInABox:
-    """The true lane state, held to the interval ``truth +- half``."""
+    """The true lane state, held to the interval ``truth - below .. truth + above``
+    (``truth +- half``)."""
 
-    def __init__(self, half: list[float]) -> None:
-        self.half = np.array(half)
+    def __init__(self, half: list[float], above: list[float] | None = None) -> None:
+        self.below = np.array(half)
+        self.above = self.below if above is None else np.array(above)
 
     def reset(self, seed: int | None = None) -> None:
         """Nothing to reset."""
@@ -242,7 +250,7 @@ class TruthInABox:
         return true_lane_state(info)[None]
 
     def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return samples[0] - self.half, samples[0] + self.half
+        return samples[0] - self.below, samples[0] + self.above
 
 
 def test_an_interval_keeps_the_driven_car_its_half_width_further_from_the_edge():
@@ -260,6 +268,20 @@ def test_an_interval_keeps_the_driven_car_its_half_width_further_from_the_edge()
         env.close()
     assert rides[0.0] > 0.15  # the driver does push the car to the edge
     assert rides[0.0] - 0.12 - 0.02 <= rides[0.12] <= rides[0.0] - 0.12 + 0.01, rides
+
+
+def test_a_filter_on_the_mean_ignores_the_interval_and_a_robust_one_believes_its_centre():
+    box = TruthInABox([0.12, 0.0, 0.0], above=[0.0, 0.0, 0.0])  # reaching 12 cm right
+    deterministic = PredictiveSafetyFilter(make_env(), state_source=box, probabilistic=False)
+    robust = PredictiveSafetyFilter(make_env(), state_source=box, uncertainty="robust")
+    for env in (deterministic, robust):
+        observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+        decision = env.certify(observation, info, np.array([0.0, 0.0]))
+        w_left = float(env.unwrapped.track.widths(info["s_m"])[1])
+        believed = info["e_y_m"] - (0.06 if env is robust else 0.0)
+        assert decision.barriers["lane_left"] == pytest.approx(w_left - believed - env.half_width_m)
+        assert decision.tightening["lane_left"] == (0.06 if env is robust else 0.0)
+        env.close()
 
 
 def test_noisy_state_tightens_the_lane_and_the_drift_agent_stays_inside(tmp_path: Path):
@@ -286,10 +308,12 @@ def test_a_decision_reports_its_margins_now_and_over_the_plan_and_the_filter_cou
     corrected; every decision's margins are the lane's and the heading bound's at the car
     (from the env's own state) and the least over its plan, and the counts add up."""
     env = PredictiveSafetyFilter(make_env())
-    _, after = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    _, after = env.reset(seed=0, options={"start_speed_mps": 0.5})
     track, planner, half = env.unwrapped.track, env.planner, env.half_width_m
+    limit = env.map.speed_limit
+    assert limit is not None
     decisions = []
-    for nominal in [[0.0, 0.5]] * 4 + [[0.45, 2.0]] * 12:
+    for nominal in [[0.02, 0.3]] * 4 + [[0.45, 2.0]] * 12:
         before, after = after, env.step(np.array(nominal))[-1]  # decided on the state before
         decision = after["safety"]
         decisions.append(decision)
@@ -299,17 +323,61 @@ def test_a_decision_reports_its_margins_now_and_over_the_plan_and_the_filter_cou
         assert decision["barriers"]["lane_right"] == pytest.approx(w_right + e_y - half)
         bound = planner.terminal_heading_rad + planner.terminal_heading_per_mps * v_x
         assert decision["barriers"]["terminal_heading"] == pytest.approx(bound - abs(e_psi))
+        speed_margin = limit(before["s_m"], e_y) - v_x
+        assert decision["barriers"]["speed"] == pytest.approx(speed_margin)
+        assert set(decision["tightening"].values()) == {0.0}  # the truth: nothing to tighten
     states, s_plan = planner.plan_states, planner.plan_arc_lengths
     w_right, w_left = track.widths(s_plan)
     over_plan = decisions[-1]["constraints"]
     assert over_plan["lane_left"] == pytest.approx(np.min(w_left - states[:, 0]) - half)
     assert over_plan["lane_right"] == pytest.approx(np.min(w_right + states[:, 0]) - half)
+    speeds = states[:, planner.model.speed_index]
+    assert over_plan["speed"] == pytest.approx(np.min(planner.speed_caps_mps - speeds[1:]))
+    last_bound = planner.terminal_heading_rad + planner.terminal_heading_per_mps * speeds[-1]
+    assert over_plan["terminal_heading"] == pytest.approx(last_bound - abs(states[-1, 1]))
     gentle, hard = decisions[:4], decisions[4:]
     for decision in gentle:  # certified as asked: the drivetrain's command is the agent's
         assert not decision["intervened"] and decision["status"] == "certified"
-        np.testing.assert_allclose(decision["filtered_action"], [0.0, 0.5], atol=0.01)
+        np.testing.assert_allclose(decision["filtered_action"], [0.02, 0.3], atol=0.01)
     assert all(d["filtered_action"][0] < 0.45 for d in hard if d["intervened"])
     assert env.steps == len(decisions)
     assert env.interventions == sum(d["intervened"] for d in decisions) >= 4
     assert env.fallbacks == sum(bool(d["fallback"]) for d in decisions)
+    env.close()
+
+
+def test_a_failed_solve_brakes_along_the_map_and_steers_back_to_the_line(
+    monkeypatch: pytest.MonkeyPatch,
+):
+    """No plan at all (the QP failed) and no certified tail: the fallback brakes at
+    ``FALLBACK_BRAKE_MPS2`` and steers the map's curvature less the believed offset and
+    heading; the decision says so, and the filter counts the failure."""
+    import math
+
+    from saferace.safety.fallback import FALLBACK_BRAKE_MPS2
+
+    env = PredictiveSafetyFilter(make_env())
+    observation, info = env.reset(seed=0, options={"start_s_m": 3.0, "start_speed_mps": 2.0})
+    monkeypatch.setattr(env.planner, "plan", lambda *args: (np.zeros(2), False))
+    monkeypatch.setattr(type(env.planner), "plan_slacks", property(lambda planner: None))
+    off_line = {**info, "e_y_m": 0.1, "e_psi_rad": 0.05}
+    decision = env.certify(observation, off_line, np.array([0.3, 2.0]))
+    kappa = env.unwrapped.track.centerline.curvature_scalar(3.0)
+    feedforward = math.atan(env.unwrapped.params.wheelbase_m * kappa)
+    assert decision.fallback == "solver" and decision.status == "failed"
+    assert decision.filtered_action == pytest.approx(
+        [feedforward - 0.1 - 0.05, -FALLBACK_BRAKE_MPS2]
+    )
+    assert all(math.isnan(value) for value in decision.slacks.values())
+    assert (env.failures, env.fallbacks, env.interventions) == (1, 1, 1)
+    env.close()
+
+
+def test_the_horizon_needs_two_stages_and_the_plan_is_that_long():
+    with pytest.raises(ValueError, match="at least 2 stages"):
+        PredictiveSafetyFilter(make_env(), horizon=1)
+    env = PredictiveSafetyFilter(make_env(), horizon=2)
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 1.0})
+    env.certify(observation, info, np.array([0.0, 0.0]))
+    assert env.planner.plan_states is not None and len(env.planner.plan_states) == 3
     env.close()
