@@ -88,10 +88,13 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
     applied: the MPSC fallback."""
     env = PredictiveSafetyFilter(make_env())
     observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    assert len(env._tail_inputs) == len(env._tail_states) == 0  # no plan yet, no tail
     certified = env.certify(observation, info, np.array([0.0, 1.0]))
     assert not certified.fallback and certified.status == "certified"
     expected = env.planner.plan_states
-    tail = env._tail_inputs.copy()
+    tail = env._tail_inputs.copy()  # the plan's later inputs, where it expects each
+    np.testing.assert_allclose(tail[:, 0], env.planner.plan_inputs[1:, 0])
+    np.testing.assert_allclose(env._tail_states, expected[1:-1, :2])
     too_fast = {**observation, "velocity": np.array([9.0, 0.0, 0.0], dtype=np.float32)}
     for step in (1, 2):  # the tail's inputs in turn, while the car is where it expects
         at_plan = {
@@ -102,7 +105,7 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
         assert decision.filtered_action == pytest.approx(
             np.clip(tail[step - 1], env.lower, env.upper)
         )
-    assert len(env._tail_inputs) == len(tail) - 2
+    assert len(env._tail_inputs) == len(env._tail_states) == len(tail) - 2
     elsewhere = {**at_plan, "e_y_m": at_plan["e_y_m"] + 0.15}  # not where the plan expects
     replanned = env.certify(too_fast, elsewhere, np.array([0.0, 1.0]))
     assert replanned.fallback == "infeasible"
@@ -281,6 +284,15 @@ def test_a_filter_on_the_mean_ignores_the_interval_and_a_robust_one_believes_its
         believed = info["e_y_m"] - (0.06 if env is robust else 0.0)
         assert decision.barriers["lane_left"] == pytest.approx(w_left - believed - env.half_width_m)
         assert decision.tightening["lane_left"] == (0.06 if env is robust else 0.0)
+        assert env.planner.heading_margin_rad == 0.0
+        env.close()
+    for heading_half, margin in ((0.3, 0.3), (2.0, 0.5 * np.pi)):  # at most a right angle
+        env = PredictiveSafetyFilter(
+            make_env(), state_source=TruthInABox([0.0, heading_half, 0.0]), uncertainty="robust"
+        )
+        observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+        env.certify(observation, info, np.array([0.0, 0.0]))
+        assert env.planner.heading_margin_rad == pytest.approx(margin)
         env.close()
 
 
