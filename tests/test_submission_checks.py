@@ -388,3 +388,82 @@ def test_verify_refuses_an_agent_file_swapped_after_the_runs(
 def test_a_benchmark_of_an_agent_whose_file_is_missing_is_refused(tmp_path: Path):
     with pytest.raises(SafeRaceError, match=r"loads .*missing\.pt, which is not there"):
         replay_record(f"learned:{tmp_path / 'missing.pt'}", 10)
+
+
+def test_first_difference_holds_each_measurement_to_its_tolerance(honest: dict):
+    from copy import deepcopy
+
+    from saferace.experiments.verify import first_difference
+
+    stored = next(row for row in honest["rows"] if row["laps_completed"])
+    assert first_difference(stored, deepcopy(stored)) is None
+
+    def replayed_with(edit) -> str | None:
+        replayed = deepcopy(stored)
+        edit(replayed)
+        return first_difference(stored, replayed)
+
+    def move_a_point(by_m: float):
+        return lambda row: row["trajectory"]["x_m"].__setitem__(
+            3, row["trajectory"]["x_m"][3] + by_m
+        )
+
+    assert replayed_with(move_a_point(0.001)) is None  # within a rounding step of 2 mm
+    assert replayed_with(move_a_point(0.003)) == "trajectory differs by 0.003 m"
+    shorter = replayed_with(lambda row: row["trajectory"]["x_m"].pop())
+    assert shorter == "trajectory differs in length or outside flags"
+    flags = stored["trajectory"]["outside"]
+    flipped = replayed_with(
+        lambda row: row["trajectory"].__setitem__("outside", [not f for f in flags])
+    )
+    assert flipped == "trajectory differs in length or outside flags"
+    lap = stored["lap_time_s"]
+    assert replayed_with(lambda row: row.__setitem__("lap_time_s", lap + 5e-7)) is None
+    assert replayed_with(lambda row: row.__setitem__("lap_time_s", lap + 2e-6)) == (
+        f"lap_time_s was {lap!r}, replayed {lap + 2e-6!r}"
+    )
+    assert replayed_with(lambda row: row.__setitem__("lap_time_s", None)) == (
+        f"lap_time_s was {lap!r}, replayed None"
+    )
+
+
+def test_runs_are_drawn_all_in_order_or_a_seeded_sample_and_a_full_record_counts():
+    keys = [f"run{i}" for i in range(10)]
+    assert choose_runs(keys, None, seed=3) == keys == choose_runs(keys, 10, seed=3)
+    drawn = choose_runs(keys, 4, seed=3)
+    assert drawn == sorted(drawn, key=keys.index) and len(set(drawn)) == 4
+    assert drawn == choose_runs(keys, 4, seed=3) != choose_runs(keys, 4, seed=4)
+    with pytest.raises(SafeRaceError, match="at least 1"):
+        choose_runs(keys, 0, seed=3)
+
+
+def test_verify_keeps_its_records_in_a_new_folder_notes_other_versions_and_refuses_cleanly(
+    honest_submission: Path, tmp_path: Path
+):
+    from saferace.eval.runner import file_sha256
+    from saferace.experiments.verify import record_path
+
+    data = json.loads(honest_submission.read_text())
+    data["versions"]["numpy"] = "0.0"
+    data["replay"]["vehicle_params_sha256"] = "0" * 64
+    path = tmp_path / "other_machine.json"
+    path.write_text(json.dumps(data))
+    records = tmp_path / "new" / "records"  # made on the first pass, kept on the next
+    for _ in range(2):
+        result = verify_submission(path, runs=1, progress=False, records=records)
+        assert result.passed and len(result.replayed) == 1
+    notes = " / ".join(result.version_notes)
+    assert "numpy 0.0 in the submission" in notes and "identified parameters differ" in notes
+    full = json.loads(record_path(file_sha256(path), records).read_text())
+    full["replayed"] = [row["key"] for row in data["rows"]]  # a pass of every run
+    record_path(file_sha256(path), records).write_text(json.dumps(full))
+    assert verification_record(path, records) == full
+    replay = replay_record("pure-pursuit", 10) | {"agent": "gone_agent:make"}
+    replay["files_sha256"] = {str(tmp_path / "gone_agent.py"): "0" * 64}
+    data["agent"], data["replay"] = replay["agent"], replay
+    for row in data["rows"]:
+        row["agent"], row["agent_sha256"] = replay["agent"], replay["agent_sha256"]
+    gone = tmp_path / "gone.json"
+    gone.write_text(json.dumps(data))
+    with pytest.raises(SafeRaceError, match=r"gone_agent\.py is not here"):
+        verify_submission(gone, runs=1, progress=False, records=tmp_path / "empty")
