@@ -1,8 +1,8 @@
 """SafeRace: safety-assured, end-to-end, vision-based autonomous racing in MuJoCo.
 
-Importing ``saferace`` registers the gymnasium tasks ``saferace/CenterLine-v0`` and
-``saferace/RacingLine-v0``; ``gymnasium.make("saferace:saferace/RacingLine-v0")``
-imports it for you.
+Importing ``saferace`` registers the gymnasium tasks ``saferace/CenterLine-v0``,
+``saferace/RacingLine-v0`` and ``saferace/Overtake-v0``;
+``gymnasium.make("saferace:saferace/RacingLine-v0")`` imports it for you.
 """
 
 from saferace.version import __version__ as __version__

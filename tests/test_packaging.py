@@ -9,6 +9,7 @@ wheel with its dependencies, as ``pip install saferace`` does.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import sysconfig
@@ -220,3 +221,18 @@ def test_the_core_imports_none_of_the_extras(tmp_path: Path):
         cwd=tmp_path,
     )
     assert result.returncode == 0, result.stderr
+
+
+def test_getting_started_names_every_make_target_and_what_make_test_runs():
+    root = Path(__file__).resolve().parents[1]
+    makefile = (root / "Makefile").read_text()
+    targets = re.search(r"^\.PHONY: (.+)$", makefile, re.MULTILINE)
+    assert targets is not None
+    table = (root / "docs" / "getting-started.md").read_text()
+    rows = {line.split("|")[1].strip(): line for line in table.splitlines() if "| `make " in line}
+    assert {f"`make {target}`" for target in targets.group(1).split()} <= set(rows)
+    recipe = makefile.split("\ntest: setup\n")[1].split("\n\n")[0]
+    for tool in ("ruff check", "ruff format --check", "mypy saferace", "mkdocs build", "pytest"):
+        assert tool in recipe, tool
+    for named in ("ruff check", "ruff format --check", "mypy saferace", "docs", "fast tests"):
+        assert named in rows["`make test`"], named
