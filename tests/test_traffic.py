@@ -3,6 +3,7 @@ the Overtake task and the PettingZoo parallel env."""
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import gymnasium as gym
@@ -717,3 +718,56 @@ def test_a_look_mounts_every_cars_onboard_cameras_alike():
 def test_the_bumper_constants_are_the_models():
     model = gym.make("saferace/RacingLine-v0", track="lab").unwrapped.model
     np.testing.assert_allclose(model.geom("bumper").size[:2], RC10_BUMPER_HALF_EXTENTS_M)
+
+
+def test_the_car_barriers_geometry_and_following_bound_in_numbers_worked_by_hand():
+    from saferace.safety import car_barriers as cb
+
+    length, width = RC10_BUMPER_HALF_EXTENTS_M
+    for axis, half in ((cb.SEMI_AXIS_S_M, length), (cb.SEMI_AXIS_Y_M, width)):
+        assert axis > 2.0 * half + cb.CAR_MARGIN_M - 1e-12  # wider than the two bumpers
+    corner = ((2 * length) / (cb.SEMI_AXIS_S_M - cb.CAR_MARGIN_M)) ** cb.POWER + (
+        (2 * width) / (cb.SEMI_AXIS_Y_M - cb.CAR_MARGIN_M)
+    ) ** cb.POWER
+    assert corner == pytest.approx(1.0)  # the bumpers' rectangle's corner on the curve
+    params = param_values(load_params())
+    state = np.array([0.0, 0.0, 2.0, 0.0])
+
+    def h_at(ds: float, dy: float) -> tuple[float, float]:
+        prediction = (ds, -dy, 1.0)
+        _, _, h = car_rows("kinematic", params, state, 0.0, np.zeros(2), [prediction], CAR_GAINS)
+        return float(h[0]), float(h[1])
+
+    assert h_at(-cb.SEMI_AXIS_S_M, 0.0)[0] == pytest.approx(0.0, abs=1e-12)  # on the curve
+    assert h_at(-2.0 * cb.SEMI_AXIS_S_M, 0.0)[0] == pytest.approx(2.0**cb.POWER - 1.0)
+    assert h_at(0.0, cb.SEMI_AXIS_Y_M)[0] == pytest.approx(0.0, abs=1e-12)
+    # following: 3 m behind a car at 1 m/s, the ego at 2 m/s along the track
+    gap = 3.0 - cb.FOLLOW_GAP_M
+    h_follow = gap - 0.5 * (2.0**2 / cb.EGO_BRAKE_MPS2 - 1.0**2 / cb.OPPONENT_ACCEL_MPS2)
+    assert h_at(-3.0, 0.0)[1] == pytest.approx(h_follow)
+    bound, h = cb._follow_row(-3.0, 0.0, 1.0, 2.0)
+    assert h == pytest.approx(h_follow)
+    assert bound == pytest.approx(cb.EGO_BRAKE_MPS2 * (cb.FOLLOW_GAIN * h_follow / 2.0 - 1.0))
+    assert cb._follow_row(-3.0, cb.FOLLOW_WIDTH_M, 1.0, 2.0)[0] == cb.UNBOUNDED_ACCEL_MPS2
+    assert cb._follow_row(3.0, 0.0, 1.0, 2.0)[0] == cb.UNBOUNDED_ACCEL_MPS2  # a car behind
+    close = cb.FOLLOW_GAP_M + 0.01  # 1 cm past the standstill gap, both cars at rest
+    standing = cb._follow_row(-close, 0.0, -1.0, 0.0)  # no speed counts below zero
+    assert standing[1] == pytest.approx(0.01)
+    assert standing[0] == pytest.approx(cb.EGO_BRAKE_MPS2 * (cb.FOLLOW_GAIN * 0.01 / 0.1 - 1.0))
+    assert cb.along_track_mps(2.0, 0.0, 0.5, 0.4) == pytest.approx(2.5)  # inside a bend
+    assert cb.along_track_mps(2.0, math.pi / 3, 0.0, 0.3) == pytest.approx(1.0)
+    assert cb.along_track_mps(2.0, 0.0, 0.5, 3.0) == pytest.approx(20.0)  # stretch floor 0.1
+
+
+def test_the_car_rows_of_two_opponents_are_each_cars_own_in_order():
+    params = param_values(load_params())
+    state = np.array([0.0, 0.0, 3.0, 0.0])
+    near, far = (-2.0, 0.0, 1.0), (-20.0, 0.0, 1.0)
+    one = [
+        car_rows("kinematic", params, state, 0.0, np.zeros(2), [p], CAR_GAINS) for p in (near, far)
+    ]
+    a, b, h = car_rows("kinematic", params, state, 0.0, np.zeros(2), [near, far], CAR_GAINS)
+    np.testing.assert_allclose(a, np.vstack([one[0][0], one[1][0]]))
+    np.testing.assert_allclose(b, np.concatenate([one[0][1], one[1][1]]))
+    np.testing.assert_allclose(h, np.concatenate([one[0][2], one[1][2]]))
+    assert b[1] / CAR_ROW_WEIGHT < 0.0 < b[3]  # brake for the near car, not the far one
