@@ -771,3 +771,38 @@ def test_the_car_rows_of_two_opponents_are_each_cars_own_in_order():
     np.testing.assert_allclose(b, np.concatenate([one[0][1], one[1][1]]))
     np.testing.assert_allclose(h, np.concatenate([one[0][2], one[1][2]]))
     assert b[1] / CAR_ROW_WEIGHT < 0.0 < b[3]  # brake for the near car, not the far one
+
+
+def test_the_car_barrier_assumes_hard_braking_only_of_a_moving_car_ahead_in_line():
+    from saferace.safety import car_barriers as cb
+
+    params = param_values(load_params())
+    state = np.array([0.1, 0.05, 3.0, 0.0])  # 10 cm left, heading 0.05 rad
+    axes = (cb.SEMI_AXIS_S_M, cb.SEMI_AXIS_Y_M)
+    condition = cb._car_function("kinematic")
+
+    def row_bound(prediction: tuple[float, float, float]) -> float:
+        _, b, _ = car_rows("kinematic", params, state, 0.0, np.zeros(2), [prediction], CAR_GAINS)
+        return float(b[0]) / CAR_ROW_WEIGHT
+
+    def assuming(prediction: tuple[float, float, float], accel_mps2: float) -> float:
+        ego = (*state, 0.0, 0.0, 0.0, *params)
+        return float(condition(*ego, *prediction, accel_mps2, *axes, *CAR_GAINS)[0])
+
+    in_line = (-1.5, 0.1, 2.0)
+    beside = (-1.5, 0.1 - 1.01 * cb.SEMI_AXIS_Y_M, 2.0)  # just off its line, to the right
+    for prediction, braking in (
+        (in_line, True),
+        ((-1.5, 0.1 - 0.99 * cb.SEMI_AXIS_Y_M, 2.0), True),  # still within the line
+        (beside, False),
+        ((1.5, 0.1, 2.0), False),  # behind the ego
+        ((-1.5, 0.1, 0.0), False),  # at rest: it cannot brake
+        ((-1.5, 0.1, 0.5), True),  # slow, but still able to
+    ):
+        expected = assuming(prediction, -cb.OPPONENT_ACCEL_MPS2 if braking else 0.0)
+        assert row_bound(prediction) == pytest.approx(expected), prediction
+    assert assuming(in_line, -cb.OPPONENT_ACCEL_MPS2) != pytest.approx(assuming(in_line, 0.0))
+    _, _, h = car_rows(
+        "kinematic", params, state, 0.0, np.zeros(2), [(-axes[0], 0.1, 2.0)], CAR_GAINS
+    )
+    assert h[0] == pytest.approx(0.0, abs=1e-12)  # the ego's own offset, not its heading
