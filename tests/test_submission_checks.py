@@ -129,6 +129,10 @@ REFUSALS = {
         "trajectory points are not finite numbers",
     ),
     "a deviation as text": (set_row(mean_abs_deviation_m="0.1"), "mean_abs_deviation_m is '0.1'"),
+    "an intervention rate above 1": (
+        lambda d: d["rows"][1].update(intervention_rate=1.5),
+        "run lab/CenterLine/0/cbf: intervention_rate 1.5 is not a share in [0, 1]",
+    ),
     "a filtered run without its interventions": (
         lambda d: d["rows"][1].update(intervention_rate=None),
         "run lab/CenterLine/0/cbf: intervention_rate None is not a share in [0, 1]",
@@ -169,6 +173,25 @@ REFUSALS = {
 
 def test_an_honest_submission_passes_unchanged(honest: dict):
     assert check_submission(json.loads(json.dumps(honest)), SOURCE) == honest
+
+
+#: Edits to the edge of what a run may hold, each still a consistent submission.
+AT_THE_EDGE = {
+    "every step corrected": lambda d: d["rows"][1].update(intervention_rate=1.0),
+    "every collision caused": lambda d: traffic_row(d).update(collisions=1, at_fault_collisions=1),
+    "every opponent passed": lambda d: traffic_row(d).update(overtakes=1),
+}
+
+
+@pytest.mark.parametrize("case", AT_THE_EDGE)
+def test_a_submission_at_the_edge_of_each_range_passes(honest: dict, case: str):
+    edited = json.loads(json.dumps(honest))
+    AT_THE_EDGE[case](edited)
+    suite = load_suite()
+    for row in edited["rows"]:
+        row.update(scored(row, RunSpec.of_row(row), suite))
+    edited.update(totals(edited["rows"], suite))
+    assert check_submission(edited, SOURCE)["rows"] == edited["rows"]
 
 
 @pytest.mark.parametrize("case", REFUSALS)
