@@ -51,7 +51,7 @@ TARGETS: dict[str, list[str]] = {
     "saferace/safety/fallback.py": ["tests/test_robust_filter.py", "tests/test_safety_filter.py"],
     "saferace/safety/predictive.py": ["tests/test_predictive_filter.py"],
     "saferace/experiments/verify.py": ["tests/test_submission_checks.py"],
-    "saferace/safety/car_barriers.py": ["tests/test_traffic.py"],
+    "saferace/safety/car_barriers.py": ["tests/test_car_barrier_rows.py", "tests/test_traffic.py"],
     # the checks of a submission's file, without verify's replays of its runs (which cost
     # a minute a mutant)
     "saferace/experiments/submission_checks.py": ["tests/test_submission_checks.py::not verify"],

@@ -393,3 +393,57 @@ def test_the_horizon_needs_two_stages_and_the_plan_is_that_long():
     env.certify(observation, info, np.array([0.0, 0.0]))
     assert env.planner.plan_states is not None and len(env.planner.plan_states) == 3
     env.close()
+
+
+def test_the_planner_gets_the_action_and_its_box_in_the_models_units_and_the_car_the_inverse():
+    """The model's acceleration is the drivetrain's command times its gain, less the drag at
+    the car's speed (the identified car: a gain below 1 and some drag); the certified first
+    input goes back the inverse way."""
+    env = PredictiveSafetyFilter(make_env())
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    calls = []
+    plan = env.planner.plan
+    env.planner.plan = lambda *args: calls.append(args) or plan(*args)
+    action = np.array([0.05, 1.0])
+    decision = env.certify(observation, info, action)
+    [(_, _, _, nominal, _, (lower, upper), *_)] = calls
+    gain = env.vehicle_params.accel_gain
+    drag_mps2 = env.vehicle_params.drag_per_s * float(observation["velocity"][0])
+    assert gain < 0.99 and drag_mps2 > 0.05  # the mapping matters on this car
+
+    def model_units(command: np.ndarray) -> list[float]:
+        return [command[0], gain * command[1] - drag_mps2]
+
+    assert nominal == pytest.approx(model_units(action))
+    box = env._action_box(float(observation["velocity"][0]), float(action[1]))
+    assert lower == pytest.approx(model_units(box[0]))
+    assert upper == pytest.approx(model_units(box[1]))
+    assert decision.status == "certified"
+    first = env.planner.plan_inputs[0]
+    assert decision.filtered_action == pytest.approx(
+        np.clip([first[0], (first[1] + drag_mps2) / gain], env.lower, env.upper)
+    )
+    env.close()
+
+
+@pytest.mark.parametrize("half_m", [0.0, 0.1])
+def test_the_tail_is_followed_where_the_interval_may_hold_the_car_the_plan_expects(half_m: float):
+    """A plan certified 20 cm left of the centre; then, far too fast for any plan, the car
+    is believed 8 cm further left than the plan expects: beyond the 5 cm tolerance alone (a
+    new, least-violating plan), within it once the interval's 10 cm half width widens it
+    (the tail's next input)."""
+    env = PredictiveSafetyFilter(
+        make_env(), state_source=TruthInABox([half_m, 0.0, 0.0]), uncertainty="robust"
+    )
+    observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
+    left = {**info, "e_y_m": 0.2}
+    assert env.certify(observation, left, np.array([0.0, 1.0])).status == "certified"
+    expected, tail = env.planner.plan_states, env._tail_inputs.copy()
+    too_fast = {**observation, "velocity": np.array([9.0, 0.0, 0.0], dtype=np.float32)}
+    off_plan = {**left, "e_y_m": float(expected[1, 0]) + 0.08, "e_psi_rad": float(expected[1, 1])}
+    decision = env.certify(too_fast, off_plan, np.array([0.0, 1.0]))
+    assert decision.fallback == "infeasible"
+    box = env._action_box(9.0, -np.inf)  # what any input is held to at that speed
+    on_tail = decision.filtered_action == pytest.approx(np.clip(tail[0], *box))
+    assert on_tail == (half_m > 0.0), (decision.filtered_action, tail[0])
+    env.close()

@@ -10,9 +10,11 @@ from pathlib import Path
 import pytest
 from cli_helpers import run_cli
 
+from saferace.envs.drivetrain import DrivetrainParams
 from saferace.errors import SafeRaceError
 from saferace.experiments.benchmark import (
     TRAFFIC_MEASUREMENTS,
+    TRAJECTORY_POINTS,
     RunSpec,
     load_suite,
     replay_record,
@@ -20,12 +22,14 @@ from saferace.experiments.benchmark import (
     totals,
 )
 from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
-from saferace.experiments.submission_checks import check_submission
+from saferace.experiments.submission_checks import CONTROL_DT_S, check_submission
 from saferace.experiments.verify import (
     choose_runs,
+    replay_device,
     verification_record,
     verify_submission,
 )
+from saferace.track import Track
 
 SOURCE = "sub.json"
 FIRST = "lab/CenterLine/0/none"  # the suite's first run: a finished lap, no filter
@@ -91,6 +95,65 @@ def set_row(**values):
     return lambda data: first_row(data).update(values)
 
 
+def stand(row: dict, steps: int, completion: float = 0.0) -> dict:
+    """``row`` made a drive of ``steps`` control steps that never left its first point
+    and never left the lane: the shape of a car that stalled at the start."""
+    stride = max(1, steps // TRAJECTORY_POINTS)
+    points = -(-steps // stride)
+    x_m, y_m = row["trajectory"]["x_m"][0], row["trajectory"]["y_m"][0]
+    row.update(
+        driven_s=steps * CONTROL_DT_S,
+        completion=completion,
+        laps_completed=0,
+        lap_time_s=None,
+        time_outside_lane_s=0.0,
+        trajectory={"x_m": [x_m] * points, "y_m": [y_m] * points, "outside": [False] * points},
+    )
+    return row
+
+
+def jump(row: dict, metres: float) -> dict:
+    """``row``'s path, from its second point on, moved ``metres`` along x."""
+    trajectory = row["trajectory"]
+    trajectory["x_m"] = trajectory["x_m"][:1] + [x + metres for x in trajectory["x_m"][1:]]
+    return row
+
+
+def outside_at(row: dict, points: int, seconds: float) -> dict:
+    """``row`` flagged outside at its first ``points`` points, for ``seconds`` in all."""
+    flags = row["trajectory"]["outside"]
+    flags[:points] = [True] * points
+    row["time_outside_lane_s"] = seconds
+    return row
+
+
+def lap_length_m(row: dict) -> float:
+    return Track.load(load_suite().track_argument(row["track"])).length_m
+
+
+#: A jump between two trajectory points at the car's top speed, one control step apart.
+TOP_SPEED_STEP_M = DrivetrainParams().top_speed_mps * CONTROL_DT_S
+
+
+def leave_the_second_lap_undriven(data: dict) -> None:
+    """A traffic run's trajectory after its first lap held at the first lap's end."""
+    trajectory = traffic_row(data)["trajectory"]
+    half = len(trajectory["x_m"]) // 2
+    for name in ("x_m", "y_m"):
+        trajectory[name][half:] = [trajectory[name][half]] * (len(trajectory[name]) - half)
+
+
+def start_elsewhere(data: dict) -> None:
+    """A minute's stall whose first point lies 1.5 m off the start, a reach its next point
+    (0.3 s later) could make at top speed."""
+    trajectory = stand(first_row(data), 1200)["trajectory"]
+    trajectory["x_m"][0] += 1.5
+
+
+def double_a_traffic_lap_time(data: dict) -> None:
+    traffic_row(data)["lap_time_s"] *= 2
+
+
 REFUSALS = {
     "a doctored score": (lambda d: d.update(score=150.0), "sub.json: score is 150.0, recomputed"),
     "a doctored run score": (set_row(score=1.0), f"run {FIRST}: score is 1.0, recomputed"),
@@ -110,8 +173,24 @@ REFUSALS = {
     "more time outside than driven": (set_row(time_outside_lane_s=99.0), "is not within the"),
     "a drive longer than the suite's": (set_row(driven_s=61.0), "driven_s 61.0 is not 1 to 60 s"),
     "a drive between control steps": (set_row(driven_s=7.81), "driven_s 7.81 is not 1 to 60 s"),
+    "a drive of no time": (set_row(driven_s=0.0), "driven_s 0.0 is not 1 to 60 s"),
     "a path faster than the car": (lambda d: scale_the_path(d, 3.0), "faster than the car's"),
     "a path elsewhere": (shift_the_path, "does not start at the run's start"),
+    "a first point elsewhere": (start_elsewhere, "does not start at the run's start"),
+    "a jump 3 mm faster than the car": (
+        lambda d: jump(stand(first_row(d), 10), TOP_SPEED_STEP_M + 0.003),
+        "faster than the car's top speed",
+    ),
+    "a path too short for its completion": (
+        lambda d: jump(stand(first_row(d), 10, 3.0 / lap_length_m(first_row(d))), 0.3),
+        "the trajectory is 0.3 m long, 0.10 times the 3.0 m",
+    ),
+    "a second lap never driven": (leave_the_second_lap_undriven, "times the "),
+    "a traffic lap time doubled": (double_a_traffic_lap_time, "is longer than the drive"),
+    "time outside overstated": (
+        lambda d: outside_at(stand(first_row(d), 10), 2, 0.15),
+        "time_outside_lane_s 0.15 disagrees with the trajectory, outside at 2 of its points",
+    ),
     "a path that stands still": (stand_still, "the trajectory is 0.0 m long"),
     "a thinned path": (drop_half_the_points, "points, "),
     "an intervention without a filter": (set_row(intervention_rate=0.5), "without a filter"),
@@ -129,6 +208,18 @@ REFUSALS = {
         "trajectory points are not finite numbers",
     ),
     "a deviation as text": (set_row(mean_abs_deviation_m="0.1"), "mean_abs_deviation_m is '0.1'"),
+    "a score as text": (lambda d: d.update(score="66.5"), "score is '66.5', not a finite number"),
+    "a suite version of true": (
+        lambda d: d.update(suite_version=True),
+        "not a submission (no integer suite_version)",
+    ),
+    "no rows": (lambda d: d.update(rows=[]), "sub.json: no rows"),
+    "a seed as text": (set_row(seed="0"), "row 0 has seed '0', not an integer"),
+    "half a lap counted": (set_row(laps_completed=0.5), "laps_completed 0.5 is not 0 to 1"),
+    "a trajectory without its flags": (
+        lambda d: first_row(d)["trajectory"].pop("outside"),
+        "trajectory lacks the lists x_m, y_m, outside",
+    ),
     "an intervention rate above 1": (
         lambda d: d["rows"][1].update(intervention_rate=1.5),
         "run lab/CenterLine/0/cbf: intervention_rate 1.5 is not a share in [0, 1]",
@@ -164,6 +255,14 @@ REFUSALS = {
         lambda d: d["replay"].update(files_sha256=["x.pt"]),
         "replay or versions has fields of the wrong type",
     ),
+    "a replay without its sample count": (
+        lambda d: d["replay"].pop("mc_samples"),
+        "replay lacks agent, mc_samples, files_sha256, agent_sha256",
+    ),
+    "a file hash as a number": (
+        lambda d: d["replay"].update(files_sha256={"agent.pt": 5}),
+        "replay or versions has fields of the wrong type",
+    ),
     "a replay of another agent": (
         lambda d: d["replay"].update(agent="expert"),
         "agent 'pure-pursuit' but replay agent 'expert'",
@@ -180,6 +279,22 @@ AT_THE_EDGE = {
     "every step corrected": lambda d: d["rows"][1].update(intervention_rate=1.0),
     "every collision caused": lambda d: traffic_row(d).update(collisions=1, at_fault_collisions=1),
     "every opponent passed": lambda d: traffic_row(d).update(overtakes=1),
+    "a collision starting in every step": lambda d: traffic_row(d).update(
+        collisions=round(traffic_row(d)["driven_s"] / CONTROL_DT_S),
+        at_fault_collisions=round(traffic_row(d)["driven_s"] / CONTROL_DT_S),
+    ),
+    "a stall at the start, half a second long": lambda d: stand(first_row(d), 10),
+    "a stall for the suite's whole time": lambda d: stand(first_row(d), 1200),
+    "outside for the whole drive": lambda d: outside_at(stand(first_row(d), 10), 10, 0.5),
+    "a jump at the top speed, rounded up a millimetre": lambda d: jump(
+        stand(first_row(d), 10), TOP_SPEED_STEP_M + 0.001
+    ),
+    "a lap ending in the drive's last moment": lambda d: first_row(d).update(
+        lap_time_s=first_row(d)["driven_s"]
+    ),
+    "a lap ending a whole step before the drive": lambda d: first_row(d).update(
+        lap_time_s=first_row(d)["driven_s"] - CONTROL_DT_S
+    ),
 }
 
 
@@ -490,3 +605,25 @@ def test_verify_keeps_its_records_in_a_new_folder_notes_other_versions_and_refus
     gone.write_text(json.dumps(data))
     with pytest.raises(SafeRaceError, match=r"gone_agent\.py is not here"):
         verify_submission(gone, runs=1, progress=False, records=tmp_path / "empty")
+
+
+def test_missing_runs_are_named_by_the_first_and_counted_after_it(honest: dict):
+    messages = []
+    for _ in range(2):
+        honest["rows"].pop()
+        with pytest.raises(SafeRaceError) as refused:
+            check_submission(json.loads(json.dumps(honest)), SOURCE)
+        messages.append(str(refused.value))
+    missing = "sub.json: run eval_902/Overtake/0/{} of suite v2 is missing"
+    assert messages == [
+        missing.format("cbf/braking"),
+        missing.format("none/braking") + " (and 1 more)",
+    ]
+
+
+def test_runs_replay_on_the_device_the_submissions_networks_ran_on():
+    networks = {"files_sha256": {"agent.pt": "0" * 64}}
+    assert replay_device({**networks, "device": "cuda:0"}) == "cuda:0"
+    assert replay_device({**networks, "device": None}) == "cpu"
+    assert replay_device(networks) == "cpu"  # made before submissions named their device
+    assert replay_device({"files_sha256": {}, "device": "cuda:0"}) == "cpu"  # no network

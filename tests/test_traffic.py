@@ -505,6 +505,8 @@ def test_opponent_predictions_wrap_the_lap_and_take_the_speed_along_the_track():
     assert v_o == pytest.approx(2.0 * np.cos(0.3), rel=1e-3)  # on the straight
     noisy = opponent_predictions([opponent] * 200, track, 0.0, 0.05, np.random.default_rng(0))
     assert np.std([p[0] for p in noisy]) == pytest.approx(0.05, rel=0.2)
+    again = opponent_predictions([opponent] * 200, track, 0.0, 0.05, np.random.default_rng(0))
+    assert again == noisy  # drawn from the generator given: the same per seed
 
 
 def test_the_car_rows_brake_for_a_car_ahead_in_line_and_vanish_far_away():
@@ -796,6 +798,7 @@ def test_the_car_barrier_assumes_hard_braking_only_of_a_moving_car_ahead_in_line
         ((-1.5, 0.1 - 0.99 * cb.SEMI_AXIS_Y_M, 2.0), True),  # still within the line
         (beside, False),
         ((1.5, 0.1, 2.0), False),  # behind the ego
+        ((0.5, 0.1, 2.0), False),  # half a metre behind, overlapping
         ((-1.5, 0.1, 0.0), False),  # at rest: it cannot brake
         ((-1.5, 0.1, 0.5), True),  # slow, but still able to
     ):

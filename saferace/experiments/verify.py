@@ -202,14 +202,21 @@ def verify_submission(
     return result
 
 
+def replay_device(replay: dict) -> str:
+    """The device a submission's runs replay on: the one its networks ran on; the CPU if
+    it names none, or has no network files to run."""
+    if not replay["files_sha256"]:
+        return "cpu"
+    return replay.get("device") or "cpu"
+
+
 def _replay(
     path: Path, sha256: str, runs: int | None, workers: int, seed: int, progress: bool
 ) -> Verification:
     data = read_submission(path)
     replay = data["replay"]
     check_agent_files(replay, str(path))
-    if replay["files_sha256"]:  # a network may run: on the submission's device
-        use_device(replay.get("device") or "cpu")
+    use_device(replay_device(replay))
     suite = load_suite(data["suite_version"])  # checked: a version this SafeRace ships
     rows = {RunSpec.of_row(row).key: row for row in data["rows"]}
     chosen = choose_runs(list(rows), runs, seed)

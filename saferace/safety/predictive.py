@@ -158,18 +158,14 @@ class PredictiveSafetyFilter(SafetyFilter):
             float(info["steer_angle_rad"]),
         )
         lower, upper = self._action_box(v_x, float(nominal[1]))
-        to_model = (
-            np.array([1.0, self.vehicle_params.accel_gain]),
-            np.array([0.0, -self.vehicle_params.drag_per_s * v_x]),
-        )
         solve_started = time.perf_counter()
         u, solved = self.planner.plan(
             x0,
             s_m,
             float(info["steer_rad"]),
-            nominal * to_model[0] + to_model[1],
+            self._model_input(nominal, v_x),
             1.0 / spread**2,
-            (lower * to_model[0] + to_model[1], upper * to_model[0] + to_model[1]),
+            (self._model_input(lower, v_x), self._model_input(upper, v_x)),
             float(offset_margin),
             float(min(heading_margin, 0.5 * math.pi)),
         )
@@ -242,6 +238,14 @@ class PredictiveSafetyFilter(SafetyFilter):
         command = np.array(u, dtype=float)
         command[..., 1] = (command[..., 1] + params.drag_per_s * speed_mps) / params.accel_gain
         return command
+
+    def _model_input(self, command: np.ndarray, speed_mps: float) -> np.ndarray:
+        """The model's inputs for the drivetrain's ``command`` at ``speed_mps``: the inverse
+        of :meth:`_command` (the steering alike, the acceleration less the drag)."""
+        params = self.vehicle_params
+        u = np.array(command, dtype=float)
+        u[..., 1] = u[..., 1] * params.accel_gain - params.drag_per_s * speed_mps
+        return u
 
     def _margins(self, s_m: float, e_y_m: float, e_psi_rad: float, v_x: float) -> dict[str, float]:
         """Now: the lane margins of the believed offset, the speed limit's and the terminal
