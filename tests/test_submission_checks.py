@@ -447,6 +447,10 @@ def test_verify_finds_the_edited_row_it_replays(honest_submission: Path, tmp_pat
         f"run {replayed}: mean_abs_deviation_m was {row['mean_abs_deviation_m']!r}"
         in (result.stderr.strip().splitlines()[-1])
     ), result.stderr
+    # piped, the replay's progress is a line, the difference it found on it
+    progress_line = result.stderr.splitlines()[0]
+    assert progress_line.startswith(f"verify: {replayed} done (1/1 runs) in "), result.stderr
+    assert ", score " in progress_line and "; mean_abs_deviation_m was" in progress_line
 
 
 def hide_the_collisions(row: dict) -> str:

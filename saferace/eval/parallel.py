@@ -43,17 +43,18 @@ def run_jobs(
     keep: Callable[[Job, Any], None],
     workers: int = 1,
     ray_address: str | None = None,
-    advance: Callable[[], object] = lambda: None,
+    advance: Callable[[Job], object] = lambda job: None,
     describe: Callable[[Job], str] = str,
 ) -> None:
-    """``keep(job, function(*job))`` for every job; ``advance()`` after each (a progress
-    bar); ``describe(job)`` names a job in the report of failures."""
+    """``keep(job, function(*job))`` for every job; ``advance(job)`` after each, in the
+    order they finish (a progress line); ``describe(job)`` names a job in the report of
+    failures."""
     if ray_address is not None:
         _run_on_ray(function, jobs, keep, ray_address, advance, describe)
     elif workers <= 1:
         for job in jobs:
             keep(job, function(*job))
-            advance()
+            advance(job)
     else:
         cores, workers = available_cores(), min(workers, len(jobs))
         if workers > cores:
@@ -77,7 +78,7 @@ def run_jobs(
                     keep(job, future.result())
                 except Exception as error:  # keep the others' results, report it after
                     failures.append(f"{describe(job)}: {type(error).__name__}: {error}")
-                advance()
+                advance(job)
         _raise_failures(failures, "in worker processes")
 
 
@@ -106,7 +107,7 @@ def _run_on_ray(
     jobs: Sequence[Job],
     keep: Callable[[Job, Any], None],
     address: str,
-    advance: Callable[[], object],
+    advance: Callable[[Job], object],
     describe: Callable[[Job], str],
 ) -> None:
     ray = require("ray", "ray", "running jobs as Ray tasks (--ray)")
@@ -140,7 +141,7 @@ def _run_on_ray(
                 keep(job, ray.get(reference))
             except ray.exceptions.RayError as error:
                 failures.append(f"{describe(job)}: {str(error).strip().splitlines()[-1]}")
-            advance()
+            advance(job)
     _raise_failures(failures, f"on Ray after {RAY_RETRIES} retries")
 
 

@@ -16,7 +16,6 @@ from typing import Any, BinaryIO
 
 import gymnasium as gym
 import numpy as np
-from tqdm import tqdm
 
 from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.envs.unwrap import racing_env
@@ -38,6 +37,7 @@ from saferace.eval.metrics import (
 )
 from saferace.names import TASK_IDS as LANE_TASK_IDS
 from saferace.names import TRAFFIC_TASK_IDS
+from saferace.progress import Progress
 from saferace.safety.decision import nominal_parts
 from saferace.safety.filter import SafetyFilter
 from saferace.track import Track, builtin_track_names
@@ -113,10 +113,7 @@ def run_episode(
     records: dict[str, list] = {name: [] for name in fields}
     terminated = truncated = False
     half_width = base.car_half_width_m
-    # disable=None: a bar on a terminal only, not in logs and pipes.
-    with tqdm(
-        total=base.max_steps, desc=base.track.name, unit="step", disable=None if progress else True
-    ) as bar:
+    with Progress(base.max_steps, base.track.name, "step", enabled=progress) as bar:
         while not (terminated or truncated):
             action = act(agent, observation, info)
             if not filtered:
@@ -138,11 +135,23 @@ def run_episode(
                 applied = info["safety"]["filtered_action"] if filtered else action
                 on_step(observation, info, np.asarray(applied, dtype=float))
             bar.update()
-            bar.set_postfix(lap=info["lap"], v=f"{info['v_x_mps']:.1f}m/s")
-    steps = {name: np.asarray(values) for name, values in records.items()}
-    laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
-    traffic = traffic_summary(steps) if in_traffic else None
-    return EpisodeResult(steps, laps, terminated, truncated, traffic)
+            bar.show(f"lap={info['lap']}, v={info['v_x_mps']:.1f}m/s")
+        steps = {name: np.asarray(values) for name, values in records.items()}
+        laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
+        traffic = traffic_summary(steps) if in_traffic else None
+        result = EpisodeResult(steps, laps, terminated, truncated, traffic)
+        bar.report(f"episode (seed {seed})", episode_words(result.summary), time_left=False)
+    return result
+
+
+def episode_words(summary: dict) -> str:
+    """An episode's key numbers, as its progress line says them."""
+    lap = summary.get("mean_lap_time_s")
+    return (
+        f"{summary['laps_completed']} laps"
+        + (f" of {lap:.2f} s" if lap is not None else "")
+        + f", {summary['time_outside_lane_s']:.2f} s outside"
+    )
 
 
 def _has_safety_filter(env: gym.Env) -> bool:

@@ -47,7 +47,6 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
@@ -65,6 +64,7 @@ from saferace.eval.runner import (
     read_jsonl,
     run_episode,
 )
+from saferace.progress import Progress
 from saferace.track import Track
 from saferace.version import __version__
 
@@ -287,6 +287,17 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
     }
 
 
+def run_words(row: dict) -> str:
+    """A run's key numbers, as its progress line says them."""
+    words = (
+        f"score {row['score']:.1f}, completion {100.0 * row['completion']:.0f}%, "
+        f"{row['time_outside_lane_s']:.2f} s outside"
+    )
+    if row.get("at_fault_collisions") is not None:
+        words += f", {row['at_fault_collisions']} at-fault collisions"
+    return words
+
+
 def scored(measurements: dict, spec: RunSpec, suite: Suite) -> dict:
     """A run's derived fields from its measurements and the suite's expert reference (never
     from a reference or score carried in a row): its lap-time and speed ratios and score."""
@@ -344,20 +355,18 @@ def run_benchmark(
         append_jsonl(journal, row)
         done.append(row)
 
-    bar = tqdm(
-        total=len(missing),
-        desc=f"benchmark {agent}",
-        unit="run",
-        disable=None if progress else True,
-    )
-    with bar:
+    def finished_words(spec: RunSpec) -> str:
+        row = next((row for row in reversed(done) if row["key"] == spec.key), None)
+        return "failed" if row is None else run_words(row)
+
+    with Progress(len(missing), f"benchmark {agent}", "run", enabled=progress) as bar:
         run_jobs(
             drive_run,
             [(agent, spec, suite, mc_samples) for spec in missing],
             lambda job, row: keep(_keyed(row, replay, job[1])),
             workers=workers,
             ray_address=ray_address,
-            advance=bar.update,
+            advance=lambda job: bar.done(job[1].key, finished_words(job[1])),
             describe=lambda job: job[1].key,
         )
     by_key = {row["key"]: row for row in done}

@@ -15,8 +15,6 @@ import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from tqdm import tqdm
-
 from saferace.errors import ConfigError
 from saferace.eval.filters import FilterConfig
 from saferace.eval.leaderboard import (
@@ -32,6 +30,7 @@ from saferace.experiments.filter_comparison import plot_failures, write_comparis
 from saferace.learning.checkpoint import is_calibrated
 from saferace.names import AUTO, DEFAULT_GAINS, ROBUST_GAINS, SQUARED_SLACK, TASKS
 from saferace.names import RANDOM_TRACK_RADIUS_M as RANDOM_TRACK_RADIUS_M  # size of test tracks
+from saferace.progress import Progress
 from saferace.track.random_track import write_random_tracks
 
 LOG = logging.getLogger(__name__)
@@ -150,17 +149,22 @@ def run_table(
         append_jsonl(runs_file, row)
         done[job[0].key] = row
 
-    with tqdm(
-        total=len(todo), desc="safety table", unit="run", disable=None if progress else True
-    ) as bar:
+    def describe(job: tuple) -> str:
+        return " ".join(map(str, job[0].key[:4]))
+
+    def finished_words(job: tuple) -> str:
+        row = done.get(job[0].key)
+        return "failed" if row is None else row_words(row)
+
+    with Progress(len(todo), "safety table", "run", enabled=progress) as bar:
         run_jobs(
             table_row,
             [(run, seed, laps, env_kwargs) for run in todo],
             keep,
             workers=workers,
             ray_address=ray_address,
-            advance=bar.update,
-            describe=lambda job: " ".join(map(str, job[0].key[:4])),
+            advance=lambda job: bar.done(describe(job), finished_words(job)),
+            describe=describe,
         )
     rows = [done[run.key] for run in runs]
     write_tables(rows, out_dir, gains, filters)
@@ -184,6 +188,14 @@ def table_row(run: Run, seed: int, laps: int, env_kwargs: dict) -> dict:
     )
     row["track_arg"] = run.track
     return row
+
+
+def row_words(row: dict) -> str:
+    """A run's key numbers, as its progress line says them."""
+    summary = row["summary"]
+    words = f"{summary['laps_completed']} laps, {summary['time_outside_lane_s']:.2f} s outside"
+    rate = summary.get("intervention_rate")
+    return words if rate is None else f"{words}, {100.0 * rate:.0f}% of steps corrected"
 
 
 def run_key(agent: str, task: str, track: str, safety: FilterConfig) -> tuple:

@@ -20,8 +20,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm import tqdm
-
 from saferace.errors import SafeRaceError
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import file_sha256, package_versions
@@ -30,11 +28,13 @@ from saferace.experiments.benchmark import (
     drive_run,
     load_suite,
     replay_record,
+    run_words,
     vehicle_params_sha256,
 )
 from saferace.experiments.submission_checks import read_submission
 from saferace.learning.device import use_device
 from saferace.names import VERIFY_RUNS
+from saferace.progress import Progress
 from saferace.version import __version__
 
 #: Measurement -> largest absolute difference accepted between the row and the replay
@@ -233,15 +233,21 @@ def _replay(
     jobs = [
         (replay["agent"], RunSpec.of_row(rows[key]), suite, replay["mc_samples"]) for key in chosen
     ]
-    with tqdm(
-        total=len(jobs), desc="verify", unit="run", disable=None if progress else True
-    ) as bar:
+
+    def replayed_words(spec: RunSpec) -> str:
+        row = replayed.get(spec.key)
+        if row is None:
+            return "failed"
+        difference = first_difference(rows[spec.key], row)
+        return f"{run_words(row)}; {'as submitted' if difference is None else difference}"
+
+    with Progress(len(jobs), "verify", "run", enabled=progress) as bar:
         run_jobs(
             drive_run,
             jobs,
             lambda job, row: replayed.__setitem__(job[1].key, row),
             workers=workers,
-            advance=bar.update,
+            advance=lambda job: bar.done(job[1].key, replayed_words(job[1])),
             describe=lambda job: job[1].key,
         )
     mismatches = tuple(

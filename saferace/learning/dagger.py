@@ -28,7 +28,6 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig
@@ -45,6 +44,7 @@ from saferace.learning.rounds import load_rounds
 from saferace.learning.run_layout import RunLayout
 from saferace.learning.training import train_networks
 from saferace.names import CONFORMAL_ALPHA
+from saferace.progress import Progress
 from saferace.version import __version__
 
 #: Columns of ``metrics.csv`` (the held-out part's are prefixed ``held_out_``).
@@ -117,24 +117,23 @@ class DaggerRun:
         if self.fork_of is not None:
             self._link_shared_iterations()
         done = {row["iteration"] for row in self.metrics()}
-        bar = tqdm(
-            total=self.config.iterations + 1,
+        with Progress(
+            self.config.iterations + 1,
+            self.label,
+            "iteration",
+            enabled=self.progress,
             initial=len(done),
-            desc=self.label,
-            unit="iteration",
-            disable=None if self.progress else True,
-        )
-        with bar:
+        ) as bar:
             for iteration in range(self.config.iterations + 1):
                 if iteration in done:
                     continue
                 train_seconds = None
                 if iteration > 0 and not self.layout.checkpoint(iteration).exists():
-                    bar.set_postfix_str(f"iteration {iteration}: training")
+                    bar.note(f"iteration {iteration}: training")
                     train_seconds = self.train_iteration(iteration)
-                bar.set_postfix_str(f"iteration {iteration}: driving")
-                self.collect_iteration(iteration, train_seconds)
-                bar.update()
+                bar.note(f"iteration {iteration}: driving")
+                rows = self.collect_iteration(iteration, train_seconds)
+                bar.done(f"iteration {iteration}", iteration_words(rows[-1]))
         return self.metrics()
 
     def train_iteration(self, iteration: int) -> float:
@@ -327,6 +326,16 @@ class DaggerRun:
             if row["iteration"] <= shared and row["iteration"] not in done:
                 with open(self.layout.metrics_jsonl, "a") as handle:
                     handle.write(json.dumps(row) + "\n")
+
+
+def iteration_words(row: dict) -> str:
+    """An iteration's key numbers, as its progress line says them."""
+    words = f"{row['driver']} driver{', filtered' if row['filtered'] else ''}, "
+    words += "lap completed" if row["completed"] else "no lap completed"
+    words += f", {row['time_outside_lane_s']:.2f} s outside"
+    if row.get("intervention_rate") is not None:
+        words += f", {100.0 * row['intervention_rate']:.0f}% of steps corrected"
+    return words
 
 
 def _differing(stored: dict, wanted: dict, prefix: str = "") -> list[str]:

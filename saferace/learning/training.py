@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch.nn import functional
-from tqdm import tqdm
 
 from saferace.errors import ConfigError, SafeRaceError
 from saferace.eval.runner import git_revision, package_versions
@@ -48,6 +47,7 @@ from saferace.learning.networks import (
 )
 from saferace.learning.rounds import FrameSet
 from saferace.names import STATE_UNCERTAINTY_METHODS
+from saferace.progress import Progress
 from saferace.version import __version__
 
 LOG = logging.getLogger(__name__)
@@ -162,14 +162,13 @@ def fit(
     batches = math.ceil(len(train) / config.batch_size)
     steps = config.steps_for(len(train))
     epochs = math.ceil(steps / batches)
-    bar = tqdm(
-        total=steps,
+    with Progress(
+        steps,
+        f"train {label}",
+        "batch",
+        enabled=progress,
         initial=min(first_epoch * batches, steps),
-        desc=f"train {label}",
-        unit="batch",
-        disable=None if progress else True,  # None: a bar on a terminal, not in logs
-    )
-    with bar:
+    ) as bar:
         for epoch in range(first_epoch, epochs):
             network.train()
             order = epoch_order(len(train), network.config.subnetworks, generator)
@@ -192,15 +191,18 @@ def fit(
                 history["batch_loss"].append(value)
                 total += value * index.shape[-1]
                 trained += index.shape[-1]
-                bar.set_postfix(epoch=epoch + 1, loss=f"{value:.4f}")
+                bar.show(f"epoch={epoch + 1}, loss={value:.4f}")
             history["train_loss"].append(total / max(trained, 1))
             history["epoch_end_step"].append(len(history["batch_loss"]))
+            losses = f"train loss {history['train_loss'][-1]:.4f}"
             if validation is not None and len(validation):
                 history["val_loss"].append(validation_loss(network, validation, config.batch_size))
-                bar.set_postfix(epoch=epoch + 1, val=f"{history['val_loss'][-1]:.4f}")
+                bar.show(f"epoch={epoch + 1}, val={history['val_loss'][-1]:.4f}")
+                losses += f", validation loss {history['val_loss'][-1]:.4f}"
                 if config.patience and (best is None or history["val_loss"][-1] < best["loss"]):
                     best = {"epoch": epoch + 1, "loss": history["val_loss"][-1],
                             "weights": copy.deepcopy(network.state_dict())}  # fmt: skip
+            bar.report(f"epoch {epoch + 1}/{epochs}", losses)
             stop = best is not None and epoch + 1 - best["epoch"] >= config.patience
             if on_epoch is not None:
                 on_epoch(
