@@ -1,9 +1,9 @@
 """Optional heavy packages, imported when a command needs them.
 
 ``pip install saferace`` gives the tasks, the expert, the safety filter and the learned
-driver. Ray, Minari, Stable-Baselines3 and the documentation tools are extras
-(``pip install 'saferace[ray]'`` and so on); :func:`require` imports one, or says which
-extra to install.
+driver. Ray, Minari, Stable-Baselines3, PyAV (H.264 videos) and the documentation tools
+are extras (``pip install 'saferace[ray]'`` and so on); :func:`require` imports one, or
+says which extra to install.
 """
 
 from __future__ import annotations

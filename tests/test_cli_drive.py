@@ -39,10 +39,12 @@ def test_drive_writes_video_and_rerun_recording(tmp_path: Path):
         "1",
     ]  # agent, task, track, filter, state source, seeds, laps
     assert float(cells[COLUMNS.index("outside lane [s]")]) == 0.0  # never outside the lane
+    assert f"video written to {video}" in result.stdout
     capture = cv2.VideoCapture(str(video))
     frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     ok, frame = capture.read()
     assert ok and frames > 100
+    assert int(capture.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little") == b"h264"  # browsers
     assert frame.shape == (
         240,
         240 + 320,

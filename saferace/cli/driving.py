@@ -38,7 +38,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     drive.add_argument(
         "--seed", type=values.seed, default=0, help="seeds the episode and its agent"
     )
-    drive.add_argument("--video", type=Path, help="write onboard + chase view MP4 here")
+    drive.add_argument(
+        "--video",
+        type=Path,
+        help="write the onboard and chase views here: .mp4 (H.264; WebM beside it where no "
+        "H.264 encoder is installed) or .webm",
+    )
     drive.add_argument("--rerun", type=Path, help="write a Rerun recording (.rrd) here")
     add_filter_arguments(drive)
     add_device_argument(drive)
@@ -151,8 +156,10 @@ def _drive(args: argparse.Namespace) -> int:
     from saferace.eval.drive import drive
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import result_row
+    from saferace.eval.video import video_path
 
     check_count("--laps", args.laps)
+    video = video_path(args.video) if args.video else None  # a bad ending refused at once
     safety = filter_config(args)
     result = drive(
         args.task,
@@ -175,7 +182,7 @@ def _drive(args: argparse.Namespace) -> int:
     if args.opponents:
         row["config"]["env"] = {"opponents": args.opponents}
     print(leaderboard_markdown([row]))
-    for label, path in (("video", args.video), ("rerun recording", args.rerun)):
+    for label, path in (("video", video), ("rerun recording", args.rerun)):
         if path:
             print(f"{label} written to {path}")
     return 0 if result.summary["laps_completed"] == args.laps else 1

@@ -1,11 +1,17 @@
-"""MP4 videos of episodes: the onboard camera beside the chase view."""
+"""Videos of episodes, the onboard camera beside the chase view, in a format browsers play:
+H.264 in MP4 where an encoder is at hand, else VP8 in WebM."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from saferace.errors import SafeRaceError
+
+LOG = logging.getLogger(__name__)
 
 
 def onboard_panel(image: np.ndarray, height: int) -> np.ndarray:
@@ -31,28 +37,102 @@ def side_by_side(onboard: np.ndarray, chase: np.ndarray) -> np.ndarray:
     return np.concatenate([onboard_panel(onboard, chase.shape[0]), chase], axis=1)
 
 
+#: The container and codec each video file ending gets: H.264 in MP4 needs PyAV (the
+#: ``video`` extra, whose FFmpeg has libx264); VP8 in WebM is what OpenCV's own FFmpeg
+#: writes that a browser plays too.
+H264_SUFFIX, WEBM_SUFFIX = ".mp4", ".webm"
+VIDEO_SUFFIXES = (H264_SUFFIX, WEBM_SUFFIX)
+
+
+def h264_encoder() -> str | None:
+    """The name of an H.264 encoder PyAV offers here, or None (no PyAV, or none built in)."""
+    try:
+        import av
+    except ImportError:
+        return None
+    return next((name for name in ("libx264", "h264") if name in av.codecs_available), None)
+
+
+def video_path(path: str | Path) -> Path:
+    """Where a video asked for at ``path`` is written: ``path`` itself, except an MP4 where
+    no H.264 encoder is at hand, which becomes the WebM beside it (browsers play both; the
+    MPEG-4 Part 2 OpenCV writes in MP4 they do not)."""
+    path = Path(path)
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise SafeRaceError(
+            f"{path}: a video is written as {' or '.join(VIDEO_SUFFIXES)} (H.264 or VP8), "
+            f"not {path.suffix or 'a file without an ending'}"
+        )
+    if path.suffix.lower() == H264_SUFFIX and h264_encoder() is None:
+        return path.with_suffix(WEBM_SUFFIX)
+    return path
+
+
 class VideoWriter:
-    """Writes RGB frames to an MP4 file (OpenCV, ``mp4v``); the size is set by the first frame."""
+    """Writes RGB frames to a video browsers play (see :func:`video_path`: ``path`` is
+    where it was asked for, ``self.path`` where it goes); the size is set by the first
+    frame."""
 
     def __init__(self, path: str | Path, fps: float) -> None:
-        self.path = Path(path)
+        self.path = video_path(path)
+        if self.path != Path(path):
+            LOG.warning(
+                "no H.264 encoder here (pip install 'saferace[video]' brings one): writing "
+                "%s as WebM instead",
+                self.path,
+            )
         self.fps = fps
-        self._writer: cv2.VideoWriter | None = None
         self.frames = 0
+        self._h264: tuple | None = None  # PyAV's container and stream
+        self._webm: cv2.VideoWriter | None = None
 
     def write(self, frame_rgb: np.ndarray) -> None:
-        if self._writer is None:
+        if self.frames == 0:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            height, width = frame_rgb.shape[:2]
-            self._writer = cv2.VideoWriter(
-                str(self.path), cv2.VideoWriter.fourcc(*"mp4v"), self.fps, (width, height)
-            )
-            if not self._writer.isOpened():
-                raise OSError(f"OpenCV cannot write an MP4 video to {self.path}")
-        self._writer.write(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR))
+            self._open(*frame_rgb.shape[:2])
+        if self._h264 is not None:
+            import av
+
+            container, stream = self._h264
+            frame = av.VideoFrame.from_ndarray(_even(frame_rgb), format="rgb24")
+            for packet in stream.encode(frame):
+                container.mux(packet)
+        else:
+            assert self._webm is not None
+            self._webm.write(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR))
         self.frames += 1
 
+    def _open(self, height: int, width: int) -> None:
+        if self.path.suffix.lower() == H264_SUFFIX:
+            import av
+
+            encoder = h264_encoder()
+            assert encoder is not None  # video_path chose an MP4
+            container = av.open(str(self.path), "w")
+            stream = container.add_stream(encoder, rate=round(self.fps))
+            assert isinstance(stream, av.VideoStream)
+            stream.height, stream.width = height - height % 2, width - width % 2
+            stream.pix_fmt = "yuv420p"  # what browsers decode
+            self._h264 = (container, stream)
+            return
+        self._webm = cv2.VideoWriter(
+            str(self.path), cv2.VideoWriter.fourcc(*"VP80"), self.fps, (width, height)
+        )
+        if not self._webm.isOpened():
+            raise OSError(f"OpenCV cannot write a WebM video to {self.path}")
+
     def close(self) -> None:
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
+        if self._h264 is not None:
+            container, stream = self._h264
+            for packet in stream.encode():  # what the encoder still holds
+                container.mux(packet)
+            container.close()
+            self._h264 = None
+        if self._webm is not None:
+            self._webm.release()
+            self._webm = None
+
+
+def _even(frame: np.ndarray) -> np.ndarray:
+    """``frame`` cropped to even sides (4:2:0 chroma halves both)."""
+    return frame[: frame.shape[0] - frame.shape[0] % 2, : frame.shape[1] - frame.shape[1] % 2]
