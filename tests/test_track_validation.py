@@ -120,6 +120,22 @@ def test_self_intersecting_centerline_is_rejected(tmp_path: Path):
     assert str(raised.value).startswith(f"{path}: ")
 
 
+@pytest.mark.parametrize("strict", [False, True])
+def test_a_figure_eight_sampled_right_at_its_crossing_is_named_as_crossing(
+    tmp_path: Path, strict: bool
+):
+    """366 m long, so the check's samples are 1/2000 of the lap apart and land exactly on
+    the crossing at its first data point (s = 0) and again at half the lap: the two passes
+    only touch there, and the lane was narrowed to nothing before."""
+    t = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
+    x, y = 60.0 * np.sin(t), 30.0 * np.sin(2.0 * t)
+    x[100] = y[100] = 0.0
+    path = tmp_path / "big_eight.csv"
+    write_track_csv(path, x, y, 1.0, 1.0)
+    with pytest.raises(TrackError, match="the center line crosses itself between line 2 and"):
+        Track.load(path, strict=strict)
+
+
 def test_overlapping_boundaries_are_rejected_when_strict():
     """A hairpin whose two legs are closer than the lane width: boundaries cross."""
     t = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
@@ -236,3 +252,16 @@ def test_cli_reports_one_line_without_traceback(tmp_path: Path, case: str):
     assert len(error_lines) == 1
     assert error_lines[0].startswith("saferace: error: ")
     assert str(path) in error_lines[0]
+
+
+def test_segments_that_touch_cross_and_segments_on_one_line_apart_do_not():
+    from saferace.track.validation import _segments_cross
+
+    p1, p2 = np.array([0.0, 0.0]), np.array([2.0, 0.0])
+    others = np.array([[[1.0, 0.0], [1.0, 1.0]],  # an end on p1-p2: a T
+                       [[1.0, -1.0], [1.0, 1.0]],  # a proper crossing
+                       [[3.0, 0.0], [4.0, 0.0]],  # on the same line, apart
+                       [[1.0, 0.5], [1.0, 1.0]]])  # fmt: skip
+    assert _segments_cross(p1, p2, others[:, 0], others[:, 1]).tolist() == [
+        True, True, False, False
+    ]  # fmt: skip

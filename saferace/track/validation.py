@@ -278,15 +278,32 @@ def first_self_intersection(polyline: np.ndarray) -> tuple[int, int] | None:
 
 
 def _segments_cross(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """Whether segment p1-p2 properly crosses each segment q1-q2."""
+    """Whether segment p1-p2 crosses or touches each segment q1-q2: an end of one lying
+    exactly on the other counts (a figure eight sampled right at its crossing)."""
 
     def orient(a, b, c):
         return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (
             c[..., 0] - a[..., 0]
         )
 
+    def lies_on(a, b, c, orientation):
+        """Whether ``c``, on the line through ``a`` and ``b`` where ``orientation`` is 0,
+        lies between them."""
+        within = [
+            (np.minimum(a[..., k], b[..., k]) <= c[..., k])
+            & (c[..., k] <= np.maximum(a[..., k], b[..., k]))
+            for k in (0, 1)
+        ]
+        return (orientation == 0.0) & within[0] & within[1]
+
     d1 = orient(q1, q2, p1)
     d2 = orient(q1, q2, p2)
     d3 = orient(p1, p2, q1)
     d4 = orient(p1, p2, q2)
-    return (d1 * d2 < 0.0) & (d3 * d4 < 0.0)
+    touching = (
+        lies_on(q1, q2, p1, d1)
+        | lies_on(q1, q2, p2, d2)
+        | lies_on(p1, p2, q1, d3)
+        | lies_on(p1, p2, q2, d4)
+    )
+    return ((d1 * d2 < 0.0) & (d3 * d4 < 0.0)) | touching
