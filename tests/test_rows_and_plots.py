@@ -16,10 +16,12 @@ from saferace.eval.filter_config import FilterConfig
 from saferace.eval.leaderboard import (
     COLUMNS,
     filter_words,
+    group_label,
     leaderboard_markdown,
     leaderboard_rows,
     plot_trajectories,
     row_label,
+    same_paths,
     state_source_words,
 )
 from saferace.eval.runner import row_track, track_reference
@@ -81,6 +83,21 @@ def test_leaderboard_keeps_filtered_and_unfiltered_runs_apart(tmp_path: Path):
     labels = [row_label(row) for row in rows]
     assert labels[0].endswith("no filter") and labels[1] == labels[0].replace("seed 0", "seed 1")
     assert "filter: cbf; state source: true state" in labels[2]
+    plot_trajectories(rows, tmp_path / "board.png")
+    assert (tmp_path / "board.png").stat().st_size > 20_000
+
+
+def test_runs_that_drove_the_same_path_are_drawn_once_under_all_their_labels(tmp_path: Path):
+    """Two seeds of a deterministic driver from the same start drive one path: drawn twice,
+    the second would hide the first and its legend entry would point at nothing."""
+    rows = [fake_row(seed, None, lap_s=9.0) for seed in (0, 1, 2)]
+    rows[2]["trajectory"] = {**rows[2]["trajectory"], "y_m": [0.0, -0.1, -0.2]}
+    groups = same_paths(rows)
+    assert [[row["seed"] for row in group] for group in groups] == [[0, 1], [2]]
+    assert group_label(groups[0]) == f"{row_label(rows[0])} = {row_label(rows[1])} (the same path)"
+    assert group_label(groups[1]) == row_label(rows[2])
+    met_a_car = {**rows[1], "traffic": {"opponents": [], "collisions": [{"x_m": 1.0}]}}
+    assert len(same_paths([rows[0], met_a_car])) == 2  # the same path, other traffic
     plot_trajectories(rows, tmp_path / "board.png")
     assert (tmp_path / "board.png").stat().st_size > 20_000
 

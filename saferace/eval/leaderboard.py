@@ -236,10 +236,10 @@ def plot_trajectories(rows: list[dict], path: str | Path) -> None:
         index, first = track_rows[0]
         track = row_track(first, f"row {index + 1} ({row_label(first)})")
         plot_track(ax_map, track)
-        for number, (_, row) in enumerate(track_rows):
-            label, colour = row_label(row), f"C{number % 10}"
+        for number, group in enumerate(same_paths([row for _, row in track_rows])):
+            colour, row = f"C{number % 10}", group[0]
             trajectory = row["trajectory"]
-            plot_path(ax_map, trajectory, lw=1.2, color=colour, label=label)
+            plot_path(ax_map, trajectory, lw=1.2, color=colour, label=group_label(group))
             plot_traffic(ax_map, row.get("traffic"), colour)
             ax_speed.plot(trajectory["s_m"], trajectory["v_x_mps"], ".", ms=2, color=colour)
         ax_map.set_title(f"{track.name}: driven trajectories (x: outside the lane)")
@@ -250,6 +250,26 @@ def plot_trajectories(rows: list[dict], path: str | Path) -> None:
         legend_outside(panel, [ax_map])
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def same_paths(rows: list[dict]) -> list[list[dict]]:
+    """``rows`` grouped by their driven path, in order of first appearance: runs that drove
+    exactly the same path (and met the same traffic) are drawn once, or the last would hide
+    the others."""
+    groups: dict[str, list[dict]] = {}
+    for row in rows:
+        path = [row["trajectory"]["x_m"], row["trajectory"]["y_m"], row.get("traffic")]
+        key = json.dumps(path, default=lambda value: np.asarray(value).tolist())
+        groups.setdefault(key, []).append(row)
+    return list(groups.values())
+
+
+def group_label(group: list[dict]) -> str:
+    """The legend entry of a path that ``group``'s runs all drove."""
+    labels = [row_label(row) for row in group]
+    if len(labels) == 1:
+        return labels[0]
+    return f"{' = '.join(labels)} (the same path)"
 
 
 OPPONENTS_LABEL = "opponents (dotted, in their driver's colour)"
