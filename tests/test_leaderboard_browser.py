@@ -14,7 +14,8 @@ from saferace.experiments.benchmark import RunSpec, load_suite, run_benchmark
 from saferace.experiments.benchmark_page import leaderboard_html
 
 #: Appended to a copy of the page: once it has loaded, click "agent" (sort ascending) and
-#: "score" twice (descending), then write what the table and the images show into the DOM.
+#: "score" twice (descending), then write what the table and the images show, and whether
+#: the table's last column ends inside the window, into the DOM.
 PROBE = """
 <script>
 window.addEventListener("load", () => {
@@ -27,13 +28,18 @@ window.addEventListener("load", () => {
   click("score"); click("score");
   const byScore = column(1);
   const images = Array.from(document.images).map((i) => i.complete && i.naturalWidth > 0);
+  const lastHeader = headers[headers.length - 1].getBoundingClientRect().right;
+  const fits = lastHeader <= document.documentElement.clientWidth;
   const out = document.createElement("pre");
   out.id = "probe";
-  out.textContent = JSON.stringify({byAgent, byScore, images});
+  out.textContent = JSON.stringify({byAgent, byScore, images, fits});
   document.body.appendChild(out);
 });
 </script>
 """
+
+
+WINDOW = "1400,1000"  # a laptop's browser window (px)
 
 
 def chromium() -> str:
@@ -56,7 +62,8 @@ def test_the_page_sorts_and_shows_its_images_in_chromium(tmp_path: Path):
     probe.write_text(page.replace("</body>", PROBE + "</body>"))
     browser = [chromium(), "--headless", "--no-sandbox", "--disable-gpu"]
     dom = subprocess.run(
-        [*browser, "--virtual-time-budget=5000", "--dump-dom", probe.as_uri()],
+        [*browser, "--virtual-time-budget=5000", f"--window-size={WINDOW}", "--dump-dom",
+         probe.as_uri()],
         capture_output=True, text=True, timeout=120, check=True,
     ).stdout  # fmt: skip
     shown = json.loads(re.search(r'<pre id="probe">(.*?)</pre>', dom, re.S).group(1))
@@ -64,9 +71,10 @@ def test_the_page_sorts_and_shows_its_images_in_chromium(tmp_path: Path):
     scores = {entry["agent"]: entry["score"] for entry in entries}
     assert shown["byScore"] == sorted(scores, key=scores.get, reverse=True)
     assert shown["images"] == [True, True]  # lab and oval
+    assert shown["fits"]  # every column on screen at 1,400 px
     screenshot = tmp_path / "leaderboard.png"
     subprocess.run(
-        [*browser, f"--screenshot={screenshot}", "--window-size=1300,1400",
+        [*browser, f"--screenshot={screenshot}", f"--window-size={WINDOW}",
          (tmp_path / "leaderboard.html").as_uri()],
         capture_output=True, timeout=120, check=True,
     )  # fmt: skip

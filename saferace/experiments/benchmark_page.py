@@ -170,9 +170,10 @@ def leaderboard_html(submissions: list[dict], suite: Suite) -> str:
 <title>SafeRace leaderboard, suite v{suite.version}</title>
 <style>
 body {{ font-family: sans-serif; margin: 2em; }}
-table {{ border-collapse: collapse; }}
-th, td {{ border: 1px solid #999; padding: 4px 8px; text-align: right; }}
-th {{ cursor: pointer; background: #eee; }}
+.scroll {{ overflow-x: auto; }}
+table {{ border-collapse: collapse; font-size: 0.9em; }}
+th, td {{ border: 1px solid #999; padding: 4px 6px; text-align: right; }}
+th {{ cursor: pointer; background: #eee; max-width: 7em; vertical-align: bottom; }}
 figure {{ display: inline-block; margin: 0.5em; }}
 </style></head><body>
 <h1>SafeRace leaderboard</h1>
@@ -184,7 +185,8 @@ run's measurements. Overtakes: opponents an agent passed and stayed ahead of. Su
 older suite rank among their own version only. Verified runs: how many of an entry's
 runs <code>saferace verify</code> drove again and found as submitted. Click a column to
 sort.</p>
-<table id="leaderboard"><thead><tr>{header}</tr></thead><tbody>{body}</tbody></table>
+<div class="scroll"><table id="leaderboard"><thead><tr>{header}</tr></thead>
+<tbody>{body}</tbody></table></div>
 <h2>Driven paths</h2>
 {figures}
 <script>{_SORT_SCRIPT}</script>
