@@ -8,6 +8,7 @@ wheel with its dependencies, as ``pip install saferace`` does.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import subprocess
@@ -236,3 +237,18 @@ def test_getting_started_names_every_make_target_and_what_make_test_runs():
         assert tool in recipe, tool
     for named in ("ruff check", "ruff format --check", "mypy saferace", "docs", "fast tests"):
         assert named in rows["`make test`"], named
+
+
+def test_the_command_reference_is_rendered_in_place_of_the_note_for_raw_readers():
+    spec = importlib.util.spec_from_file_location("hook", ROOT / "docs/hooks/commands.py")
+    assert spec is not None and spec.loader is not None
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    raw = (ROOT / "docs" / "reference" / "commands.md").read_text()
+    note = raw.split(hook.MARKER)[1].split(hook.END_MARKER)[0]
+    assert "saferace --help" in note and "make docs" in note  # GitHub shows this
+    built = hook.with_commands(raw, "REFERENCE")
+    assert "REFERENCE" in built and "saferace --help" not in built and hook.MARKER not in built
+    assert built.startswith(raw.split(hook.MARKER)[0])
+    with pytest.raises(ValueError, match="lost its markers"):
+        hook.with_commands(raw.replace(hook.END_MARKER, ""), "REFERENCE")

@@ -1,9 +1,10 @@
 """MkDocs hook: the command reference, rendered from ``saferace.cli.build_parser()``.
 
-``docs/reference/commands.md`` holds a marker; at build time this hook replaces it with
-every subcommand's usage, options (flag, default, help) and epilog examples, read from
-the parser the ``saferace`` console script runs. The page therefore cannot drift from the
-code: a renamed option or a new command shows up on the next ``make docs``.
+``docs/reference/commands.md`` holds a pair of markers; at build time this hook replaces
+them, and the note between them for readers of the raw page (on GitHub, where no hook
+runs), with every subcommand's usage, options (flag, default, help) and epilog examples,
+read from the parser the ``saferace`` console script runs. The page therefore cannot drift
+from the code: a renamed option or a new command shows up on the next ``make docs``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import sys
 from pathlib import Path
 
 MARKER = "<!-- saferace-commands -->"
+END_MARKER = "<!-- /saferace-commands -->"
 PAGE = "reference/commands.md"
 #: Usage lines are wrapped at this width whatever the terminal building the docs is.
 USAGE_WIDTH = "80"
@@ -23,11 +25,19 @@ USAGE_WIDTH = "80"
 def on_page_markdown(markdown: str, page, config, files) -> str:
     if page.file.src_uri != PAGE:
         return markdown
-    if MARKER not in markdown:
-        raise ValueError(f"{PAGE} lost its marker {MARKER!r}: the command reference has no place")
-    return markdown.replace(
-        MARKER, f'<div class="saferace-commands" markdown>\n\n{render_commands()}\n\n</div>'
-    )
+    return with_commands(markdown, render_commands())
+
+
+def with_commands(markdown: str, reference: str) -> str:
+    """``markdown`` with its markers, and what lies between them, replaced by ``reference``."""
+    head, start, rest = markdown.partition(MARKER)
+    _, end, tail = rest.partition(END_MARKER)
+    if not (start and end):
+        raise ValueError(
+            f"{PAGE} lost its markers {MARKER!r} and {END_MARKER!r}: the command reference "
+            "has no place"
+        )
+    return f'{head}<div class="saferace-commands" markdown>\n\n{reference}\n\n</div>{tail}'
 
 
 def render_commands() -> str:
