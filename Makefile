@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 TORCH_VERSION := 2.14.1
 TORCHVISION_VERSION := 0.29.1
-EXTRAS := dev,ray,minari,multi,sb3,docs
+EXTRAS := dev,ray,minari,multi,sb3,docs,video
 export MUJOCO_GL ?= egl
 
 .PHONY: setup demo demo-summary test test-slow lint docs bench clean
