@@ -90,7 +90,7 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
     observation, info = env.reset(seed=0, options={"start_speed_mps": 2.0})
     assert len(env._tail_inputs) == len(env._tail_states) == 0  # no plan yet, no tail
     certified = env.certify(observation, info, np.array([0.0, 1.0]))
-    assert not certified.fallback and certified.status == "certified"
+    assert not certified.fallback and certified.status == certified.mode == "certified"
     expected = env.planner.plan_states
     tail = env._tail_inputs.copy()  # the plan's later inputs, where it expects each
     np.testing.assert_allclose(tail[:, 0], env.planner.plan_inputs[1:, 0])
@@ -102,13 +102,14 @@ def test_an_infeasible_plan_follows_the_tail_of_the_last_certified_one():
         }  # fmt: skip
         decision = env.certify(too_fast, at_plan, np.array([0.0, 1.0]))
         assert decision.fallback == "infeasible" and decision.status == "uncertified"
+        assert decision.mode == "propagated"  # the last certified plan, carried on
         assert decision.filtered_action == pytest.approx(
             np.clip(tail[step - 1], env.lower, env.upper)
         )
     assert len(env._tail_inputs) == len(env._tail_states) == len(tail) - 2
     elsewhere = {**at_plan, "e_y_m": at_plan["e_y_m"] + 0.15}  # not where the plan expects
     replanned = env.certify(too_fast, elsewhere, np.array([0.0, 1.0]))
-    assert replanned.fallback == "infeasible"
+    assert replanned.fallback == "infeasible" and replanned.mode == "stopping"
     assert replanned.filtered_action[1] < -1.0  # the least-violating plan: it brakes
     env.close()
 

@@ -11,6 +11,12 @@ import numpy as np
 #: the out-of-distribution monitor raised, no control satisfied the robust constraints, or
 #: the solver failed.
 FALLBACK_REASONS = ("", "alarm", "infeasible", "solver")
+#: What acted in a step (``SafetyDecision.mode``): the constraints held on this frame's state
+#: (``certified``); they held on the last trusted state carried forward by odometry, this
+#: frame being in doubt (``propagated``; the predictive filter: its last certified plan's
+#: rest); neither held, and the fallback slowed the car to a speed its set fits at, a stop
+#: where none does (``stopping``; ``fallback`` says why).
+MODES = ("certified", "propagated", "stopping")
 
 
 @dataclass(frozen=True)
@@ -48,7 +54,8 @@ class SafetyDecision:
     simulator's at the same moment and ``covered`` whether the interval held it.
     ``monitor_score`` is the out-of-distribution score (None without a monitor), ``alarm``
     whether it passed its threshold; ``fallback`` is why the filter braked towards a speed
-    the interval fits at (one of :data:`FALLBACK_REASONS`, ``""``: it did not).
+    the interval fits at (one of :data:`FALLBACK_REASONS`, ``""``: it did not), ``mode``
+    what acted (one of :data:`MODES`).
     """
 
     nominal_action: list[float]
@@ -72,6 +79,7 @@ class SafetyDecision:
     solve_time_s: float
     filter_time_s: float
     n_samples: int
+    mode: str = "certified"
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

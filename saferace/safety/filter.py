@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from typing import TYPE_CHECKING, Any, cast
@@ -25,8 +26,9 @@ from saferace.safety.chance import (
     constraint_std,
     spread_at_accel,
 )
+from saferace.safety.dead_reckoning import DeadReckoning, car_pose, midway_s
 from saferace.safety.decision import SafetyDecision, nominal_parts
-from saferace.safety.estimate import checked_action, estimate_state
+from saferace.safety.estimate import StateEstimate, checked_action, estimate_state
 from saferace.safety.exact_penalty import solve_filter_qp_l1
 from saferace.safety.fallback import (
     FALLBACK_BRAKE_MPS2,
@@ -232,6 +234,7 @@ class SafetyFilter(gym.Wrapper):
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
+        self._reckoning: DeadReckoning | None = None  # the last trusted interval, carried
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
@@ -240,6 +243,7 @@ class SafetyFilter(gym.Wrapper):
             self._noise_rng = np.random.default_rng([seed, 1])
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
+        self._reckoning = None
         return observation, info
 
     def step(self, action):
@@ -268,8 +272,13 @@ class SafetyFilter(gym.Wrapper):
         s_m = float(info["s_m"])
         curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
+        reckoned = self._reckoned(estimate, info)
+        if reckoned is not None:  # in doubt: the last trusted interval, carried forward
+            lower, upper = reckoned.interval(self.track.centerline.curvature_scalar(s_m))
+            estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
         samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper
         score, alarm = estimate.monitor_score, estimate.alarm
+        doubt = alarm and reckoned is None  # nothing holds the state: stop
         bounded = estimate.bounded
         chance = not self.robust and self.probabilistic and len(samples) > 1
         if self.robust and bounded:
@@ -291,7 +300,7 @@ class SafetyFilter(gym.Wrapper):
             states, lane[:, 2], u0, context, speed, cars, nominal, spread, chance,
             *self._action_box(v_x, float(u0[1])),
         )  # fmt: skip
-        fallback = "alarm" if alarm and self.robust else "" if solution.solved else "solver"
+        fallback = "alarm" if doubt and self.robust else "" if solution.solved else "solver"
         car_rows = car_barriers.ROWS_PER_CAR * len(cars)
         barrier_rows = len(problem.b) - (speed is not None) - car_rows
         if not fallback and self.robust and solution.slack[:barrier_rows].max() > INFEASIBLE_SLACK:
@@ -300,12 +309,12 @@ class SafetyFilter(gym.Wrapper):
         filtered = solution.u
         if fallback:  # the lane's curvature, and back to the centre where the belief holds
             feedforward = math.atan(self.wheelbase_m * self.track.centerline.curvature_scalar(s_m))
-            steer = fallback_steer_rad(feedforward, None if alarm else lane.mean(axis=0))
+            steer = fallback_steer_rad(feedforward, None if doubt else lane.mean(axis=0))
             if fallback == "solver":  # brakes whatever the creep rule asks
                 box, accel = self._action_box(v_x, -math.inf), -FALLBACK_BRAKE_MPS2
             else:
                 doubted = (np.full(3, -math.inf), np.full(3, math.inf))  # stops the car
-                interval = doubted if alarm else (state_lower, state_upper)
+                interval = doubted if doubt else (state_lower, state_upper)
                 box = self._fallback_box(v_x, float(u0[1]), interval, context, speed)
                 accel = float(u0[1])
             filtered = np.clip(np.array([steer, accel]), *box)
@@ -329,7 +338,12 @@ class SafetyFilter(gym.Wrapper):
         self.interventions += intervened
         self.failures += fallback == "solver"
         self.fallbacks += bool(fallback)
+        self._keep_reckoning(estimate, reckoned, info)
         reduce = np.min if self.robust else np.mean
+        if fallback in ("", "car"):
+            mode = "certified" if reckoned is None else "propagated"
+        else:
+            mode = "stopping"
         return SafetyDecision(
             nominal_action=nominal.tolist(),
             filtered_action=filtered.tolist(),
@@ -349,7 +363,33 @@ class SafetyFilter(gym.Wrapper):
             solve_time_s=solve_time,
             filter_time_s=time.perf_counter() - started,
             n_samples=len(samples),
+            mode=mode,
         )
+
+    def _reckoned(self, estimate: StateEstimate, info: dict[str, Any]) -> DeadReckoning | None:
+        """In the robust mode, while the source is in doubt, the last trusted interval
+        carried forward to this step by odometry and the map (:mod:`dead_reckoning`); None
+        where the source is trusted or nothing was trusted yet."""
+        if not (self.robust and estimate.alarm and self._reckoning is not None):
+            return None
+        last = self._reckoning
+        s_m = float(info["s_m"])
+        midway = midway_s(last.s_m, s_m, self.track.length_m)
+        return last.carried(car_pose(info), s_m, self.track.centerline.curvature_scalar(midway))
+
+    def _keep_reckoning(
+        self, estimate: StateEstimate, reckoned: DeadReckoning | None, info: dict[str, Any]
+    ) -> None:
+        """What the next step carries forward: this frame's interval where it was trusted,
+        else the set carried to it."""
+        if not self.robust:
+            return
+        if not estimate.alarm:
+            self._reckoning = DeadReckoning.trusted(
+                estimate.lower, estimate.upper, car_pose(info), float(info["s_m"])
+            )
+        elif reckoned is not None:
+            self._reckoning = reckoned
 
     def _solve(
         self,

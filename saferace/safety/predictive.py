@@ -183,6 +183,7 @@ class PredictiveSafetyFilter(SafetyFilter):
                 )
             )
         )
+        mode = "certified" if not fallback else "propagated" if on_tail else "stopping"
         if not fallback:
             filtered = self._command(u, v_x)
             self._keep_tail()
@@ -220,6 +221,7 @@ class PredictiveSafetyFilter(SafetyFilter):
             solve_time_s=solve_time,
             filter_time_s=time.perf_counter() - started,
             n_samples=len(estimate.samples),
+            mode=mode,
         )
 
     def _keep_tail(self) -> None:

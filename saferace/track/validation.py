@@ -191,7 +191,7 @@ def narrow_folding_widths(
     count = len(w_right_m)
 
     def narrowed(width: np.ndarray, curvature_toward_side: np.ndarray) -> np.ndarray:
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", over="ignore"):  # a straight: an endless radius
             radius = point_limits(1.0 / np.maximum(curvature_toward_side, 0.0), segment, count)
         limit = np.maximum(radius - FOLD_MARGIN_M, 0.0)
         return capped(width, limit, width > radius, distance)
