@@ -26,10 +26,14 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from saferace.track.frenet import wrap_arc
+
+if TYPE_CHECKING:
+    from saferace.track.track import Track
 
 #: How far a carried corner may be off the truth per metre driven, ``[e_y (m/m), e_psi
 #: (rad/m)]``: about three times the worst one-step error measured over 2,840 steps of
@@ -132,3 +136,39 @@ class DeadReckoning:
     def interval(self, kappa_radpm: float) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)`` of ``[e_y, e_psi, kappa]``, the curvature the map's."""
         return np.append(self.lower, kappa_radpm), np.append(self.upper, kappa_radpm)
+
+
+class LastTrusted:
+    """What a filter on ``track`` carries forward: the interval of the last frame its
+    source trusted, and the set carried from it while the source is in doubt."""
+
+    def __init__(self, track: Track) -> None:
+        self.track = track
+        self.reckoning: DeadReckoning | None = None
+
+    def reset(self) -> None:
+        self.reckoning = None
+
+    def carried(self, alarm: bool, info: dict[str, Any]) -> DeadReckoning | None:
+        """While the source is in doubt (``alarm``), the set carried to the car in ``info``;
+        None where it is trusted or nothing was trusted yet."""
+        last = self.reckoning
+        if not alarm or last is None:
+            return None
+        s_m = float(info["s_m"])
+        midway = midway_s(last.s_m, s_m, self.track.length_m)
+        return last.carried(car_pose(info), s_m, self.track.centerline.curvature_scalar(midway))
+
+    def keep(
+        self,
+        alarm: bool,
+        interval: tuple[np.ndarray, np.ndarray],
+        carried: DeadReckoning | None,
+        info: dict[str, Any],
+    ) -> None:
+        """What the next step carries: this frame's ``interval`` where it was trusted, else
+        the set ``carried`` to it."""
+        if not alarm:
+            self.reckoning = DeadReckoning.trusted(*interval, car_pose(info), float(info["s_m"]))
+        elif carried is not None:
+            self.reckoning = carried

@@ -19,6 +19,14 @@ FALLBACK_REASONS = ("", "alarm", "infeasible", "solver")
 MODES = ("certified", "propagated", "stopping")
 
 
+def decision_mode(fallback: str, propagated: bool) -> str:
+    """The :data:`MODES` entry of a step with ``fallback`` (a car's, ``"car"``, is no
+    fallback of the lane) whose state was ``propagated`` from the last trusted one."""
+    if fallback in ("", "car"):
+        return "propagated" if propagated else "certified"
+    return "stopping"
+
+
 @dataclass(frozen=True)
 class NominalAction:
     """An agent's action with the spread of its own uncertainty (e.g. its MC-dropout std).

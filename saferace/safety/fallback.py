@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from saferace.safety.models import MIN_SPEED_MPS
+
 #: Braking where the filter's QP failed (m/s^2): firm but far inside the tyres' grip.
 FALLBACK_BRAKE_MPS2 = 2.0
 #: Braking where the state cannot be trusted (m/s^2): harder, since the car must slow
@@ -72,6 +74,32 @@ def fallback_accel_bounds(
         brake = max(gap, -DISTRUST_BRAKE_MPS2, -max(v_x_mps, 0.0) / control_dt_s)
         return brake, brake
     return -DISTRUST_BRAKE_MPS2, gap
+
+
+def grip_steer_rad(v_x_mps: float, lateral_mps2: float, wheelbase_m: float) -> float:
+    """The steering at which ``v_x^2 tan(delta) / L`` reaches ``lateral_mps2``."""
+    return math.atan(lateral_mps2 * wheelbase_m / max(v_x_mps, MIN_SPEED_MPS) ** 2)
+
+
+def towards_speed(
+    box: tuple[np.ndarray, np.ndarray],
+    v_x_mps: float,
+    target_mps: float,
+    control_dt_s: float,
+    limit_accel_mps2: float | None,
+    steer_max_rad: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The action ``box`` of a fallback step: its acceleration moving the speed towards
+    ``target_mps`` (:func:`fallback_accel_bounds`) and never above ``limit_accel_mps2`` (the
+    map's speed limit's row), its steering within ``+-steer_max_rad``."""
+    lower, upper = box[0].copy(), box[1].copy()
+    accel_low, accel_high = fallback_accel_bounds(v_x_mps, target_mps, control_dt_s)
+    upper[1] = min(upper[1], accel_high)
+    if limit_accel_mps2 is not None:
+        upper[1] = max(min(upper[1], limit_accel_mps2), lower[1])
+    lower[1] = min(max(lower[1], accel_low), upper[1])
+    lower[0], upper[0] = max(lower[0], -steer_max_rad), min(upper[0], steer_max_rad)
+    return lower, upper
 
 
 def fallback_steer_rad(feedforward_rad: float, believed: np.ndarray | None) -> float:

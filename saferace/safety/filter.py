@@ -26,21 +26,21 @@ from saferace.safety.chance import (
     constraint_std,
     spread_at_accel,
 )
-from saferace.safety.dead_reckoning import DeadReckoning, car_pose, midway_s
-from saferace.safety.decision import SafetyDecision, nominal_parts
-from saferace.safety.estimate import StateEstimate, checked_action, estimate_state
+from saferace.safety.dead_reckoning import LastTrusted
+from saferace.safety.decision import SafetyDecision, decision_mode, nominal_parts
+from saferace.safety.estimate import checked_action, estimate_state
 from saferace.safety.exact_penalty import solve_filter_qp_l1
 from saferace.safety.fallback import (
     FALLBACK_BRAKE_MPS2,
     FALLBACK_LATERAL_MPS2,
-    fallback_accel_bounds,
     fallback_steer_rad,
     fitting_speed_mps,
+    grip_steer_rad,
+    towards_speed,
 )
 from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
 from saferace.safety.intervals import interval_points
 from saferace.safety.models import (
-    MIN_SPEED_MPS,
     lane_model_states,
     param_values,
     symbolic_model,
@@ -70,8 +70,7 @@ GAIN_PRESETS: dict[str, dict[str, Any]] = {
 #: if that is less): at a standstill the steering drops out of the lane barriers (its
 #: effect grows with ``v^2``), so a car stopped heading for an edge cannot be steered away.
 CREEP_ACCEL_MPS2 = 1.0
-#: A filtered action this close to the nominal one is not an intervention.
-INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2)
+INTERVENTION_TOLERANCE = (1e-3, 1e-2)  # (rad, m/s^2): closer to the nominal is none
 RELINEARISE_TOL = 1e-3  # rad: a steering this close to the linearisation point is final
 #: A robust constraint needing more slack than this has no control that satisfies it (the
 #: slack penalty leaves about 1e-4 on a constraint it holds at its edge; m/s^2 for a lane).
@@ -101,14 +100,13 @@ class SafetyFilter(gym.Wrapper):
     :func:`~saferace.safety.intervals.interval_points`; the measurement-robust CBF of Dean
     et al. 2020 and Cosner et al. 2021: the margin grows with the interval's width). The
     interval is the source's own (a conformal calibration) or ``mean +- z std`` of its
-    samples; the curvature comes from the map (a network's is its worst output). Where no
-    control satisfies them, the filter falls back (:mod:`saferace.safety.fallback`): it
-    brakes towards a speed at which the interval fits inside the lane (a creep speed, or a
-    stop where even its offsets do not fit) and never above the map's speed limit, steering
-    the lane's curvature and towards the centre line from the interval's centre, within the
-    tyres' grip. While the source's out-of-distribution monitor raises it stops, steering the
-    lane's curvature alone: a creeping car, or one steered from an interval in doubt, still
-    drifted out. Each such step counts in ``fallbacks``.
+    samples; the curvature comes from the map (a network's is its worst output). While the
+    source's monitor raises, the last trusted interval carried forward by odometry stands
+    in for it (:mod:`saferace.safety.dead_reckoning`). Where no control satisfies them, the
+    filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a speed at which
+    the interval fits inside the lane (a stop where even its offsets do not fit), never
+    above the map's speed limit, steering the lane's curvature and towards the centre line
+    from the interval's centre, within the tyres' grip. Such steps count in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -234,7 +232,7 @@ class SafetyFilter(gym.Wrapper):
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
-        self._reckoning: DeadReckoning | None = None  # the last trusted interval, carried
+        self._last_trusted = LastTrusted(self.track)  # the robust mode's, carried in doubt
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
@@ -243,7 +241,7 @@ class SafetyFilter(gym.Wrapper):
             self._noise_rng = np.random.default_rng([seed, 1])
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
-        self._reckoning = None
+        self._last_trusted.reset()
         return observation, info
 
     def step(self, action):
@@ -272,7 +270,7 @@ class SafetyFilter(gym.Wrapper):
         s_m = float(info["s_m"])
         curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
-        reckoned = self._reckoned(estimate, info)
+        reckoned = self._last_trusted.carried(estimate.alarm, info) if self.robust else None
         if reckoned is not None:  # in doubt: the last trusted interval, carried forward
             lower, upper = reckoned.interval(self.track.centerline.curvature_scalar(s_m))
             estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
@@ -338,12 +336,10 @@ class SafetyFilter(gym.Wrapper):
         self.interventions += intervened
         self.failures += fallback == "solver"
         self.fallbacks += bool(fallback)
-        self._keep_reckoning(estimate, reckoned, info)
+        if self.robust:
+            interval = (estimate.lower, estimate.upper)
+            self._last_trusted.keep(estimate.alarm, interval, reckoned, info)
         reduce = np.min if self.robust else np.mean
-        if fallback in ("", "car"):
-            mode = "certified" if reckoned is None else "propagated"
-        else:
-            mode = "stopping"
         return SafetyDecision(
             nominal_action=nominal.tolist(),
             filtered_action=filtered.tolist(),
@@ -363,33 +359,8 @@ class SafetyFilter(gym.Wrapper):
             solve_time_s=solve_time,
             filter_time_s=time.perf_counter() - started,
             n_samples=len(samples),
-            mode=mode,
+            mode=decision_mode(fallback, propagated=reckoned is not None),
         )
-
-    def _reckoned(self, estimate: StateEstimate, info: dict[str, Any]) -> DeadReckoning | None:
-        """In the robust mode, while the source is in doubt, the last trusted interval
-        carried forward to this step by odometry and the map (:mod:`dead_reckoning`); None
-        where the source is trusted or nothing was trusted yet."""
-        if not (self.robust and estimate.alarm and self._reckoning is not None):
-            return None
-        last = self._reckoning
-        s_m = float(info["s_m"])
-        midway = midway_s(last.s_m, s_m, self.track.length_m)
-        return last.carried(car_pose(info), s_m, self.track.centerline.curvature_scalar(midway))
-
-    def _keep_reckoning(
-        self, estimate: StateEstimate, reckoned: DeadReckoning | None, info: dict[str, Any]
-    ) -> None:
-        """What the next step carries forward: this frame's interval where it was trusted,
-        else the set carried to it."""
-        if not self.robust:
-            return
-        if not estimate.alarm:
-            self._reckoning = DeadReckoning.trusted(
-                estimate.lower, estimate.upper, car_pose(info), float(info["s_m"])
-            )
-        elif reckoned is not None:
-            self._reckoning = reckoned
 
     def _solve(
         self,
@@ -488,27 +459,16 @@ class SafetyFilter(gym.Wrapper):
         context: BarrierContext,
         speed: tuple[np.ndarray, float, float] | None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The action box of a fallback step: the acceleration towards the speed at which
-        the interval fits inside the lane (a stop where it is unbounded: after an alarm),
-        never above the map's speed limit (``speed``: its row, braked for in time, which
-        needs no lane state but the offset), the steering inside the tyres' grip. Without
-        the limit a speeding agent accelerated to 5.3 m/s through infeasible steps on a
-        straight and left the lane in the next 1.6 m turn."""
+        """The action box of a fallback step (:func:`towards_speed`): towards the speed the
+        ``interval`` fits the lane at, under the map's limit (``speed``, which needs no lane
+        state; without it a speeding agent left a 1.6 m turn), inside the tyres' grip."""
         lane = (context.w_left_m, context.w_right_m, self.half_width_m, self.creep_speed_mps)
         target = fitting_speed_mps(*interval, *lane)
-        lower, upper = self._action_box(v_x, agent_accel if target > 0.0 else -math.inf)
-        accel_low, accel_high = fallback_accel_bounds(v_x, target, self.control_dt_s)
-        upper[1] = min(upper[1], accel_high)
-        if speed is not None:
-            upper[1] = max(min(upper[1], speed[1]), lower[1])
-        lower[1] = min(max(lower[1], accel_low), upper[1])
-        steer_max = self._grip_steer_rad(v_x, self.max_lateral_accel_mps2 or FALLBACK_LATERAL_MPS2)
-        lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
-        return lower, upper
-
-    def _grip_steer_rad(self, v_x: float, lateral_mps2: float) -> float:
-        """The steering at which ``v_x^2 tan(delta) / L`` reaches ``lateral_mps2``."""
-        return math.atan(lateral_mps2 * self.wheelbase_m / max(v_x, MIN_SPEED_MPS) ** 2)
+        box = self._action_box(v_x, agent_accel if target > 0.0 else -math.inf)
+        lateral_mps2 = self.max_lateral_accel_mps2 or FALLBACK_LATERAL_MPS2
+        steer_max = grip_steer_rad(v_x, lateral_mps2, self.wheelbase_m)
+        limit = None if speed is None else speed[1]
+        return towards_speed(box, v_x, target, self.control_dt_s, limit, steer_max)
 
     def _per_constraint(self, rows: np.ndarray, reduce: Any) -> np.ndarray:
         """One value per constraint name from a value per QP row (``reduce`` over the robust
@@ -532,7 +492,7 @@ class SafetyFilter(gym.Wrapper):
         if self.creep_speed_mps > 0.0 and v_x < self.creep_speed_mps:
             lower[1] = max(lower[1], min(agent_accel, CREEP_ACCEL_MPS2))
         if self.max_lateral_accel_mps2 is not None:
-            steer_max = self._grip_steer_rad(v_x, self.max_lateral_accel_mps2)
+            steer_max = grip_steer_rad(v_x, self.max_lateral_accel_mps2, self.wheelbase_m)
             lower[0], upper[0] = max(lower[0], -steer_max), min(upper[0], steer_max)
         return lower, upper
 
