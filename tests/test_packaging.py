@@ -252,3 +252,33 @@ def test_the_command_reference_is_rendered_in_place_of_the_note_for_raw_readers(
     assert built.startswith(raw.split(hook.MARKER)[0])
     with pytest.raises(ValueError, match="lost its markers"):
         hook.with_commands(raw.replace(hook.END_MARKER, ""), "REFERENCE")
+
+
+RESULTS = ROOT / "docs" / "results"
+INCLUDE = re.compile(r'^--8<-- "(results/[^"]+)"$', re.M)
+STAMP = re.compile(r"^\*\*Measured\*\* at commit `[0-9a-f]{7,}`[^;]*; [^;]+; by `[^`]+`\.$")
+
+
+def test_every_results_file_the_pages_include_exists_and_carries_its_stamp():
+    included = [
+        name for page in RESULTS.glob("*.md") for name in INCLUDE.findall(page.read_text())
+    ]
+    assert len(included) >= 6
+    for name in included:
+        path = ROOT / "docs" / name
+        assert path.is_file(), f"{name} is included but missing: docs/results/sources.md says how"
+        first = path.read_text().splitlines()[0]
+        assert STAMP.match(first), f"{name} has no stamp: {first!r}"
+        assert f"`{name.removeprefix('results/')}`" in (RESULTS / "sources.md").read_text()
+
+
+def test_the_docs_link_only_results_pages_that_exist_and_date_no_numbers_outside_the_changelog():
+    pages = [*(ROOT / "docs").glob("*.md"), ROOT / "README.md"]
+    for page in pages:
+        text = page.read_text()
+        for target in re.findall(r"\]\(((?:docs/)?results/[^)#]+)", text):
+            base = ROOT if target.startswith("docs/") else ROOT / "docs"
+            assert (base / target).is_file(), f"{page.name} links {target}, which is missing"
+        if page.name != "changelog.md":
+            assert not re.search(r"`[0-9a-f]{7}`", text), f"{page.name} dates a number by commit"
+        assert "written locally" not in text, page.name
