@@ -117,9 +117,9 @@ class Progress:
 
     def seconds_left(self, now: float | None = None) -> float | None:
         """The time the units left take at the pace of those done in this process (None
-        before the first)."""
+        before the first, and once none is left)."""
         done = self.count - self._initial
-        if done <= 0:
+        if done <= 0 or self.count >= self.total:
             return None
         elapsed = (time.monotonic() if now is None else now) - self._started
         return elapsed / done * max(self.total - self.count, 0)

@@ -48,7 +48,12 @@ TARGETS: dict[str, list[str]] = {
         "tests/test_recalibrate.py",
         "tests/test_adaptive.py",
     ],
-    "saferace/safety/fallback.py": ["tests/test_robust_filter.py", "tests/test_safety_filter.py"],
+    "saferace/safety/fallback.py": [
+        "tests/test_robust_filter.py",
+        "tests/test_safety_filter.py",
+        "tests/test_dead_reckoning.py",
+    ],
+    "saferace/safety/dead_reckoning.py": ["tests/test_dead_reckoning.py"],
     "saferace/safety/predictive.py": ["tests/test_predictive_filter.py"],
     "saferace/experiments/verify.py": ["tests/test_submission_checks.py"],
     "saferace/safety/car_barriers.py": ["tests/test_car_barrier_rows.py", "tests/test_traffic.py"],

@@ -43,10 +43,12 @@ def test_a_log_gets_a_line_per_finished_unit_with_its_result_and_the_time_left(c
         bar.update()  # counted, no line of its own
         clock.now += 1.5
         bar.done("lab/CenterLine/0/cbf")
+        bar.done("lab/RacingLine/0/none")
     assert log.getvalue().splitlines() == [
         "benchmark expert: lab/CenterLine/0/none done (1/4 runs) in 2.0 s, score 98.1; "
         "about 6.0 s left",  # 2 s a run, 3 runs to go
         "benchmark expert: lab/CenterLine/0/cbf done (3/4 runs) in 5.5 s; about 2.5 s left",
+        "benchmark expert: lab/RacingLine/0/none done (4/4 runs) in 0.0 s",  # none left
     ]
 
 

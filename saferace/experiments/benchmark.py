@@ -288,9 +288,10 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
 
 
 def run_words(row: dict) -> str:
-    """A run's key numbers, as its progress line says them."""
+    """A run's key numbers, as its progress line says them (its score on the totals' scale
+    of 100)."""
     words = (
-        f"score {row['score']:.1f}, completion {100.0 * row['completion']:.0f}%, "
+        f"score {100.0 * row['score']:.1f}, completion {100.0 * row['completion']:.0f}%, "
         f"{row['time_outside_lane_s']:.2f} s outside"
     )
     if row.get("at_fault_collisions") is not None:
