@@ -45,18 +45,34 @@ def test_a_move_is_carried_into_the_lane_frame_as_geometry_says():
     along a circle of the centre line's own curvature the lane state does not change."""
     e_y, e_psi = carried_states(np.array([0.2]), np.array([0.1]), np.array([1.0, 0, 0]), 0.0)
     assert e_y[0] == pytest.approx(0.2 + math.sin(0.1)) and e_psi[0] == pytest.approx(0.1)
-    kappa, arc = 0.5, 0.3  # radius 2 m, 0.3 rad of it: the chord in the body frame
-    chord = [math.sin(arc) / kappa, (1.0 - math.cos(arc)) / kappa, arc]
-    e_y, e_psi = carried_states(np.array([0.0]), np.array([0.0]), np.array(chord), kappa)
-    assert e_y[0] == pytest.approx(0.0, abs=1e-4) and e_psi[0] == pytest.approx(0.0, abs=1e-4)
+    kappa, turn = 0.5, 0.3  # the centre line's radius 2 m; 0.3 rad of a turn
+    for e_y0 in (0.0, 0.4, -0.4):  # on the centre line, on its parallels inside and out
+        radius = 1.0 / kappa - e_y0
+        chord = [radius * math.sin(turn), radius * (1.0 - math.cos(turn)), turn]
+        e_y, e_psi = carried_states(np.array([e_y0]), np.array([0.0]), np.array(chord), kappa)
+        assert e_y[0] == pytest.approx(e_y0, abs=2e-4), e_y0
+        assert e_psi[0] == pytest.approx(0.0, abs=2e-4), e_y0
+
+
+def test_a_short_move_follows_the_frenet_kinematics():
+    """1 mm straight ahead at 0.3 rad to a left bend's tangent, 20 cm inside: ``de_y = L sin
+    e_psi`` and ``de_psi = -kappa L cos e_psi / (1 - kappa e_y)``, to first order."""
+    step_m, e_y0, e_psi0, kappa = 1e-3, 0.2, 0.3, 0.5
+    e_y, e_psi = carried_states(
+        np.array([e_y0]), np.array([e_psi0]), np.array([step_m, 0.0, 0.0]), kappa
+    )
+    assert e_y[0] - e_y0 == pytest.approx(step_m * math.sin(e_psi0), rel=1e-3)
+    expected = -kappa * step_m * math.cos(e_psi0) / (1.0 - kappa * e_y0)
+    assert e_psi[0] - e_psi0 == pytest.approx(expected, rel=1e-3)
 
 
 def test_the_box_grows_with_the_distance_driven_and_not_at_rest():
     box = DeadReckoning.trusted([0.1, 0.0, 9.0], [0.1, 0.0, 9.0], [0.0, 0.0, 0.0], 5.0)
-    moved = box.carried([2.0, 0.0, 0.0], 7.0, 0.0)  # 2 m straight along a straight
+    moved = box.carried([1.2, 1.6, 0.0], 7.0, 0.0)  # 2 m at an angle, along a straight
     np.testing.assert_allclose(moved.upper - moved.lower, 2.0 * 2.0 * ERROR_PER_M, atol=1e-12)
     assert moved.driven_m == pytest.approx(2.0) and moved.s_m == 7.0
-    still = moved.carried([2.0, 0.0, 0.0], 7.0, 0.0)
+    assert moved.lower[0] + moved.upper[0] == pytest.approx(2.0 * (0.1 + 1.6))  # moved left
+    still = moved.carried([1.2, 1.6, 0.0], 7.0, 0.0)
     np.testing.assert_array_equal(still.lower, moved.lower)
     np.testing.assert_array_equal(still.upper, moved.upper)
     lower, upper = moved.interval(0.25)

@@ -260,9 +260,7 @@ STAMP = re.compile(r"^\*\*Measured\*\* at commit `[0-9a-f]{7,}`[^;]*; [^;]+; by 
 
 
 def test_every_results_file_the_pages_include_exists_and_carries_its_stamp():
-    included = [
-        name for page in RESULTS.glob("*.md") for name in INCLUDE.findall(page.read_text())
-    ]
+    included = [name for page in RESULTS.glob("*.md") for name in INCLUDE.findall(page.read_text())]
     assert len(included) >= 6
     for name in included:
         path = ROOT / "docs" / name
