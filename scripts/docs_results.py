@@ -63,8 +63,22 @@ def stamped(text: str, line: str, csv: bool) -> str:
         lines = lines[1:]
     while lines and not lines[0].strip():
         lines = lines[1:]
+    if not csv:
+        lines = _tables_apart(lines)
     body = "\n".join(lines)
     return f"{head}\n{body}\n" if csv else f"{head}\n\n{body}\n"
+
+
+def _tables_apart(lines: list[str]) -> list[str]:
+    """``lines`` with a blank line between a markdown table and the text right before or
+    after it (a benchmark prints its caption on the line above), so that it renders."""
+    out: list[str] = []
+    for line in lines:
+        in_table, after_table = line.startswith("|"), bool(out) and out[-1].startswith("|")
+        if line.strip() and out and out[-1].strip() and in_table != after_table:
+            out.append("")
+        out.append(line)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -280,3 +280,18 @@ def test_the_docs_link_only_results_pages_that_exist_and_date_no_numbers_outside
         if page.name != "changelog.md":
             assert not re.search(r"`[0-9a-f]{7}`", text), f"{page.name} dates a number by commit"
         assert "written locally" not in text, page.name
+
+
+def test_a_results_file_gets_one_stamp_and_its_tables_stand_apart_from_their_captions():
+    spec = importlib.util.spec_from_file_location("docs_results", ROOT / "scripts/docs_results.py")
+    assert spec is not None and spec.loader is not None
+    docs_results = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(docs_results)
+    output = "caption:\n| a | b |\n|---|---|\n| 1 | 2 |\ntarget met\n"
+    once = docs_results.stamped(output, "**Measured** at commit `abc1234`; m; by `x`.", csv=False)
+    assert once.splitlines() == [
+        "**Measured** at commit `abc1234`; m; by `x`.", "", "caption:", "",
+        "| a | b |", "|---|---|", "| 1 | 2 |", "", "target met",
+    ]  # fmt: skip
+    again = docs_results.stamped(once, "**Measured** at commit `def5678`; m; by `x`.", csv=False)
+    assert again == once.replace("abc1234", "def5678")  # the old stamp replaced, no blank added
