@@ -71,11 +71,12 @@ def stamped(text: str, line: str, csv: bool) -> str:
 
 def _tables_apart(lines: list[str]) -> list[str]:
     """``lines`` with a blank line between a markdown table and the text right before or
-    after it (a benchmark prints its caption on the line above), so that it renders."""
+    after it (a benchmark prints its caption on the line above), so that it renders, and
+    between two lines of text, so that each stays a line of its own."""
     out: list[str] = []
     for line in lines:
         in_table, after_table = line.startswith("|"), bool(out) and out[-1].startswith("|")
-        if line.strip() and out and out[-1].strip() and in_table != after_table:
+        if line.strip() and out and out[-1].strip() and not (in_table and after_table):
             out.append("")
         out.append(line)
     return out

@@ -287,11 +287,11 @@ def test_a_results_file_gets_one_stamp_and_its_tables_stand_apart_from_their_cap
     assert spec is not None and spec.loader is not None
     docs_results = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(docs_results)
-    output = "caption:\n| a | b |\n|---|---|\n| 1 | 2 |\ntarget met\n"
+    output = "caption:\n| a | b |\n|---|---|\n| 1 | 2 |\ntarget met\nother target met\n"
     once = docs_results.stamped(output, "**Measured** at commit `abc1234`; m; by `x`.", csv=False)
     assert once.splitlines() == [
         "**Measured** at commit `abc1234`; m; by `x`.", "", "caption:", "",
-        "| a | b |", "|---|---|", "| 1 | 2 |", "", "target met",
+        "| a | b |", "|---|---|", "| 1 | 2 |", "", "target met", "", "other target met",
     ]  # fmt: skip
     again = docs_results.stamped(once, "**Measured** at commit `def5678`; m; by `x`.", csv=False)
     assert again == once.replace("abc1234", "def5678")  # the old stamp replaced, no blank added

@@ -5,6 +5,7 @@ as large as a circuit needs."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -258,3 +259,11 @@ def test_reckless_paths_of_a_long_circuit_are_drawn_large(tmp_path: Path):
         plot_reckless_paths(rows, path)
         sizes[track] = cv2.imread(str(path)).shape[:2]
     assert max(sizes[str(circuit)]) > 1.8 * max(sizes["lab"])
+
+
+def test_a_pipe_inside_a_cell_keeps_the_tables_columns():
+    from saferace.eval.tables import markdown_table
+
+    table = markdown_table(["max |u diff|", "n"], [["a|b", 1]])
+    for line in table.splitlines():
+        assert len(re.split(r"(?<!\\)\|", line)) == 4, line  # 2 cells between 3 pipes

@@ -8,8 +8,10 @@ from pathlib import Path
 
 
 def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """A markdown table with right-aligned columns; floats are shown with 3 decimals."""
-    cells = [[_format(value) for value in row] for row in rows]
+    """A markdown table with right-aligned columns; floats are shown with 3 decimals, and a
+    pipe inside a cell escaped (``max |u diff|`` would split its column)."""
+    headers = [_escaped(header) for header in headers]
+    cells = [[_escaped(_format(value)) for value in row] for row in rows]
     widths = [max(len(h), *(len(row[i]) for row in cells)) for i, h in enumerate(headers)]
     lines = [
         "| " + " | ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True)) + " |",
@@ -20,6 +22,10 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
         for row in cells
     ]
     return "\n".join(lines)
+
+
+def _escaped(text: str) -> str:
+    return text.replace("|", "\\|")
 
 
 def _format(value: object) -> str:
