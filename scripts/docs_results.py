@@ -24,12 +24,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def commit() -> str:
-    """The short commit of the working tree, marked when it has uncommitted changes."""
+    """The short commit of the working tree, marked when it has uncommitted changes (outside
+    ``docs/results/``)."""
     try:
         head = _git("rev-parse", "--short", "HEAD")
     except (OSError, subprocess.CalledProcessError):
         return "an unknown commit"
-    dirty = _git("status", "--porcelain", "--untracked-files=no")
+    # results files written a moment ago are no change to what measured them
+    dirty = _git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs/results")
     return f"commit `{head}`" + (" with uncommitted changes" if dirty else "")
 
 
