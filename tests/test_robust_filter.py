@@ -21,10 +21,13 @@ from saferace.safety.fallback import (
     MIN_HEADING_RAD,
     fallback_accel_bounds,
     fitting_speed_mps,
+    grip_steer_rad,
     interval_margin_m,
+    towards_speed,
 )
 from saferace.safety.filter import SafetyFilter
 from saferace.safety.intervals import interval_points
+from saferace.safety.models import MIN_SPEED_MPS
 
 
 class IntervalSource:
@@ -212,3 +215,17 @@ def test_the_robust_modes_gains_keep_an_uncertain_car_at_speed(unseen_track_csv)
             laps[gains, noise is not None] = result.laps[0].lap_time_s
     assert laps["tuned", True] < 1.10 * laps["tuned", False]
     assert laps["grip", True] > 1.20 * laps["grip", False]
+
+
+def test_a_fallback_box_moves_the_speed_to_its_target_under_the_limit_within_the_grip():
+    box = (np.array([-0.1, -4.0]), np.array([0.1, 4.0]))  # a steering box tighter than grip
+    lower, upper = towards_speed(box, 0.9, 1.0, 0.05, None, 0.3)
+    np.testing.assert_allclose(lower, [-0.1, -DISTRUST_BRAKE_MPS2])  # its own steering kept
+    np.testing.assert_allclose(upper, [0.1, (1.0 - 0.9) / 0.05])  # the target in one step
+    lower, upper = towards_speed(box, 0.9, 1.0, 0.05, 1.5, 0.05)  # the map's limit, the grip
+    np.testing.assert_allclose([lower[0], upper[0], upper[1]], [-0.05, 0.05, 1.5])
+    lower, upper = towards_speed(box, 3.0, 1.0, 0.05, None, 0.3)  # above it: brake
+    assert lower[1] == upper[1] == -DISTRUST_BRAKE_MPS2
+    assert np.all(box[0] == [-0.1, -4.0])  # the box given is left as it was
+    assert grip_steer_rad(2.0, 4.0, 0.25) == pytest.approx(math.atan(4.0 * 0.25 / 4.0))
+    assert grip_steer_rad(0.0, 4.0, 0.25) == grip_steer_rad(MIN_SPEED_MPS, 4.0, 0.25)
