@@ -12,6 +12,8 @@ from __future__ import annotations
 RC10_BUMPER_HALF_EXTENTS_M = (0.225, 0.155)
 
 #: The tasks by short name, and their gymnasium ids.
+#: The endings a video is written with: H.264 in MP4, VP8 in WebM (both play in browsers).
+VIDEO_SUFFIXES = (".mp4", ".webm")
 TASK_IDS = {"CenterLine": "saferace/CenterLine-v0", "RacingLine": "saferace/RacingLine-v0"}
 TASKS: tuple[str, ...] = tuple(TASK_IDS)
 #: Tasks in traffic (``saferace.envs.traffic``): they start among opponents.

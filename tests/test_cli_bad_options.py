@@ -20,11 +20,12 @@ BAD_VALUES = {
     "existing": "/no/such/file.json",
     "track": "no_such_track",
     "labelled folder": "ensemble=/no/such/folder",
+    "video file": "lap.avi",
 }
 
 
 #: Values that parse for each kind (anything else: this file, which exists).
-GOOD_VALUES = {"track": "lab", "labelled folder": "here=."}
+GOOD_VALUES = {"track": "lab", "labelled folder": "here=.", "video file": "lap.mp4"}
 
 
 def kind(action: argparse.Action) -> str | None:
@@ -37,6 +38,8 @@ def kind(action: argparse.Action) -> str | None:
         return "track"
     if action.type is values.labelled_folder:
         return "labelled folder"
+    if action.type is values.video_file:
+        return "video file"
     return None
 
 
@@ -84,6 +87,7 @@ def test_the_walk_covers_every_command_and_kind_of_value():
     covered = {(command, kind(action)) for command, action, _ in CASES}
     assert len(CASES) >= 150
     assert {("eval", "number"), ("train", "existing"), ("raceline", "track")} <= covered
+    assert ("drive", "video file") in covered
     assert {command for command, _ in covered} >= set(COMMANDS) - {"tracks", "sysid"}
 
 

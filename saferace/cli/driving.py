@@ -40,7 +40,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     drive.add_argument(
         "--video",
-        type=Path,
+        type=values.video_file,
         help="write the onboard and chase views here: .mp4 (H.264; WebM beside it where no "
         "H.264 encoder is installed) or .webm",
     )

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from saferace.config import COUNT, IMAGE_SIZE, NON_NEGATIVE, POSITIVE, SHARE, Bounds
+from saferace.names import VIDEO_SUFFIXES
 from saferace.track import builtin_track_names
 
 
@@ -46,6 +47,16 @@ def existing(text: str) -> Path:
     path = Path(text)
     if not path.exists():
         raise argparse.ArgumentTypeError(f"no such file or folder: {text}")
+    return path
+
+
+def video_file(text: str) -> Path:
+    """Where a video goes: a path ending in one of :data:`~saferace.names.VIDEO_SUFFIXES`."""
+    path = Path(text)
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise argparse.ArgumentTypeError(
+            f"{text}: a video is written as {' or '.join(VIDEO_SUFFIXES)} (H.264 or VP8)"
+        )
     return path
 
 

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from saferace.errors import SafeRaceError
+from saferace.names import VIDEO_SUFFIXES
 
 LOG = logging.getLogger(__name__)
 
@@ -40,8 +41,7 @@ def side_by_side(onboard: np.ndarray, chase: np.ndarray) -> np.ndarray:
 #: The container and codec each video file ending gets: H.264 in MP4 needs PyAV (the
 #: ``video`` extra, whose FFmpeg has libx264); VP8 in WebM is what OpenCV's own FFmpeg
 #: writes that a browser plays too.
-H264_SUFFIX, WEBM_SUFFIX = ".mp4", ".webm"
-VIDEO_SUFFIXES = (H264_SUFFIX, WEBM_SUFFIX)
+H264_SUFFIX, WEBM_SUFFIX = VIDEO_SUFFIXES
 
 
 def h264_encoder() -> str | None:
