@@ -32,6 +32,10 @@ def duration_words(seconds: float) -> str:
     return f"{hours} h {minutes:02d} min"
 
 
+def _plural(unit: str) -> str:
+    return unit + ("es" if unit.endswith(("ch", "sh", "s", "x")) else "s")
+
+
 class Progress:
     """Progress through ``total`` units (runs, rounds, batches) named ``unit``.
 
@@ -96,7 +100,7 @@ class Progress:
         took, self._last = now - self._last, now
         if not self.logging:
             return
-        line = f"{self.desc}: {what} done ({self.count}/{self.total} {self.unit}s)"
+        line = f"{self.desc}: {what} done ({self.count}/{self.total} {_plural(self.unit)})"
         line += f" in {duration_words(took)}" + (f", {result}" if result else "")
         left = self.seconds_left(now) if time_left else None
         if left is not None:

@@ -93,3 +93,9 @@ def test_what_a_unit_is_doing_is_logged_at_info_for_verbose_runs(
 )  # fmt: skip
 def test_durations_in_words(seconds: float, words: str):
     assert duration_words(seconds) == words
+
+
+def test_units_are_counted_in_their_plural():
+    log = io.StringIO()
+    Progress(12, "train state", "batch", stream=log).done("epoch 1/3")
+    assert "(1/12 batches)" in log.getvalue()
