@@ -126,4 +126,4 @@ class Progress:
         if done <= 0 or self.count >= self.total:
             return None
         elapsed = (time.monotonic() if now is None else now) - self._started
-        return elapsed / done * max(self.total - self.count, 0)
+        return elapsed / done * (self.total - self.count)

@@ -204,8 +204,3 @@ def add_randomize_argument(parser: argparse.ArgumentParser) -> None:
         metavar="PRESET",
         help="visual domain randomisation: none, mild or strong (a look per episode seed)",
     )
-
-
-def check_count(flag: str, value: int) -> None:
-    if value < 1:
-        raise SafeRaceError(f"{flag} must be at least 1, got {value}")

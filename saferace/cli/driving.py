@@ -12,7 +12,6 @@ from saferace.cli.arguments import (
     add_episode_arguments,
     add_filter_arguments,
     add_parallel_arguments,
-    check_count,
     filter_config,
 )
 from saferace.errors import SafeRaceError
@@ -158,8 +157,7 @@ def _drive(args: argparse.Namespace) -> int:
     from saferace.eval.runner import result_row
     from saferace.eval.video import video_path
 
-    check_count("--laps", args.laps)
-    video = video_path(args.video) if args.video else None  # a bad ending refused at once
+    video = video_path(args.video) if args.video else None  # where it goes: WebM without H.264
     safety = filter_config(args)
     result = drive(
         args.task,
@@ -192,7 +190,6 @@ def _eval(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import evaluate, max_steps_for
 
-    check_count("--laps", args.laps)
     rows = evaluate(
         args.agent,
         args.task,
@@ -283,7 +280,6 @@ def _submission_leaderboard(args: argparse.Namespace) -> int:
 def _benchmark(args: argparse.Namespace) -> int:
     from saferace.experiments.benchmark import run_benchmark
 
-    check_count("--workers", args.workers)
     result = run_benchmark(
         args.agent,
         args.out,
@@ -303,8 +299,6 @@ def _benchmark(args: argparse.Namespace) -> int:
 def _verify(args: argparse.Namespace) -> int:
     from saferace.experiments.verify import record_path, verify_submission
 
-    check_count("--workers", args.workers)
-    check_count("--runs", args.runs)
     result = verify_submission(
         args.submission,
         runs=None if args.all else args.runs,

@@ -11,7 +11,6 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_parallel_arguments,
     add_slack_argument,
-    check_count,
 )
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
@@ -172,7 +171,6 @@ def _dagger(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table
     from saferace.learning.dagger import METRIC_COLUMNS, DaggerRun
 
-    check_count("--workers", args.workers)
     config = dagger_config(args)
     rows = DaggerRun(
         args.out, config, fork_of=args.fork_of, workers=args.workers, ray_address=args.ray

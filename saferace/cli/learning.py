@@ -12,7 +12,6 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_filter_arguments,
     add_parallel_arguments,
-    check_count,
     filter_config,
 )
 from saferace.cli.options import add_config_options, config_from_args
@@ -201,7 +200,6 @@ def _collect(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.learning.collect import collect_round
 
-    check_count("--workers", args.workers)
     config = collection_config(args)
     collected = collect_round(args.out, config, workers=args.workers, ray_address=args.ray)
     rows = [
@@ -223,7 +221,6 @@ def _collect(args: argparse.Namespace) -> int:
 def _train(args: argparse.Namespace) -> int:
     from saferace.learning.commands import train_and_report
 
-    check_count("--samples", args.samples)
     report = train_and_report(args.data, args.out, train_config(args), args.samples, args.stereo)
     _print_report(report)
     return 0
@@ -232,7 +229,6 @@ def _train(args: argparse.Namespace) -> int:
 def _validate(args: argparse.Namespace) -> int:
     from saferace.learning.commands import validate_checkpoint
 
-    check_count("--samples", args.samples)
     _print_report(validate_checkpoint(args.checkpoint, args.data, args.out, args.samples))
     return 0
 
@@ -241,7 +237,6 @@ def _calibrate(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table
     from saferace.learning.recalibrate import recalibrate
 
-    check_count("--samples", args.samples)
     rows = recalibrate(
         args.checkpoint, args.data, args.out, args.alpha, args.samples, args.test_share,
         args.seed, monitor=args.monitor,
@@ -254,7 +249,6 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _gradcam(args: argparse.Namespace) -> int:
     from saferace.learning.commands import gradcam_report
 
-    check_count("--frames", args.frames)
     report = gradcam_report(
         args.checkpoint, args.track, args.out, args.task, args.frames, args.layer
     )

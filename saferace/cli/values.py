@@ -35,6 +35,7 @@ class CheckedNumber:
 
 #: The checked types of the command line's plain options.
 count = CheckedNumber(int, COUNT)
+samples = CheckedNumber(int, Bounds(minimum=2))  # a spread needs two
 seed = CheckedNumber(int, NON_NEGATIVE)
 image_size = CheckedNumber(int, IMAGE_SIZE)
 positive = CheckedNumber(float, POSITIVE)

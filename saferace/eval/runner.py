@@ -135,7 +135,8 @@ def run_episode(
                 applied = info["safety"]["filtered_action"] if filtered else action
                 on_step(observation, info, np.asarray(applied, dtype=float))
             bar.update()
-            bar.show(f"lap={info['lap']}, v={info['v_x_mps']:.1f}m/s")
+            if bar.terminal:  # not formatted every step where nothing shows it
+                bar.show(f"lap={info['lap']}, v={info['v_x_mps']:.1f}m/s")
         steps = {name: np.asarray(values) for name, values in records.items()}
         laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
         traffic = traffic_summary(steps) if in_traffic else None

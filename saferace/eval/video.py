@@ -4,6 +4,7 @@ H.264 in MP4 where an encoder is at hand, else VP8 in WebM."""
 from __future__ import annotations
 
 import logging
+from functools import cache
 from pathlib import Path
 
 import cv2
@@ -44,6 +45,7 @@ def side_by_side(onboard: np.ndarray, chase: np.ndarray) -> np.ndarray:
 H264_SUFFIX, WEBM_SUFFIX = VIDEO_SUFFIXES
 
 
+@cache
 def h264_encoder() -> str | None:
     """The name of an H.264 encoder PyAV offers here, or None (no PyAV, or none built in)."""
     try:
@@ -83,54 +85,63 @@ class VideoWriter:
             )
         self.fps = fps
         self.frames = 0
-        self._h264: tuple | None = None  # PyAV's container and stream
-        self._webm: cv2.VideoWriter | None = None
+        self._sink: _H264Sink | _WebmSink | None = None
 
     def write(self, frame_rgb: np.ndarray) -> None:
-        if self.frames == 0:
+        if self._sink is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._open(*frame_rgb.shape[:2])
-        if self._h264 is not None:
-            import av
-
-            container, stream = self._h264
-            frame = av.VideoFrame.from_ndarray(_even(frame_rgb), format="rgb24")
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        else:
-            assert self._webm is not None
-            self._webm.write(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR))
+            sink = _H264Sink if self.path.suffix.lower() == H264_SUFFIX else _WebmSink
+            self._sink = sink(self.path, self.fps, *frame_rgb.shape[:2])
+        self._sink.write(frame_rgb)
         self.frames += 1
 
-    def _open(self, height: int, width: int) -> None:
-        if self.path.suffix.lower() == H264_SUFFIX:
-            import av
+    def close(self) -> None:
+        if self._sink is not None:
+            self._sink.close()
+            self._sink = None
 
-            encoder = h264_encoder()
-            assert encoder is not None  # video_path chose an MP4
-            container = av.open(str(self.path), "w")
-            stream = container.add_stream(encoder, rate=round(self.fps))
-            assert isinstance(stream, av.VideoStream)
-            stream.height, stream.width = height - height % 2, width - width % 2
-            stream.pix_fmt = "yuv420p"  # what browsers decode
-            self._h264 = (container, stream)
-            return
-        self._webm = cv2.VideoWriter(
-            str(self.path), cv2.VideoWriter.fourcc(*"VP80"), self.fps, (width, height)
-        )
-        if not self._webm.isOpened():
-            raise OSError(f"OpenCV cannot write a WebM video to {self.path}")
+
+class _H264Sink:
+    """H.264 (yuv420p) in MP4 through PyAV."""
+
+    def __init__(self, path: Path, fps: float, height: int, width: int) -> None:
+        import av
+
+        encoder = h264_encoder()
+        assert encoder is not None  # video_path chose an MP4
+        self._frame = av.VideoFrame.from_ndarray
+        self._container = av.open(str(path), "w")
+        stream = self._container.add_stream(encoder, rate=round(fps))
+        assert isinstance(stream, av.VideoStream)
+        stream.height, stream.width = height - height % 2, width - width % 2
+        stream.pix_fmt = "yuv420p"  # what browsers decode
+        self._stream = stream
+
+    def write(self, frame_rgb: np.ndarray) -> None:
+        for packet in self._stream.encode(self._frame(_even(frame_rgb), format="rgb24")):
+            self._container.mux(packet)
 
     def close(self) -> None:
-        if self._h264 is not None:
-            container, stream = self._h264
-            for packet in stream.encode():  # what the encoder still holds
-                container.mux(packet)
-            container.close()
-            self._h264 = None
-        if self._webm is not None:
-            self._webm.release()
-            self._webm = None
+        for packet in self._stream.encode():  # what the encoder still holds
+            self._container.mux(packet)
+        self._container.close()
+
+
+class _WebmSink:
+    """VP8 in WebM through OpenCV's own FFmpeg."""
+
+    def __init__(self, path: Path, fps: float, height: int, width: int) -> None:
+        self._writer = cv2.VideoWriter(
+            str(path), cv2.VideoWriter.fourcc(*"VP80"), fps, (width, height)
+        )
+        if not self._writer.isOpened():
+            raise OSError(f"OpenCV cannot write a WebM video to {path}")
+
+    def write(self, frame_rgb: np.ndarray) -> None:
+        self._writer.write(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2BGR))
+
+    def close(self) -> None:
+        self._writer.release()
 
 
 def _even(frame: np.ndarray) -> np.ndarray:

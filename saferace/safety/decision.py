@@ -87,7 +87,7 @@ class SafetyDecision:
     solve_time_s: float
     filter_time_s: float
     n_samples: int
-    mode: str = "certified"
+    mode: str
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -272,7 +272,7 @@ class SafetyFilter(gym.Wrapper):
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
         reckoned = self._last_trusted.carried(estimate.alarm, info) if self.robust else None
         if reckoned is not None:  # in doubt: the last trusted interval, carried forward
-            lower, upper = reckoned.interval(self.track.centerline.curvature_scalar(s_m))
+            lower, upper = reckoned.interval(float(estimate.lower[2]))  # the map's curvature
             estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
         samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper
         score, alarm = estimate.monitor_score, estimate.alarm

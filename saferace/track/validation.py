@@ -300,10 +300,12 @@ def _segments_cross(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarr
     d2 = orient(q1, q2, p2)
     d3 = orient(p1, p2, q1)
     d4 = orient(p1, p2, q2)
-    touching = (
+    crossing = (d1 * d2 < 0.0) & (d3 * d4 < 0.0)
+    if not (d1 * d2 * d3 * d4 == 0.0).any():  # no end on the other's line: the usual case
+        return crossing
+    return crossing | (
         lies_on(q1, q2, p1, d1)
         | lies_on(q1, q2, p2, d2)
         | lies_on(p1, p2, q1, d3)
         | lies_on(p1, p2, q2, d4)
     )
-    return ((d1 * d2 < 0.0) & (d3 * d4 < 0.0)) | touching
