@@ -5,9 +5,11 @@ the true state, so that they keep driving, swerving and braking) laps each track
 (default: random tracks 5151, 6262 and 7373, which nothing was tuned on) for up to
 ``--seconds``. Along every drive two things are measured:
 
-- the one-step error of :func:`~saferace.safety.dead_reckoning.carried_states`: the true
+- the one-step error of
+  :func:`~saferace.safety.uncertainty.dead_reckoning.carried_states`: the true
   ``[e_y, e_psi]`` a step later against the truth carried by the step's odometry, per metre
-  driven. Its worst, times a margin, is :data:`~saferace.safety.dead_reckoning.ERROR_PER_M`;
+  driven. Its worst, times a margin, is
+  :data:`~saferace.safety.uncertainty.dead_reckoning.ERROR_PER_M`;
 - the carried set itself: from the truth every ``--window`` seconds, a zero-width box
   carried for that window as the filter carries it (growth included). It counts the steps
   where the truth left the set (the target: none) and the set's widths.
@@ -27,15 +29,15 @@ import numpy as np
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.eval.agents import act, make_agent
 from saferace.eval.tables import markdown_table
-from saferace.safety.dead_reckoning import (
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.decision import nominal_parts
+from saferace.safety.uncertainty.dead_reckoning import (
     ERROR_PER_M,
     DeadReckoning,
     carried_states,
     midway_s,
     odometry_step,
 )
-from saferace.safety.decision import nominal_parts
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.track.random_track import write_random_track
 
 AGENTS = ("expert", "drift", "weave", "speeding")

@@ -3,8 +3,8 @@
 The problems are the ones the filter met while a weaving reckless agent drove (true state;
 20 noisy state samples with chance constraints; and the robust mode's rows, one per barrier
 and corner or centre of the samples' interval). Each is solved by the filter's own
-solver (``saferace.safety.qp``) and by the cvxpy formulation with Clarabel
-(``saferace.safety.reference_qp``); the table gives the median and 95th percentile per
+solver (``saferace.safety.cbf.qp``) and by the cvxpy formulation with Clarabel
+(``saferace.safety.cbf.reference_qp``); the table gives the median and 95th percentile per
 solve, cvxpy's both as wall time and as Clarabel's own solve time. Target: under 0.1 ms.
 
     python benchmarks/filter_speed.py [--track NAME] [--seconds S]
@@ -23,10 +23,10 @@ import saferace  # noqa: F401  - registers the tasks
 from saferace.agents.reckless import WeaveAgent
 from saferace.eval.runner import run_episode
 from saferace.eval.tables import markdown_table
-from saferace.safety.filter import SafetyFilter
-from saferace.safety.qp import solve_filter_qp
-from saferace.safety.reference_qp import CLARABEL_TIGHT, filter_qp_problem
-from saferace.safety.state_sources import NoisyOracleStateSource, OracleStateSource
+from saferace.safety.cbf.filter import SafetyFilter
+from saferace.safety.cbf.qp import solve_filter_qp
+from saferace.safety.cbf.reference_qp import CLARABEL_TIGHT, filter_qp_problem
+from saferace.safety.uncertainty.state_sources import NoisyOracleStateSource, OracleStateSource
 
 TARGET_MS = 0.1
 REPEATS = 20

@@ -1,10 +1,10 @@
 """One control step of the learned driver beside the expert's, and what each speed lever buys.
 
 A learned step: render, the control network and the state network with ``n = 10`` MC-dropout
-samples each (or a 5-member deep or MIMO ensemble of state networks behind the robust
-filter), the PID
-speed loop, and the filter's QP on the perceived state
-(:class:`~saferace.safety.filter.SafetyFilter` fed by
+samples each (or, behind the robust filter: the generic perception model's size, one
+heteroscedastic state network with its feature monitor; a 5-member deep or MIMO ensemble
+of state networks), the PID speed loop, and the filter's QP on the perceived state
+(:class:`~saferace.safety.cbf.filter.SafetyFilter` fed by
 :class:`~saferace.learning.agent.LearnedStateSource`), then physics. The baseline, measured
 in the same run: the expert MPC's step on ground truth (render, MPC, physics). Networks
 have random weights (the time does not depend on them). Target: at least 50 learned steps/s
@@ -35,7 +35,10 @@ from saferace.eval.tables import markdown_table
 from saferace.learning.agent import LearnedAgent, LearnedStateSource
 from saferace.learning.ensemble import DEFAULT_MEMBERS, StateEnsemble
 from saferace.learning.networks import DrivingNetwork, control_config, state_config
-from saferace.safety.filter import SafetyFilter
+from saferace.names import CONFORMAL_ALPHA
+from saferace.safety.cbf.filter import SafetyFilter
+from saferace.safety.uncertainty.conformal import ConformalCalibration, fit_feature_monitor
+from saferace.safety.uncertainty.intervals import ConformalStateSource
 
 TARGET_STEPS_PER_S = 50.0
 MC_SAMPLES = 10
@@ -80,15 +83,29 @@ def mimo(stereo: bool, members: int = DEFAULT_MEMBERS) -> DrivingNetwork:
     return DrivingNetwork(config).eval().to(memory_format=torch.channels_last)
 
 
+def generic(stereo: bool) -> ConformalStateSource:
+    """The generic perception model's size and per-step work: one heteroscedastic network
+    with a conformal interval and a feature monitor (fitted on random features)."""
+    torch.manual_seed(100)
+    network = DrivingNetwork(state_config(stereo, dropout=0.0, log_variance=True))
+    network = network.eval().to(memory_format=torch.channels_last)
+    features = np.random.default_rng(0).normal(size=(400, 512))
+    monitor = fit_feature_monitor(features, CONFORMAL_ALPHA)
+    calibration = ConformalCalibration(CONFORMAL_ALPHA, 2.0, len(features), monitor)
+    return ConformalStateSource(LearnedStateSource(network, 1, seed=0), calibration)
+
+
 def learned_env(
     track: str, stereo: bool, state_uncertainty: str = "mc-dropout"
 ) -> tuple[gym.Env, LearnedAgent]:
-    """The learned step: MC dropout behind the chance-constrained filter, or a deep or MIMO
-    ensemble behind the robust one (its interval ``mean +- 2 std``: the conformal scale's
-    cost is the same)."""
+    """The learned step: MC dropout behind the chance-constrained filter, or behind the
+    robust one the generic model's size or a deep or MIMO ensemble (their interval
+    ``mean +- 2 std``: the conformal scale's cost is the same)."""
     control, state = networks(stereo)
     env = gym.make("saferace/CenterLine-v0", track=track, stereo=stereo, max_laps=100)
-    if state_uncertainty != "mc-dropout":
+    if state_uncertainty == "generic":
+        env = SafetyFilter(env, state_source=generic(stereo), uncertainty="robust")
+    elif state_uncertainty != "mc-dropout":
         made = ensemble(stereo) if state_uncertainty == "ensemble" else mimo(stereo)
         source = LearnedStateSource(made, MC_SAMPLES, seed=0)
         env = SafetyFilter(env, state_source=source, uncertainty="robust")
@@ -151,15 +168,25 @@ def main() -> None:
     expert = MPCExpert.for_env(expert_env)
     rows = [["expert MPC, ground truth (baseline)", step_times_ms(expert_env, expert, args.steps)]]
     expert_env.close()
-    kinds = {"ensemble": "deep ensemble", "mimo": "MIMO ensemble"}
-    runs = ((False, "mc-dropout"), (True, "mc-dropout"), (False, "ensemble"), (False, "mimo"))
+    kinds = {
+        "generic": "the generic perception model's size (one heteroscedastic network)",
+        "ensemble": f"{DEFAULT_MEMBERS}-member deep ensemble",
+        "mimo": f"{DEFAULT_MEMBERS}-member MIMO ensemble",
+    }
+    runs = (
+        (False, "mc-dropout"),
+        (True, "mc-dropout"),
+        (False, "generic"),
+        (False, "ensemble"),
+        (False, "mimo"),
+    )
     for stereo, uncertainty in runs:
         env, agent = learned_env(args.track, stereo, uncertainty)
         camera = "stereo 64x64x6" if stereo else "mono 64x64x3"
         label = (
             f"learned, {camera}, perceived-state filter"
             if uncertainty == "mc-dropout"
-            else f"learned, {camera}, {DEFAULT_MEMBERS}-member {kinds[uncertainty]}, robust filter"
+            else f"learned, {camera}, {kinds[uncertainty]}, robust filter"
         )
         rows.append([label, step_times_ms(env, agent, args.steps)])
         env.close()
@@ -171,8 +198,9 @@ def main() -> None:
     print(markdown_table(["step", "median [ms]", "p95 [ms]", "steps/s", "x expert's time"], table))
     verdicts = (
         ("mono", table[1]),
-        ("mono with the deep ensemble", table[3]),
-        ("mono with the MIMO ensemble", table[4]),
+        ("mono with the generic perception model", table[3]),
+        ("mono with the deep ensemble", table[4]),
+        ("mono with the MIMO ensemble", table[5]),
     )
     for name, row in verdicts:
         verdict = "meets" if row[3] >= TARGET_STEPS_PER_S else "misses"

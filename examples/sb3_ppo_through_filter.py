@@ -22,7 +22,7 @@ from gymnasium.wrappers import RescaleAction
 import saferace  # noqa: F401  - registers the tasks
 from saferace.errors import SafeRaceError
 from saferace.extras import require
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
 
 try:  # Stable-Baselines3 is an extra: pip install 'saferace[sb3]'
     PPO = require("stable_baselines3", "sb3", "this example").PPO

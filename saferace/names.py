@@ -40,18 +40,19 @@ FILTER_KINDS = ("none", "cbf", "mpsf")
 #: The filters ``saferace safety-table --filters`` compares: the CBF with the squared
 #: slack (the paper's) or the exact L1 one, and the predictive filter.
 COMPARED_FILTERS = ("cbf", "cbf-l1", "mpsf")
-#: Named gain settings of the filter (the keys of ``saferace.safety.filter.GAIN_PRESETS``).
+#: Named gain settings of the filter (the keys of ``saferace.safety.cbf.filter.GAIN_PRESETS``).
 GAIN_NAMES = ("paper", "grip", "tuned")
 #: How the filter treats its state's uncertainty: chance constraints on the samples' spread
 #: (the paper's), or barrier conditions that hold for every state of the source's interval,
-#: with a fallback where they cannot (``saferace.safety.filter.SafetyFilter``).
+#: with a fallback where they cannot (``saferace.safety.cbf.filter.SafetyFilter``).
 UNCERTAINTY_MODES = ("chance", "robust")
 #: How the state network gives its uncertainty: MC dropout (the paper's), a deep ensemble
-#: of heteroscedastic networks (``saferace.learning.ensemble``), or a MIMO ensemble of
-#: heteroscedastic subnetworks sharing one ResNet-18 (``NetworkConfig.subnetworks``).
-STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble", "mimo")
+#: of heteroscedastic networks (``saferace.learning.ensemble``), a MIMO ensemble of
+#: heteroscedastic subnetworks sharing one ResNet-18 (``NetworkConfig.subnetworks``), or one
+#: heteroscedastic network (its own variance: what a conformal calibration scales).
+STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble", "mimo", "heteroscedastic")
 #: Feedback an adaptive conformal interval learns from: the truth a step late (oracle
-#: feedback) or the odometry's prediction (``saferace.safety.adaptive``).
+#: feedback) or the odometry's prediction (``saferace.safety.uncertainty.adaptive``).
 ADAPTIVE_FEEDBACK = ("oracle", "odometry")
 #: The miss rate a conformal calibration of the state network allows (its interval covers
 #: the truth on at least 1 - alpha of exchangeable frames, its monitor raises on at most alpha).
@@ -71,14 +72,24 @@ DEFAULT_GAINS = "grip"
 AUTO = "auto"
 ROBUST_GAINS = "tuned"
 #: The filter QP's penalty on its slacks: the paper's squared one, or the exact L1 one
-#: (``saferace.safety.exact_penalty``: the hard constraints wherever they can hold).
+#: (``saferace.safety.cbf.exact_penalty``: the hard constraints wherever they can hold).
 SQUARED_SLACK = "squared"
 SLACK_PENALTIES = (SQUARED_SLACK, "l1")
 
-#: What feeds the filter the lane state: the truth, the truth with noise, a state network.
-STATE_SOURCE_KINDS = ("oracle", "noisy", "learned")
-#: The lane state a DAgger run's filtered drives see: the state network's or the truth.
-DAGGER_STATE_SOURCES = ("learned", "oracle")
+#: What feeds the filter the lane state: the truth, the truth with noise, a checkpoint's
+#: state network, or the generic perception model (``saferace.learning.perception``).
+STATE_SOURCE_KINDS = ("oracle", "noisy", "learned", "generic")
+#: The track-agnostic perception model by name: ``generic`` (its default recipe) or
+#: ``generic:RECIPE``.
+GENERIC_SOURCE = "generic"
+#: The generic perception model's frames: mono, this many pixels high and wide.
+PERCEPTION_IMAGE_SIZE = 64
+#: Recipes of the generic perception model: ``default`` (what the filters use) and
+#: ``quick`` (minutes: for tests and a first look).
+PERCEPTION_RECIPES = ("default", "quick")
+#: The lane state a DAgger run's filtered drives see: the generic perception model's, the
+#: run's own state network's (the paper's) or the truth.
+DAGGER_STATE_SOURCES = (GENERIC_SOURCE, "learned", "oracle")
 #: The noisy oracle's default standard deviations ``(e_y_m, e_psi_rad)`` and samples.
 DEFAULT_STATE_NOISE = (0.05, 0.05)
 NOISY_SAMPLES = 20

@@ -35,28 +35,31 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Module -> the fast tests that claim to check it (a file, or ``file::-k expression``).
 TARGETS: dict[str, list[str]] = {
-    "saferace/safety/conformal.py": [
+    "saferace/safety/uncertainty/conformal.py": [
         "tests/test_conformal.py",
         "tests/test_intervals.py",
         "tests/test_recalibrate.py",
         "tests/test_adaptive.py",
         "tests/test_feature_monitor.py",
     ],
-    "saferace/safety/intervals.py": [
+    "saferace/safety/uncertainty/intervals.py": [
         "tests/test_intervals.py",
         "tests/test_robust_filter.py",
         "tests/test_recalibrate.py",
         "tests/test_adaptive.py",
     ],
-    "saferace/safety/fallback.py": [
+    "saferace/safety/uncertainty/fallback.py": [
         "tests/test_robust_filter.py",
         "tests/test_safety_filter.py",
         "tests/test_dead_reckoning.py",
     ],
-    "saferace/safety/dead_reckoning.py": ["tests/test_dead_reckoning.py"],
-    "saferace/safety/predictive.py": ["tests/test_predictive_filter.py"],
+    "saferace/safety/uncertainty/dead_reckoning.py": ["tests/test_dead_reckoning.py"],
+    "saferace/safety/predictive/filter.py": ["tests/test_predictive_filter.py"],
     "saferace/experiments/verify.py": ["tests/test_submission_checks.py"],
-    "saferace/safety/car_barriers.py": ["tests/test_car_barrier_rows.py", "tests/test_traffic.py"],
+    "saferace/safety/traffic/car_barriers.py": [
+        "tests/test_car_barrier_rows.py",
+        "tests/test_traffic.py",
+    ],
     # the checks of a submission's file, without verify's replays of its runs (which cost
     # a minute a mutant)
     "saferace/experiments/submission_checks.py": ["tests/test_submission_checks.py::not verify"],

@@ -65,6 +65,17 @@ def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory):
     return make
 
 
+@pytest.fixture(scope="session")
+def quick_perception(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The generic perception model of the ``quick`` recipe (``--state-source
+    generic:quick``), built once (about half a minute) into a cache folder of the session's
+    own, never the user's; its model's path."""
+    from saferace.learning.perception import CACHE_VARIABLE, RECIPES, build_perception_model
+
+    os.environ[CACHE_VARIABLE] = str(tmp_path_factory.mktemp("cache"))
+    return build_perception_model(RECIPES["quick"], progress=False)
+
+
 @pytest.fixture
 def uncalibrated_checkpoint(tiny_checkpoint, tmp_path: Path) -> Path:
     """The mono tiny checkpoint without its conformal calibration."""

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from saferace.safety.adaptive import ACI_GAMMA, AdaptiveConformalStateSource
-from saferace.safety.conformal import ConformalCalibration, calibrate
-from saferace.safety.intervals import ConformalStateSource, state_interval
+from saferace.safety.uncertainty.adaptive import ACI_GAMMA, AdaptiveConformalStateSource
+from saferace.safety.uncertainty.conformal import ConformalCalibration, calibrate
+from saferace.safety.uncertainty.intervals import ConformalStateSource, state_interval
 from saferace.track import Track
 
 ALPHA = 0.1

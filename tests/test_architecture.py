@@ -75,7 +75,7 @@ DYNAMIC_IMPORTS_ALLOWED = {
     "saferace.registry": {"saferace.envs.racing_env", "saferace.envs.overtake"},
     "saferace.envs.traffic": {"saferace.agents.opponents"},
     "saferace.eval.agents": {"saferace.learning.agent"},
-    "saferace.eval.filter_config": {"saferace.learning.agent"},
+    "saferace.eval.filter_config": {"saferace.learning.agent", "saferace.learning.perception"},
 }
 
 
@@ -122,8 +122,18 @@ def test_modules_loaded_by_name_from_a_higher_floor_are_the_allowed_ones(path: P
     assert upward == DYNAMIC_IMPORTS_ALLOWED.get(own, set()), f"{own} loads {upward} by name"
 
 
+def test_the_safety_package_shows_its_four_concerns_at_a_glance():
+    safety = PACKAGE / "safety"
+    packages = sorted(p.name for p in safety.iterdir() if (p / "__init__.py").exists())
+    assert packages == ["cbf", "predictive", "traffic", "uncertainty"]
+    shared = sorted(p.stem for p in safety.glob("*.py") if p.name != "__init__.py")
+    assert shared == ["decision", "ltv_mpc", "matrix_exponential", "models", "vehicle_params"]
+    docstring = ast.get_docstring(ast.parse((safety / "__init__.py").read_text())) or ""
+    assert all(f"saferace.safety.{name}" in docstring for name in packages)
+
+
 def test_relative_imports_are_resolved():
-    path = PACKAGE / "safety" / "conformal.py"
+    path = PACKAGE / "safety" / "models.py"
     node = ast.parse("from ..agents import mpc").body[0]
     assert isinstance(node, ast.ImportFrom)
     assert imported_from(path, node) == "saferace.agents"

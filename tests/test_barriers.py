@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import sympy as sp
 
-from saferace.safety.barriers import (
+from saferace.safety.cbf.barriers import (
     BARRIER_NAMES,
     MAX_ORDER,
     BarrierContext,

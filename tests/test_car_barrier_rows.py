@@ -10,9 +10,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from saferace.safety import car_barriers as cb
+from saferace.safety.cbf.qp import FilterProblem
 from saferace.safety.models import param_values
-from saferace.safety.qp import FilterProblem
+from saferace.safety.traffic import car_barriers as cb
 from saferace.safety.vehicle_params import load_params
 
 PARAMS = param_values(load_params())

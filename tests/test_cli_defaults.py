@@ -88,7 +88,7 @@ def test_every_generated_option_defaults_to_its_field(command: str):
 
 
 def test_one_default_gain_setting_everywhere():
-    from saferace.safety.filter import GAIN_PRESETS
+    from saferace.safety.cbf.filter import GAIN_PRESETS
 
     assert tuple(GAIN_PRESETS) == GAIN_NAMES
     assert FilterConfig().gains == FilterConfig(state_noise=(0.05, 0.05)).gains == DEFAULT_GAINS
@@ -110,7 +110,7 @@ def built_filter(command: str, *options: str):
 
 @pytest.mark.parametrize("command", ["eval", "drive", "collect", "robustness", "dagger"])
 def test_a_learned_state_source_gets_the_robust_filter_by_default(command: str):
-    learned = () if command == "dagger" else ("--state-source", "learned:m.pt")  # dagger's own
+    learned = ("--state-source", "learned" if command == "dagger" else "learned:m.pt")
     truth = ("--state-source", "oracle")
     safety, config = built_filter(command, *learned)
     assert (safety.uncertainty, safety.gains) == ("robust", ROBUST_GAINS)
@@ -118,9 +118,14 @@ def test_a_learned_state_source_gets_the_robust_filter_by_default(command: str):
     assert (paper.uncertainty, paper.gains) == ("chance", DEFAULT_GAINS)
     oracle, unperceived = built_filter(command, *truth)
     assert (oracle.uncertainty, oracle.gains) == ("chance", DEFAULT_GAINS)
+    generic, default = built_filter(command, "--state-source", "generic")
+    assert (generic.uncertainty, generic.gains) == ("robust", ROBUST_GAINS)
+    if command in ("robustness", "dagger"):  # their perceived state by default
+        assert built_filter(command)[0] == generic
     if command == "dagger":  # the state networks that the robust filter can trust
         assert config.training.state_uncertainty == "ensemble"
         assert unperceived.training.state_uncertainty == "mc-dropout"
+        assert default.training.state_uncertainty == "mc-dropout"  # the generic model perceives
 
 
 def test_a_config_error_names_the_option(capsys: pytest.CaptureFixture):
@@ -151,10 +156,13 @@ def test_options_of_the_chance_constraints_keep_auto_on_them(tmp_path):
     for option in (("--deterministic",), ("--spread-scale", "2", "2", "1"), ("--fuse-odometry",)):
         safety, _ = built_filter("eval", *learned, *option)
         assert (safety.uncertainty, safety.gains) == ("chance", DEFAULT_GAINS), option
-    safety, config = built_filter("dagger", "--calibrate-spread")
+    own = ("--state-source", "learned")
+    safety, config = built_filter("dagger", *own, "--calibrate-spread")
     assert safety.uncertainty == "chance" and config.training.state_uncertainty == "mc-dropout"
     with pytest.raises(ConfigError, match="calibrate_spread"):
-        built_filter("dagger", "--calibrate-spread", "--filter-uncertainty", "robust")
+        built_filter("dagger", *own, "--calibrate-spread", "--filter-uncertainty", "robust")
+    with pytest.raises(ConfigError, match="run's own state network"):
+        built_filter("dagger", "--calibrate-spread")  # the generic model is not the run's
 
 
 def test_a_fork_takes_the_state_networks_of_the_run_it_forks(tmp_path):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from saferace.errors import SafeRaceError
-from saferace.safety.conformal import (
+from saferace.safety.uncertainty.conformal import (
     MAX_STORED_SCORES,
     AdaptiveConformal,
     ConformalCalibration,

@@ -14,7 +14,9 @@ import pytest
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.eval.agents import act, make_agent
-from saferace.safety.dead_reckoning import (
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.decision import nominal_parts
+from saferace.safety.uncertainty.dead_reckoning import (
     ERROR_PER_M,
     DeadReckoning,
     car_pose,
@@ -22,9 +24,7 @@ from saferace.safety.dead_reckoning import (
     midway_s,
     odometry_step,
 )
-from saferace.safety.decision import nominal_parts
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.state_sources import true_lane_state
+from saferace.safety.uncertainty.state_sources import true_lane_state
 from saferace.track.random_track import write_random_track
 from saferace.track.track_io import write_track_csv
 from tests.track_shapes import paperclip

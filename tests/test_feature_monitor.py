@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from saferace.errors import SafeRaceError
-from saferace.safety.conformal import ConformalCalibration, fit_feature_monitor
-from saferace.safety.feature_monitor import FeatureMonitor, feature_monitor
-from saferace.safety.intervals import ConformalStateSource
+from saferace.safety.uncertainty.conformal import ConformalCalibration, fit_feature_monitor
+from saferace.safety.uncertainty.feature_monitor import FeatureMonitor, feature_monitor
+from saferace.safety.uncertainty.intervals import ConformalStateSource
 
 ALPHA = 0.05
 FEATURES = 64

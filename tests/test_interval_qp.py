@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from saferace.safety.interval_qp import IntervalQP
+from saferace.safety.cbf.interval_qp import IntervalQP
 
 #: Rows: ``a0 x0 + x1`` (an equality where ``lo == hi``), ``x2``, ``x0``, ``x2`` again.
 ROWS = sp.csc_matrix(np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))

@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from saferace.safety.conformal import ConformalCalibration
-from saferace.safety.intervals import (
+from saferace.safety.uncertainty.conformal import ConformalCalibration
+from saferace.safety.uncertainty.intervals import (
     ConformalStateSource,
     interval_points,
     state_interval,
 )
-from saferace.safety.state_sources import NoisyOracleStateSource, OracleStateSource
+from saferace.safety.uncertainty.state_sources import NoisyOracleStateSource, OracleStateSource
 
 INFO = {"e_y_m": 0.1, "e_psi_rad": -0.05, "kappa_radpm": 0.5}
 
@@ -68,7 +68,7 @@ class FixedSamples:
 
 def test_a_conformal_source_asks_its_calibrations_own_monitor():
     from saferace.errors import SafeRaceError
-    from saferace.safety.conformal import SpreadMonitor, fit_feature_monitor
+    from saferace.safety.uncertainty.conformal import SpreadMonitor, fit_feature_monitor
 
     narrow = np.array([[0.0, 0.0, 0.5], [0.02, 0.01, 0.5]])  # spreads 0.01, 0.005
     wide = np.array([[0.0, 0.0, 0.5], [0.2, 0.01, 0.5]])  # the offset's spread ten times

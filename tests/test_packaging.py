@@ -214,7 +214,7 @@ def test_the_core_imports_none_of_the_extras(tmp_path: Path):
         ("ray", "minari", "stable_baselines3", "mkdocs"),
         "import gymnasium, saferace\n"
         "from saferace.agents.mpc import MPCExpert\n"
-        "from saferace.safety.filter import SafetyFilter\n"
+        "from saferace.safety.cbf.filter import SafetyFilter\n"
         "from saferace.learning.agent import LearnedAgent\n"
         "from saferace.cli import build_parser\n"
         "build_parser()\n"

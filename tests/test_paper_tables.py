@@ -13,32 +13,40 @@ from rerun.chunk import RrdReader
 
 from saferace.cli import main
 from saferace.experiments.paper import Preset, run_paper_tables
-from saferace.experiments.paper.presets import RUN_KINDS, TABLE_2, dagger_config, run_config
+from saferace.experiments.paper.presets import (
+    PERCEPTION_MODES,
+    RUN_KINDS,
+    RUN_LABELS,
+    TABLE_2_MONO,
+    dagger_config,
+    run_config,
+)
 from saferace.experiments.paper.report import CELL_NAMES
-from saferace.experiments.paper.runs import FROM_1, run_dir
+from saferace.experiments.paper.runs import from_1_name, run_dir
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
 from saferace.learning.run_layout import RunLayout
 from saferace.names import TASKS
 
-#: Two iterations of 3 s drives on 32x32 images, the fork filtered in iteration 2; frames
-#: past 0.2 of the lap (reached within the 3 s) are held out to calibrate the state network.
+#: Two iterations of 3 s drives on the mono camera, the fork filtered in iteration 2 (the
+#: generic one fed the quick recipe's model); frames past 0.2 of the lap (reached within the
+#: 3 s) are held out to calibrate the state network.
 TINY = Preset(
     name="tiny",
-    settings=(replace(TABLE_2, filter_from={"CenterLine": 1, "RacingLine": 1}),),
+    settings=(replace(TABLE_2_MONO, filter_from={"CenterLine": 1, "RacingLine": 1}),),
     iterations=2,
     epochs=1,
     min_train_steps=4,
     train_fraction=0.2,
     max_seconds=3.0,
-    image_size=32,
     mc_samples=3,
     unseen_tracks=("oval",),
+    perception="generic:quick",
 )
 SETTING = TINY.settings[0]
 
 
 @pytest.fixture(scope="module")
-def tables(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[Path]]:
+def tables(tmp_path_factory: pytest.TempPathFactory, quick_perception) -> tuple[Path, list[Path]]:
     out = tmp_path_factory.mktemp("paper")
     return out, run_paper_tables(TINY, [0], out, progress=False)
 
@@ -74,6 +82,7 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
         ["2", "none"],
         ["2", "perceived"],
         ["2", "perceived, conformal"],
+        ["2", "perceived, generic"],
         ["2", "true state"],
     ]
     columns = {
@@ -89,24 +98,50 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
                 assert float(text.rstrip("*")) == pytest.approx(row[key], rel=1e-2, abs=1e-9)
     text = (out / "table2.md").read_text()
     claims = [line for line in text.splitlines() if line.startswith("- ")]
-    assert len(claims) == len(TASKS) * (len(RUN_KINDS) + 1)
+    assert len(claims) == len(TASKS) * (len(RUN_KINDS) + len(PERCEPTION_MODES))
     filtered_runs = len(TASKS) * (len(RUN_KINDS) - 1)
     assert sum("lane exits in filtered iterations" in claim for claim in claims) == filtered_runs
     assert sum("laps completed in iterations 2-2: " in claim for claim in claims) == filtered_runs
-    for task in TASKS:  # iteration 1 again, behind the filter: a fork with k = 0
-        first, unfiltered = metrics(out, task, FROM_1)[1], metrics(out, task, "none")[1]
-        assert first["filtered"] and first["intervention_rate"] is not None
+    for task in TASKS:  # iteration 1 again, behind each mode's filter: a fork with k = 0
+        unfiltered = metrics(out, task, "none")[1]
         assert not unfiltered["filtered"]
-        (claim,) = [line for line in claims if line.startswith(f"- {task}, seed 0, iteration 1")]
-        for row in (first, unfiltered):
-            assert f"{row['time_outside_lane_s']:.2f} s outside the lane" in claim
+        for kind in PERCEPTION_MODES:
+            first = metrics(out, task, from_1_name(kind))[1]
+            assert first["filtered"] and first["intervention_rate"] is not None
+            start = f"- {task}, seed 0, iteration 1 behind the filter fed the {RUN_LABELS[kind]} "
+            (claim,) = [line for line in claims if line.startswith(start)]
+            for row in (first, unfiltered):
+                assert f"{row['time_outside_lane_s']:.2f} s outside the lane" in claim
+
+
+def test_the_claims_are_judged_for_both_perception_modes(tables):
+    out, _ = tables
+    text = (out / "table2.md").read_text()
+    verdicts = text.split("## The paper's claims, by perception mode")[1].split("## Claims")[0]
+    lines = [line for line in verdicts.splitlines() if line.startswith("| ")][2:]
+    assert len(lines) == len(TASKS) * len(PERCEPTION_MODES)
+    for line in lines:
+        task, _, mode, filtered, with_filter, without, inside, sooner = (
+            cell.strip() for cell in line.strip("|").split("|")
+        )
+        kind = next(kind for kind in PERCEPTION_MODES if RUN_LABELS[kind] == mode)
+        first, run = metrics(out, task, from_1_name(kind))[1], metrics(out, task, kind)
+        assert filtered == "1, 2 (k = 1)"
+        exits = [str(row["iteration"]) for row in (first, run[2]) if row["time_outside_lane_s"]]
+        assert inside == ("holds" if not exits else "fails: iteration " + ", ".join(exits))
+        lapped = [row["iteration"] for row in (first, *run[1:]) if row["completed"]]
+        assert with_filter == (str(min(lapped)) if lapped else "-")
+        unfiltered = [r["iteration"] for r in metrics(out, task, "none")[1:] if r["completed"]]
+        assert without == (str(min(unfiltered)) if unfiltered else "-")
+        if not lapped and not unfiltered:
+            assert sooner == "neither lapped"
 
 
 def test_the_forks_share_the_unfiltered_iterations(tables):
     out, _ = tables
     for task in TASKS:
         unfiltered = metrics(out, task, "none")
-        for kind in ("cbf", "robust", "oracle"):
+        for kind in ("cbf", "robust", "generic", "oracle"):
             forked = metrics(out, task, kind)
             assert forked[:2] == unfiltered[:2]
             assert forked[2]["filtered"] and not unfiltered[2]["filtered"]
@@ -183,5 +218,9 @@ def test_the_state_uncertainty_and_slack_reach_every_run(monkeypatch, tmp_path: 
         config = run_config(dagger_config(preset, preset.settings[0], "CenterLine", 0), kind)
         assert config.training.state_uncertainty == "ensemble"
         assert config.filter.slack == "l1"
-        assert config.filter.uncertainty == ("robust" if kind == "robust" else "chance")
-        assert config.calibrate_spread == (kind != "robust")
+        robust = kind in ("robust", "generic")
+        assert config.filter.uncertainty == ("robust" if robust else "chance")
+        assert config.calibrate_spread == (not robust)
+        assert config.filter.state_source == {"generic": "generic", "oracle": None}.get(
+            kind, "learned"
+        )

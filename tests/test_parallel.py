@@ -31,3 +31,10 @@ def test_more_workers_than_cores_are_warned_about():
     with pytest.warns(RuntimeWarning, match=f"workers on {available_cores()} cores"):
         jobs = [(-1,)] * (available_cores() + 1)
         run_jobs(abs, jobs, lambda job, value: None, workers=available_cores() + 1)
+
+
+def test_no_jobs_on_several_workers_is_nothing_to_do():
+    kept: list = []
+    for workers in (1, 2):
+        run_jobs(abs, [], lambda job, value: kept.append(value), workers=workers)
+    assert kept == []

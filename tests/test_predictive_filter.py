@@ -12,9 +12,9 @@ import pytest
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.errors import ConfigError
 from saferace.eval.filters import FilterConfig, apply_filter
-from saferace.safety import predictive
-from saferace.safety.predictive import PredictiveSafetyFilter
-from saferace.safety.state_sources import true_lane_state
+from saferace.safety.predictive import filter as predictive
+from saferace.safety.predictive.filter import PredictiveSafetyFilter
+from saferace.safety.uncertainty.state_sources import true_lane_state
 from saferace.track.track_io import write_track_csv
 from tests.track_shapes import paperclip
 
@@ -367,7 +367,7 @@ def test_a_failed_solve_brakes_along_the_map_and_steers_back_to_the_line(
     heading; the decision says so, and the filter counts the failure."""
     import math
 
-    from saferace.safety.fallback import FALLBACK_BRAKE_MPS2
+    from saferace.safety.uncertainty.fallback import FALLBACK_BRAKE_MPS2
 
     env = PredictiveSafetyFilter(make_env())
     observation, info = env.reset(seed=0, options={"start_s_m": 3.0, "start_speed_mps": 2.0})

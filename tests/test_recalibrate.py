@@ -14,8 +14,8 @@ from saferace.errors import ConfigError
 from saferace.learning.agent import learned_state_source
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
 from saferace.learning.recalibrate import recalibrate
-from saferace.safety.conformal import ConformalCalibration
-from saferace.safety.intervals import ConformalStateSource, state_interval
+from saferace.safety.uncertainty.conformal import ConformalCalibration
+from saferace.safety.uncertainty.intervals import ConformalStateSource, state_interval
 
 
 def test_a_calibration_survives_the_checkpoint_round_trip(
@@ -66,7 +66,7 @@ def test_an_adaptive_interval_needs_a_calibrated_checkpoint(
     import gymnasium as gym
 
     from saferace.eval.filters import FilterConfig, apply_filter
-    from saferace.safety.adaptive import AdaptiveConformalStateSource
+    from saferace.safety.uncertainty.adaptive import AdaptiveConformalStateSource
 
     checkpoint, data = uncalibrated_checkpoint, tiny_checkpoint()[1]
     calibrated = tmp_path / "calibrated.pt"
@@ -96,7 +96,7 @@ def test_the_fitted_interval_covers_its_calibration_frames_as_promised(tiny_chec
     from saferace.learning.rounds import load_rounds
     from saferace.learning.training import network_data
     from saferace.learning.validation import predict_frames
-    from saferace.safety.conformal import coverage
+    from saferace.safety.uncertainty.conformal import coverage
 
     checkpoint, data = tiny_checkpoint()
     network, frames = load_checkpoint(checkpoint).state, load_rounds([data])

@@ -15,7 +15,9 @@ import saferace  # noqa: F401  (registers the tasks)
 from saferace.eval.agents import make_agent
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.runner import make_task_env, run_episode
-from saferace.safety.fallback import (
+from saferace.safety.cbf.filter import SafetyFilter
+from saferace.safety.models import MIN_SPEED_MPS
+from saferace.safety.uncertainty.fallback import (
     DISTRUST_BRAKE_MPS2,
     FALLBACK_LATERAL_MPS2,
     MIN_HEADING_RAD,
@@ -25,9 +27,7 @@ from saferace.safety.fallback import (
     interval_margin_m,
     towards_speed,
 )
-from saferace.safety.filter import SafetyFilter
-from saferace.safety.intervals import interval_points
-from saferace.safety.models import MIN_SPEED_MPS
+from saferace.safety.uncertainty.intervals import interval_points
 
 
 class IntervalSource:

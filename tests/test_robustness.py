@@ -12,10 +12,12 @@ from saferace.eval.filters import FilterConfig
 from saferace.experiments import robustness
 from saferace.experiments.robustness import (
     TABLE_COLUMNS,
+    TRACK_COLUMNS,
     RobustnessConfig,
     plot_robustness,
     robustness_rows,
     run_robustness,
+    track_rows,
 )
 
 
@@ -105,3 +107,11 @@ def test_tracks_and_shift_severities_score_the_filters_interval(tmp_path: Path, 
     plain = [r for r in runs if r["look"] == "severity-0"]
     share = sum(r["covered_steps"] for r in plain) / sum(r["scored_steps"] for r in plain)
     assert coverage.startswith(f"{100 * share:.1f} (")
+    by_track = {(row[0], row[1]): row for row in track_rows(runs, config.presets)}
+    assert sorted(by_track) == sorted((run["track"], run["look"]) for run in runs)
+    for run in runs:
+        row = by_track[(run["track"], run["look"])]
+        assert row[TRACK_COLUMNS.index("scored steps")] == run["scored_steps"]
+        share = 100 * run["covered_steps"] / run["scored_steps"]
+        assert row[TRACK_COLUMNS.index("coverage [%] (95% band)")].startswith(f"{share:.1f} (")
+        assert row[TRACK_COLUMNS.index("alarms [%]")] == pytest.approx(100 * run["alarm_rate"])

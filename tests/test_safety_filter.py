@@ -12,19 +12,19 @@ from saferace.agents.reckless import DriftAgent, WeaveAgent
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.eval.runner import run_episode
 from saferace.names import GAIN_NAMES as FILTER_GAINS
-from saferace.safety import filter as filter_module
-from saferace.safety.barriers import (
+from saferace.safety.cbf import filter as filter_module
+from saferace.safety.cbf.barriers import (
     BARRIER_NAMES,
     BarrierContext,
     hocbf_condition,
     linearised_constraints,
 )
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.cbf.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.decision import NominalAction
-from saferace.safety.fallback import FALLBACK_BRAKE_MPS2
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.models import FrenetModel, param_values, symbolic_model
-from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
-from saferace.safety.state_sources import (
+from saferace.safety.uncertainty.fallback import FALLBACK_BRAKE_MPS2
+from saferace.safety.uncertainty.state_sources import (
     NoisyOracleStateSource,
     SpreadScaledStateSource,
     true_lane_state,

@@ -7,16 +7,16 @@ import itertools
 import numpy as np
 import pytest
 
-from saferace.safety.chance import (
+from saferace.safety.cbf.chance import (
     confidence_quantile,
     constraint_statistics,
     constraint_std,
     spread_at_accel,
     tightening,
 )
-from saferace.safety.exact_penalty import solve_filter_qp_l1
-from saferace.safety.qp import FilterProblem, solve_filter_qp, solve_filter_qp_linearised
-from saferace.safety.reference_qp import solve_with_cvxpy
+from saferace.safety.cbf.exact_penalty import solve_filter_qp_l1
+from saferace.safety.cbf.qp import FilterProblem, solve_filter_qp, solve_filter_qp_linearised
+from saferace.safety.cbf.reference_qp import solve_with_cvxpy
 
 LOWER, UPPER = np.array([-0.36, -4.0]), np.array([0.36, 4.0])
 

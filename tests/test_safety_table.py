@@ -19,7 +19,7 @@ from saferace.experiments.safety_table import (
     run_table,
 )
 from saferace.learning.checkpoint import is_calibrated
-from saferace.safety.filter import GAIN_PRESETS
+from saferace.safety.cbf.filter import GAIN_PRESETS
 from saferace.track import builtin_track_names
 from saferace.track.random_track import write_random_track
 
@@ -44,7 +44,8 @@ def assert_the_filter_keeps_the_cars_in(rows: list[dict], tracks: list[str]) -> 
 def test_table_command_writes_tables_and_resumes(tmp_path: Path):
     out = tmp_path / "safety"
     unseen = str(write_random_track(tmp_path / "unseen_31.csv", 31, RANDOM_TRACK_RADIUS_M))
-    args = ("safety-table", "--tracks", "lab", unseen, "--laps", "1", "--max-seconds", "4")
+    args = ("safety-table", "--tracks", "lab", unseen, "--laps", "1", "--max-seconds", "4",
+            "--state-source", "none")  # fmt: skip
     first = run_cli(*args, "--out", str(out))
     assert first.returncode == 0, first.stderr
     rows = read_jsonl(out / "runs.jsonl")

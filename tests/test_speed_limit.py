@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import saferace  # noqa: F401  (registers the tasks)
-from saferace.safety.filter import SafetyFilter
-from saferace.safety.speed_limit import LaneSpeedLimit, braking_speed_limit
+from saferace.safety.cbf.filter import SafetyFilter
+from saferace.safety.cbf.speed_limit import LaneSpeedLimit, braking_speed_limit
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine, racing_line
 

@@ -13,8 +13,8 @@ from cli_helpers import run_cli
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.agents.pure_pursuit import PurePursuit
 from saferace.eval.filters import FilterConfig, apply_filter
-from saferace.safety.state_fusion import OdometryFusedStateSource, frenet_step
-from saferace.safety.state_sources import NoisyOracleStateSource, true_lane_state
+from saferace.safety.uncertainty.state_fusion import OdometryFusedStateSource, frenet_step
+from saferace.safety.uncertainty.state_sources import NoisyOracleStateSource, true_lane_state
 
 
 class BiasedSource:

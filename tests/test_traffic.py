@@ -33,14 +33,14 @@ from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.multi import parallel_env
 from saferace.names import RC10_BUMPER_HALF_EXTENTS_M
-from saferace.safety.car_barriers import (
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.models import MIN_SPEED_MPS, param_values
+from saferace.safety.traffic.car_barriers import (
     CAR_GAINS,
     CAR_ROW_WEIGHT,
     car_rows,
     opponent_predictions,
 )
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.models import MIN_SPEED_MPS, param_values
 from saferace.safety.vehicle_params import load_params
 from saferace.track import Track
 
@@ -723,7 +723,7 @@ def test_the_bumper_constants_are_the_models():
 
 
 def test_the_car_barriers_geometry_and_following_bound_in_numbers_worked_by_hand():
-    from saferace.safety import car_barriers as cb
+    from saferace.safety.traffic import car_barriers as cb
 
     length, width = RC10_BUMPER_HALF_EXTENTS_M
     for axis, half in ((cb.SEMI_AXIS_S_M, length), (cb.SEMI_AXIS_Y_M, width)):
@@ -776,7 +776,7 @@ def test_the_car_rows_of_two_opponents_are_each_cars_own_in_order():
 
 
 def test_the_car_barrier_assumes_hard_braking_only_of_a_moving_car_ahead_in_line():
-    from saferace.safety import car_barriers as cb
+    from saferace.safety.traffic import car_barriers as cb
 
     params = param_values(load_params())
     state = np.array([0.1, 0.05, 3.0, 0.0])  # 10 cm left, heading 0.05 rad

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -287,3 +288,31 @@ def test_a_lone_last_frame_of_small_images_is_left_out_of_the_epochs_batches():
     assert len(history["batch_loss"]) == 2  # one full batch per epoch, the lone frame left out
     assert history["epoch_end_step"] == [1, 2]
     assert history["train_loss"] == pytest.approx(history["batch_loss"])
+
+
+def test_the_cosine_schedule_falls_to_zero_and_resumes_where_it_was(
+    frames, monkeypatch: pytest.MonkeyPatch
+):
+    data = network_data(frames.subset(np.arange(20)))["state"]
+    config = TrainConfig(epochs=3, batch_size=8, lr_schedule="cosine", learning_rate=0.01)
+    rates: list[float] = []
+    step = torch.optim.Adam.step
+
+    def recorded(self, *args, **kwargs):
+        rates.append(self.param_groups[0]["lr"])
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", recorded)
+    states: list[dict] = []
+    torch.manual_seed(0)
+    keep = lambda state: states.append(copy.deepcopy(state))  # noqa: E731  (as a file would)
+    fit(state_network_for(data), data, None, config, "state", False, None, keep)
+    steps = config.steps_for(len(data))
+    expected = [0.005 * (1 + math.cos(math.pi * k / steps)) for k in range(steps)]
+    assert rates == pytest.approx(expected)
+    rates.clear()
+    torch.manual_seed(0)
+    fit(state_network_for(data), data, None, config, "state", False, states[0], None)
+    assert rates == pytest.approx(expected[len(expected) // 3 :])  # after the first epoch
+    with pytest.raises(SafeRaceError, match="lr_schedule"):
+        TrainConfig(lr_schedule="step")

@@ -39,7 +39,7 @@ import numpy as np
 
 from saferace.agents.mpc import MPCExpert
 from saferace.envs.reference_lines import reference_line
-from saferace.safety.car_barriers import BUMPER_HALF_LENGTH_M, BUMPER_HALF_WIDTH_M
+from saferace.safety.traffic.car_barriers import BUMPER_HALF_LENGTH_M, BUMPER_HALF_WIDTH_M
 from saferace.track.frenet import wrap_arc
 from saferace.track.raceline import ReferenceLine
 

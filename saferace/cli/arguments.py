@@ -9,17 +9,19 @@ from saferace.cli import values
 from saferace.cli.options import add_config_options
 from saferace.errors import SafeRaceError
 from saferace.names import (
+    AUTO,
     DEFAULT_STATE_NOISE,
     DEVICE_HELP,
     DRIVING_TASKS,
+    GENERIC_SOURCE,
     MC_SAMPLES,
     NOISY_SAMPLES,
     OPPONENTS_HELP,
+    PERCEPTION_RECIPES,
     RANDOMIZATION_PRESETS,
     SLACK_PENALTIES,
     SMOOTHING_KEEPS,
     SQUARED_SLACK,
-    STATE_SOURCE_KINDS,
 )
 from saferace.track import builtin_track_names
 
@@ -57,8 +59,9 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     )
 
 
-def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
-    """The safety filter's options (generated from ``FilterConfig``) and its state source."""
+def add_filter_arguments(parser: argparse.ArgumentParser, state_source: str = "oracle") -> None:
+    """The safety filter's options (generated from ``FilterConfig``) and its state source
+    (``state_source`` by default; ``auto``: the generic perception model behind a filter)."""
     from saferace.eval.filter_config import FilterConfig
 
     group = parser.add_argument_group("safety filter")
@@ -69,13 +72,19 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
         exclude=("state_noise", "samples", "state_source"),
         command=parser,
     )
+    default = (
+        f"{GENERIC_SOURCE} behind a filter, oracle without"
+        if state_source == AUTO
+        else state_source
+    )
     group.add_argument(
         "--state-source",
-        default="oracle",
-        metavar="oracle|noisy|learned:CKPT",
+        default=state_source,
+        metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
         help="what feeds the filter the lane state: the truth, noisy truth (--state-noise, "
-        f"default {DEFAULT_STATE_NOISE[0]} {DEFAULT_STATE_NOISE[1]}), or a checkpoint's state "
-        "network (the perceived state)",
+        f"default {DEFAULT_STATE_NOISE[0]} {DEFAULT_STATE_NOISE[1]}), the generic perception "
+        "model (built once by saferace perception, recipe default or "
+        f"{'|'.join(PERCEPTION_RECIPES)}), or a checkpoint's state network (default: {default})",
     )
     group.add_argument(
         "--state-noise",
@@ -97,32 +106,20 @@ def filter_config(args: argparse.Namespace):
     from saferace.cli.options import config_from_args
     from saferace.eval.filter_config import FilterConfig
 
-    source = args.state_source
-    learned = source.startswith("learned:")
-    if not learned and (source not in STATE_SOURCE_KINDS or source == "learned"):
+    option = vars(args)
+    source = chosen_state_source(args)
+    learned = is_perceived(source)
+    if not learned and source not in ("oracle", "noisy"):
         raise SafeRaceError(
-            f"unknown --state-source {source!r}: use oracle, noisy or learned:CHECKPOINT"
+            f"unknown --state-source {source!r}: use oracle, noisy, generic[:RECIPE] or "
+            "learned:CHECKPOINT"
         )
     noise = args.state_noise
     if source == "noisy" and noise is None:
         noise = DEFAULT_STATE_NOISE
     if learned and noise is not None:
         raise SafeRaceError("--state-noise is for the noisy oracle, not a learned state source")
-    option = vars(args)
-    needs_filter = (
-        noise is not None,
-        not option["filter.probabilistic"],
-        source != "oracle",
-        option["filter.map_curvature"],
-        option["filter.spread_scale"] is not None,
-        option["filter.fuse_odometry"],
-        option["filter.opponent_noise_m"] != 0.0,
-    )
-    if option["filter.kind"] == "none" and any(needs_filter):
-        raise SafeRaceError(
-            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale, "
-            "--fuse-odometry and --opponent-noise need --filter cbf"
-        )
+    check_filter_asked(option, source, noise)
     if option["filter.fuse_odometry"] and not (noise is not None or learned):
         raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
     samples = args.samples
@@ -137,6 +134,56 @@ def filter_config(args: argparse.Namespace):
         state_source=source if learned else None,
     )
     return config
+
+
+def check_filter_asked(option: dict, source: str, noise: object) -> None:
+    """Raise where a filter's options are given without a filter."""
+    needs_filter = (
+        noise is not None,
+        not option["filter.probabilistic"],
+        source != "oracle",
+        option["filter.map_curvature"],
+        option["filter.spread_scale"] is not None,
+        option["filter.fuse_odometry"],
+        option["filter.opponent_noise_m"] != 0.0,
+    )
+    if option["filter.kind"] == "none" and any(needs_filter):
+        raise SafeRaceError(
+            "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale, "
+            "--fuse-odometry and --opponent-noise need --filter cbf"
+        )
+
+
+def chosen_state_source(args: argparse.Namespace) -> str:
+    """The ``--state-source`` given, ``auto`` settled: the generic perception model behind a
+    filter, the truth without one."""
+    if args.state_source != AUTO:
+        return args.state_source
+    return "oracle" if vars(args)["filter.kind"] == "none" else GENERIC_SOURCE
+
+
+def built_filter_config(args: argparse.Namespace):
+    """:func:`filter_config`, with the generic perception model it names built first (once,
+    in this process, before any worker needs it)."""
+    from saferace.learning.perception import ensure_perception_model
+
+    config = filter_config(args)
+    ensure_perception_model(config.state_source, getattr(args, "workers", 1))
+    return config
+
+
+def is_perceived(source: str) -> bool:
+    """Whether ``source`` names a state network: ``learned:CHECKPOINT`` or
+    ``generic[:RECIPE]`` (an unknown recipe raises)."""
+    kind, _, argument = source.partition(":")
+    if kind == GENERIC_SOURCE:
+        if argument and argument not in PERCEPTION_RECIPES:
+            raise SafeRaceError(
+                f"no perception recipe {argument!r}: use generic or generic:RECIPE with "
+                f"RECIPE one of {', '.join(PERCEPTION_RECIPES)}"
+            )
+        return True
+    return kind == "learned" and bool(argument)
 
 
 def add_track_arguments(parser: argparse.ArgumentParser) -> None:

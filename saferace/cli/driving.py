@@ -12,7 +12,7 @@ from saferace.cli.arguments import (
     add_episode_arguments,
     add_filter_arguments,
     add_parallel_arguments,
-    filter_config,
+    built_filter_config,
 )
 from saferace.errors import SafeRaceError
 from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS, VERIFY_RUNS
@@ -158,7 +158,7 @@ def _drive(args: argparse.Namespace) -> int:
     from saferace.eval.video import video_path
 
     video = video_path(args.video) if args.video else None  # where it goes: WebM without H.264
-    safety = filter_config(args)
+    safety = built_filter_config(args)
     result = drive(
         args.task,
         args.track,
@@ -204,7 +204,7 @@ def _eval(args: argparse.Namespace) -> int:
             "stereo": args.stereo,
             **({} if args.opponents is None else {"opponents": args.opponents}),
         },
-        safety=filter_config(args),
+        safety=built_filter_config(args),
         mc_samples=args.mc_samples,
     )
     print(leaderboard_markdown(rows))

@@ -17,7 +17,9 @@ from saferace.errors import SafeRaceError
 from saferace.names import (
     AUTO,
     DAGGER_STATE_SOURCES,
+    GENERIC_SOURCE,
     PAPER_PRESETS,
+    PERCEPTION_RECIPES,
     STATE_UNCERTAINTY_METHODS,
 )
 
@@ -70,9 +72,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     group.add_argument(
         "--state-source",
-        default="learned",
-        choices=DAGGER_STATE_SOURCES,
-        help="what feeds the filter the lane state: the state network (perceived) or the truth",
+        default=GENERIC_SOURCE,
+        choices=(
+            *DAGGER_STATE_SOURCES,
+            *(f"{GENERIC_SOURCE}:{recipe}" for recipe in PERCEPTION_RECIPES),
+        ),
+        help="what feeds the filter the lane state: the generic perception model (built once by "
+        "saferace perception; generic:RECIPE for another recipe), the run's own state network "
+        "(learned: the paper's) or the truth",
     )
     dagger.add_argument(
         "--fork-of",
@@ -123,11 +130,11 @@ def dagger_config(args: argparse.Namespace):
         raise SafeRaceError("--fork-of makes a filtered fork: add --filter cbf")
     if args.calibrate_spread and not filtered:
         raise SafeRaceError("--calibrate-spread widens what the filter believes: add --filter cbf")
-    perceived = args.state_source == "learned"
+    perceived = args.state_source != "oracle"
     if args.__dict__["filter.fuse_odometry"] and not (filtered and perceived):
         raise SafeRaceError(
-            "--fuse-odometry fuses the state network's samples: add --filter cbf "
-            "(and keep --state-source learned)"
+            "--fuse-odometry fuses a state network's samples: add --filter cbf "
+            "(and a --state-source other than oracle)"
         )
     method = args.__dict__["training.state_uncertainty"]
     if method == AUTO and args.fork_of is not None:  # the networks of the run it shares
@@ -147,7 +154,7 @@ def dagger_config(args: argparse.Namespace):
             defaults.filter,
             args,
             prefix="filter.",
-            state_source="learned" if perceived else None,
+            state_source=args.state_source if perceived else None,
             uncertainty=uncertainty,
         ),
     )
@@ -170,8 +177,11 @@ def forked_state_uncertainty(base: Path) -> str:
 def _dagger(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table
     from saferace.learning.dagger import METRIC_COLUMNS, DaggerRun
+    from saferace.learning.perception import ensure_perception_model
 
     config = dagger_config(args)
+    if config.filters:
+        ensure_perception_model(config.filter.state_source, args.workers)
     rows = DaggerRun(
         args.out, config, fork_of=args.fork_of, workers=args.workers, ray_address=args.ray
     ).run()

@@ -1,5 +1,5 @@
-"""Learned-driver commands: ``collect``, ``train``, ``validate``, ``calibrate``, ``gradcam``
-and ``export-minari``."""
+"""Learned-driver commands: ``collect``, ``train``, ``validate``, ``calibrate``,
+``perception``, ``gradcam`` and ``export-minari``."""
 
 from __future__ import annotations
 
@@ -15,7 +15,14 @@ from saferace.cli.arguments import (
     filter_config,
 )
 from saferace.cli.options import add_config_options, config_from_args
-from saferace.names import CONFORMAL_ALPHA, DEFAULT_MONITOR, MC_SAMPLES, OOD_MONITORS, TASKS
+from saferace.names import (
+    CONFORMAL_ALPHA,
+    DEFAULT_MONITOR,
+    MC_SAMPLES,
+    OOD_MONITORS,
+    PERCEPTION_RECIPES,
+    TASKS,
+)
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -129,6 +136,30 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_device_argument(calibrate)
     calibrate.set_defaults(command=_calibrate)
 
+    perception = commands.add_parser(
+        "perception",
+        help="build (once) the generic perception model: a state network for tracks and looks "
+        "it never saw, calibrated track by track",
+        description="Random tracks (fresh seeds, random sizes) in randomised looks, driven by "
+        "the expert with steering noise and by the reckless agents behind the oracle filter; "
+        "one heteroscedastic state network trained on them; its conformal interval and "
+        "feature monitor fitted on other random tracks, each track a group (the largest of "
+        "their per-track quantiles). Cached per recipe in $SAFERACE_CACHE (default "
+        "~/.cache/saferace) with a manifest; an interrupted build resumes, a built one is "
+        "reused. --state-source generic (or generic:RECIPE) feeds it to any filter.",
+        epilog=example("saferace perception", "saferace perception --recipe quick"),
+    )
+    perception.add_argument(
+        "--recipe",
+        choices=PERCEPTION_RECIPES,
+        default="default",
+        help="default: 24 training and 10 calibration tracks (about 25 min on 2 cores); quick: "
+        "a few tracks (under a minute, for a first look and the tests)",
+    )
+    add_parallel_arguments(perception)
+    add_device_argument(perception)
+    perception.set_defaults(command=_perception)
+
     gradcam = commands.add_parser(
         "gradcam",
         help="GradCAM heat maps of every network output on frames of a track",
@@ -199,8 +230,10 @@ def train_config(args: argparse.Namespace):
 def _collect(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.learning.collect import collect_round
+    from saferace.learning.perception import ensure_perception_model
 
     config = collection_config(args)
+    ensure_perception_model(config.safety.state_source, args.workers)
     collected = collect_round(args.out, config, workers=args.workers, ray_address=args.ray)
     rows = [
         {
@@ -243,6 +276,25 @@ def _calibrate(args: argparse.Namespace) -> int:
     )  # fmt: skip
     print(markdown_table(list(rows[0]), [list(row.values()) for row in rows]))
     print(f"written: {args.out}")
+    return 0
+
+
+def _perception(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table
+    from saferace.learning.perception import (
+        RECIPES,
+        build_perception_model,
+        perception_manifest,
+    )
+
+    path = build_perception_model(RECIPES[args.recipe], args.workers)
+    manifest = perception_manifest(RECIPES[args.recipe])
+    rows = manifest["calibration_by_track"]
+    print(markdown_table(list(rows[0]), [list(row.values()) for row in rows]))
+    seconds = ", ".join(f"{stage} {value:.0f} s" for stage, value in manifest["seconds"].items())
+    print(f"built in {seconds}; interval scale {manifest['scale']:.3f}")
+    name = "generic" if args.recipe == "default" else f"generic:{args.recipe}"
+    print(f"model: {path} (--state-source {name})")
     return 0
 
 

@@ -12,6 +12,7 @@ from saferace.cli.arguments import (
     add_filter_arguments,
     add_parallel_arguments,
     filter_config,
+    is_perceived,
 )
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
@@ -22,6 +23,7 @@ from saferace.names import (
     DEFAULT_GAINS,
     DEFAULT_STATE_NOISE,
     GAIN_NAMES,
+    GENERIC_SOURCE,
     MC_SAMPLES,
     NOISY_SAMPLES,
     VEHICLE_MODELS,
@@ -35,6 +37,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         epilog=example(
             "saferace safety-table --random-tracks 11 23 --out results/safety",
             "saferace safety-table --tracks lab my_track.csv --state-source learned:lab.pt",
+            "saferace safety-table --tracks lab --state-source none --out results/safety_truth",
         ),
     )
     table.add_argument("--tracks", nargs="*", help=f"{TRACK_HELP}s (default: all built-in)")
@@ -80,10 +83,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     table.add_argument(
         "--state-source",
-        metavar="learned:CKPT",
+        default=GENERIC_SOURCE,
+        metavar="generic[:RECIPE]|learned:CKPT|none",
         help="also run the reckless agents through the filter fed this state network: robust "
         "over its conformal interval (the default of a learned source), and the paper's chance "
-        "constraints and on the mean",
+        "constraints and on the mean; default: the generic perception model (built once by "
+        "saferace perception); none: only the true and noisy state",
     )
     table.add_argument(
         "--mc-samples",
@@ -95,7 +100,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--filter-gains",
         default=DEFAULT_GAINS,
         choices=GAIN_NAMES,
-        help="the filter's settings (see saferace.safety.filter.GAIN_PRESETS) on the true and "
+        help="the filter's settings (see saferace.safety.cbf.filter.GAIN_PRESETS) on the true and "
         "noisy state and in the learned source's chance-constrained rows; its robust rows take "
         "the robust mode's (--filter-gains auto of the other commands)",
     )
@@ -126,7 +131,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     robust.add_argument(
         "--out", type=Path, required=True, help="folder of runs.jsonl and the tables"
     )
-    add_filter_arguments(robust)
+    add_filter_arguments(robust, state_source=AUTO)
     add_device_argument(robust)
     robust.set_defaults(command=_robustness)
 
@@ -153,10 +158,15 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _safety_table(args: argparse.Namespace) -> int:
     from saferace.experiments.safety_table import run_table
+    from saferace.learning.perception import ensure_perception_model
     from saferace.track import builtin_track_names
 
-    if args.state_source is not None and not args.state_source.startswith("learned:"):
-        raise SafeRaceError(f"--state-source must be learned:CHECKPOINT, got {args.state_source}")
+    source = None if args.state_source == "none" else args.state_source
+    if source is not None and not is_perceived(source):
+        raise SafeRaceError(
+            f"--state-source must be generic[:RECIPE], learned:CHECKPOINT or none, got {source}"
+        )
+    ensure_perception_model(source, args.workers)
     run_table(
         list(args.tracks) if args.tracks else list(builtin_track_names()),
         args.out,
@@ -167,7 +177,7 @@ def _safety_table(args: argparse.Namespace) -> int:
         model=args.filter_model,
         gains=args.filter_gains,
         filters=tuple(dict.fromkeys(args.filters)),
-        state_source=args.state_source,
+        state_source=source,
         mc_samples=args.mc_samples,
         workers=args.workers,
         ray_address=args.ray,
@@ -190,8 +200,10 @@ def robustness_config(args: argparse.Namespace):
 
 def _robustness(args: argparse.Namespace) -> int:
     from saferace.experiments.robustness import run_robustness, write_report
+    from saferace.learning.perception import ensure_perception_model
 
     config = robustness_config(args)
+    ensure_perception_model(config.safety.state_source)
     runs = run_robustness(config, args.out)
     print(write_report(runs, config, args.out))
     print(f"runs.jsonl, robustness.md, .csv and .png written to {args.out}")

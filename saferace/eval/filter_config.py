@@ -28,9 +28,14 @@ from saferace.names import (
 )
 
 #: State sources of the packages above ``eval``, as ``KIND:ARGUMENT``: loaded on first use,
-#: ``FACTORY(ARGUMENT, IMAGE_SHAPE, n_samples=N, seed=S)`` (the state network:
-#: ``learned:CHECKPOINT``).
-STATE_SOURCE_FACTORIES = {"learned": "saferace.learning.agent:learned_state_source"}
+#: ``FACTORY(ARGUMENT, IMAGE_SHAPE, n_samples=N, seed=S)`` (a checkpoint's state network:
+#: ``learned:CHECKPOINT``; the generic perception model: ``generic`` or ``generic:RECIPE``).
+STATE_SOURCE_FACTORIES = {
+    "learned": "saferace.learning.agent:learned_state_source",
+    "generic": "saferace.learning.perception:generic_state_source",
+}
+#: The state sources whose argument may be left out.
+OPTIONAL_ARGUMENT_SOURCES = ("generic",)
 
 
 @dataclass(frozen=True)
@@ -43,8 +48,9 @@ class FilterConfig:
     the perceived state; a bare ``learned`` is a placeholder that a DAgger run fills with
     its iteration's checkpoint). ``spread_scale`` widens the samples about their mean (a
     calibration of the MC-dropout spread,
-    :class:`~saferace.safety.state_sources.SpreadScaledStateSource`); ``fuse_odometry``
-    fuses them with odometry (:class:`~saferace.safety.state_fusion.OdometryFusedStateSource`).
+    :class:`~saferace.safety.uncertainty.state_sources.SpreadScaledStateSource`);
+    ``fuse_odometry`` fuses them with odometry
+    (:class:`~saferace.safety.uncertainty.state_fusion.OdometryFusedStateSource`).
 
     ``uncertainty`` and ``gains`` left at ``auto`` are settled when the config is made (see
     :data:`saferace.names.AUTO`): with a learned state source the robust mode (which takes
@@ -90,7 +96,9 @@ class FilterConfig:
         choices=(AUTO, *GAIN_NAMES),
     )
     state_source: str | None = setting(
-        None, "what feeds the filter the lane state", metavar="oracle|noisy|learned:CKPT"
+        None,
+        "what feeds the filter the lane state",
+        metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
     )
     map_curvature: bool = setting(
         False,
@@ -203,7 +211,8 @@ class FilterConfig:
             if kind not in STATE_SOURCE_FACTORIES:
                 raise ConfigError(
                     "state_source",
-                    f"must be oracle, noisy or learned:CHECKPOINT, got {self.state_source!r}",
+                    "must be oracle, noisy, generic[:RECIPE] or learned:CHECKPOINT, got "
+                    f"{self.state_source!r}",
                 )
             if self.state_noise is not None:
                 raise ConfigError(

@@ -9,13 +9,17 @@ from gymnasium import spaces
 
 from saferace.errors import ConfigError
 from saferace.eval.agents import load_entry_point
-from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, FilterConfig
-from saferace.safety.adaptive import AdaptiveConformalStateSource
-from saferace.safety.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.intervals import ConformalStateSource, IntervalStateSource
-from saferace.safety.predictive import PredictiveSafetyFilter
-from saferace.safety.state_fusion import OdometryFusedStateSource
-from saferace.safety.state_sources import (
+from saferace.eval.filter_config import (
+    OPTIONAL_ARGUMENT_SOURCES,
+    STATE_SOURCE_FACTORIES,
+    FilterConfig,
+)
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.predictive.filter import PredictiveSafetyFilter
+from saferace.safety.uncertainty.adaptive import AdaptiveConformalStateSource
+from saferace.safety.uncertainty.intervals import ConformalStateSource, IntervalStateSource
+from saferace.safety.uncertainty.state_fusion import OdometryFusedStateSource
+from saferace.safety.uncertainty.state_sources import (
     NoisyOracleStateSource,
     OracleStateSource,
     SpreadScaledStateSource,
@@ -33,7 +37,7 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         return env
     if config.state_source is not None:
         kind, _, argument = config.state_source.partition(":")
-        if not argument:
+        if not argument and kind not in OPTIONAL_ARGUMENT_SOURCES:
             raise ConfigError(
                 "state_source", f"{kind!r} names no checkpoint: use {kind}:CHECKPOINT"
             )

@@ -88,9 +88,10 @@ def filter_words(config: FilterConfig) -> str:
 
 def state_source_words(config: FilterConfig) -> str:
     """What fed the filter the lane state, in words: ``none`` (no filter), ``true state``
-    (the oracle), ``noisy`` (the oracle plus noise) or ``perceived`` (a state network, its
-    checkpoint in brackets); ``+ odometry`` when fused, and the samples when not the
-    default."""
+    (the oracle), ``noisy`` (the oracle plus noise), ``perceived`` (a state network, its
+    checkpoint in brackets) or ``perceived, generic`` (the generic perception model, a
+    recipe other than the default in brackets); ``+ odometry`` when fused, and the samples
+    when not the default."""
     if config.kind == "none":
         return "none"
     if not config.uncertain_state:
@@ -102,10 +103,10 @@ def state_source_words(config: FilterConfig) -> str:
         e_y, e_psi = config.state_noise
         details.append(f"sd {e_y:g} m, {e_psi:g} rad")
     else:
-        words = "perceived"
-        checkpoint = config.state_source.partition(":")[2]
-        if checkpoint:
-            details.append(Path(checkpoint).name)
+        kind, _, argument = config.state_source.partition(":")
+        words = "perceived" if kind == "learned" else "perceived, generic"
+        if argument:
+            details.append(Path(argument).name)
     if config.samples != NOISY_SAMPLES:
         details.append(f"{config.samples} samples")
     if config.fuse_odometry:

@@ -57,7 +57,7 @@ class LapMetrics:
     half car width`` at its lowest (negative: part of the car was outside). The filter's
     fields are None for episodes driven without one: how many steps it changed the
     action, by how much on average (over all steps), its largest slack and failed solves,
-    the share of steps it fell back on (:mod:`saferace.safety.fallback`), the share its
+    the share of steps it fell back on (:mod:`saferace.safety.uncertainty.fallback`), the share its
     out-of-distribution monitor raised on, and ``coverage``: the share of steps whose true
     state lay inside the interval the filter used.
     """

@@ -49,6 +49,8 @@ def run_jobs(
     """``keep(job, function(*job))`` for every job; ``advance(job)`` after each, in the
     order they finish (a progress line); ``describe(job)`` names a job in the report of
     failures."""
+    if not jobs:
+        return
     if ray_address is not None:
         _run_on_ray(function, jobs, keep, ray_address, advance, describe)
     elif workers <= 1:

@@ -38,8 +38,8 @@ from saferace.eval.metrics import (
 from saferace.names import TASK_IDS as LANE_TASK_IDS
 from saferace.names import TRAFFIC_TASK_IDS
 from saferace.progress import Progress
+from saferace.safety.cbf.filter import SafetyFilter
 from saferace.safety.decision import nominal_parts
-from saferace.safety.filter import SafetyFilter
 from saferace.track import Track, builtin_track_names
 from saferace.version import __version__
 
@@ -93,7 +93,7 @@ def run_episode(
 
     Also recorded: the true lane barrier ``lane_barrier_m``; in traffic the
     :data:`TRAFFIC_FIELDS`; and, if ``env`` is wrapped in a
-    :class:`~saferace.safety.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
+    :class:`~saferace.safety.cbf.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
     return a :class:`~saferace.safety.decision.NominalAction`; without a filter its mean is
     applied. ``on_step(observation, info, action)`` is called after each step with the
     action applied (videos, recordings).

@@ -31,8 +31,8 @@ from saferace.eval.runner import (
 )
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.experiments.robustness_config import RobustnessConfig
-from saferace.safety.conformal import MIN_SIGMA, clopper_pearson
-from saferace.safety.intervals import state_interval
+from saferace.safety.uncertainty.conformal import MIN_SIGMA, clopper_pearson
+from saferace.safety.uncertainty.intervals import state_interval
 
 RUNS_FILE = "runs.jsonl"
 TABLE_COLUMNS = (
@@ -53,6 +53,18 @@ TABLE_COLUMNS = (
     "Gaussian NLL",
     "alarms [%]",
     "lowest lane barrier [m]",
+)
+#: The columns of the table by track and look (where a state source was scored): a pooled
+#: coverage can hide a track the interval misses.
+TRACK_COLUMNS = (
+    "track",
+    "look",
+    "runs",
+    "scored steps",
+    "coverage [%] (95% band)",
+    "alarms [%]",
+    "completion [%]",
+    "time outside lane [s]",
 )
 
 
@@ -251,6 +263,31 @@ def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -
     return rows
 
 
+def track_rows(runs: list[dict], presets: tuple[str, ...]) -> list[list]:
+    """One row of :data:`TRACK_COLUMNS` per track and look whose runs scored a state
+    source: the coverage of that track's steps with its band, the alarm rate, completion
+    and time outside the lane."""
+    rows = []
+    for track in dict.fromkeys(run["track"] for run in runs):
+        for preset in presets:
+            mine = [run for run in runs if run["track"] == track and run["look"] == preset]
+            if not any(run.get("scored_steps") for run in mine):
+                continue
+            rows.append(
+                [
+                    Path(track).stem,
+                    preset,
+                    len(mine),
+                    sum(run["scored_steps"] for run in mine),
+                    pooled_coverage(mine),
+                    mean_of(mine, "alarm_rate", 100.0),
+                    mean_of(mine, "completion", 100.0),
+                    mean_of(mine, "time_outside_lane_s"),
+                ]
+            )
+    return rows
+
+
 def mean_of(runs: list[dict], name: str, scale: float = 1.0) -> float | str:
     """``scale`` times the mean of ``name`` over the runs that measured it; ``-`` if none."""
     values = [run[name] for run in runs if run.get(name) is not None]
@@ -321,10 +358,15 @@ def plot_robustness(runs: list[dict], presets: tuple[str, ...], path: str | Path
 
 
 def write_report(runs: list[dict], config: RobustnessConfig, out_dir: str | Path) -> str:
-    """``robustness.md``, ``.csv`` and ``.png`` in ``out_dir``; the markdown table."""
+    """``robustness.md``, ``.csv`` and ``.png`` in ``out_dir`` (and, where a state source
+    was scored, ``by_track.csv``, whose table ``robustness.md`` holds too); the markdown."""
     out_dir = Path(out_dir)
     rows = robustness_rows(runs, config.presets, config.laps)
     table = markdown_table(TABLE_COLUMNS, rows)
+    by_track = track_rows(runs, config.presets)
+    if by_track:
+        table += "\n\nBy track:\n\n" + markdown_table(TRACK_COLUMNS, by_track)
+        write_csv(out_dir / "by_track.csv", TRACK_COLUMNS, by_track)
     (out_dir / "robustness.md").write_text(table + "\n")
     write_csv(out_dir / "robustness.csv", TABLE_COLUMNS, rows)
     plot_robustness(runs, config.presets, out_dir / "robustness.png")

@@ -73,7 +73,8 @@ def planned_runs(
     behind each of ``filters`` (:data:`FILTER_SETTINGS`) on the true state, on noisy state
     with chance constraints (the predictive filter: its lane tightened by the samples'
     interval) and on the samples' mean; the expert without and behind each filter on the
-    true state. ``state_source`` (``learned:CHECKPOINT``) adds the reckless agents behind
+    true state. ``state_source`` (``generic[:RECIPE]`` or ``learned:CHECKPOINT``) adds the
+    reckless agents behind
     each filter fed that source: with ``robust`` (its checkpoint is calibrated) in the
     robust mode over its conformal interval (what ``auto`` gives a learned source), and
     with ``gains`` through the paper's chance constraints and on the samples' mean."""
@@ -129,7 +130,8 @@ def run_table(
     tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
     runs_file = out_dir / "runs.jsonl"
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
-    robust = state_source is None or is_calibrated(state_source.partition(":")[2])
+    kind, _, checkpoint = (state_source or "").partition(":")
+    robust = kind != "learned" or is_calibrated(checkpoint)
     if not robust:
         LOG.warning(
             "%s has no conformal calibration: the table leaves out its robust rows "

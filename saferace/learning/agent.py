@@ -23,9 +23,9 @@ from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import CONFORMAL_KEY, LearnedCheckpoint, load_checkpoint
 from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import DrivingNetwork
-from saferace.safety.conformal import ConformalCalibration
 from saferace.safety.decision import NominalAction
-from saferace.safety.intervals import ConformalStateSource
+from saferace.safety.uncertainty.conformal import ConformalCalibration
+from saferace.safety.uncertainty.intervals import ConformalStateSource
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
     from saferace.envs.racing_env import RacingEnv
@@ -89,10 +89,11 @@ class LearnedAgent:
 class LearnedStateSource:
     """The state network ``M_st``'s MC-dropout samples of ``[e_y, e_psi, kappa]``.
 
-    Implements :class:`~saferace.safety.state_sources.StateSource` from the image alone;
+    Implements :class:`~saferace.safety.uncertainty.state_sources.StateSource` from the image alone;
     ``info`` is never read. Dropout masks come from a generator seeded at each reset, so
     the same episode seed gives the same samples. ``last_features``: the backbone features
-    of the last frame, for a feature monitor (:class:`~saferace.safety.intervals.FeatureSource`).
+    of the last frame, for a feature monitor
+    (:class:`~saferace.safety.uncertainty.intervals.FeatureSource`).
     """
 
     def __init__(
@@ -132,6 +133,11 @@ def learned_agent(
 ) -> LearnedAgent:
     """``learned:CHECKPOINT``: the checkpoint's control network driving ``env``."""
     loaded = load_checkpoint(checkpoint)
+    if loaded.control is None:
+        raise SafeRaceError(
+            f"{checkpoint} is a perception model: it holds a state network and no control "
+            "network to drive with (use it as a --state-source)"
+        )
     observation_space = env.observation_space
     assert isinstance(observation_space, gym.spaces.Dict), "SafeRace observations are a Dict"
     image_shape = observation_space["image"].shape

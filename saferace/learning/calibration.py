@@ -1,7 +1,7 @@
 """Calibrate the state network's MC-dropout spread on frames it never trained on.
 
 Two calibrations: variance scaling (below, the baseline) and normalised split conformal
-prediction (:func:`fit_conformal`, :mod:`saferace.safety.conformal`), which gives an
+prediction (:func:`fit_conformal`, :mod:`saferace.safety.uncertainty.conformal`), which gives an
 interval with a coverage guarantee on exchangeable frames and an out-of-distribution
 monitor, stored in the checkpoint for every consumer to use.
 
@@ -37,7 +37,7 @@ from saferace.learning.run_layout import RunLayout
 from saferace.learning.training import network_data
 from saferace.learning.validation import predict_frames
 from saferace.names import DEFAULT_MONITOR, OOD_MONITORS
-from saferace.safety.conformal import ConformalCalibration, calibrate
+from saferace.safety.uncertainty.conformal import ConformalCalibration, calibrate
 from saferace.track import Track, VehicleEnvelope
 
 #: Floor of a frame's spread in the ratio (a constant output gives no spread at all).

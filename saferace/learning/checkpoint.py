@@ -1,6 +1,7 @@
 """Checkpoints of the learned driver: both networks, their normalisation and their training.
 
-One file holds the control network and the state network or ensemble (weights with their
+One file holds the control network (none in a perception model, which only perceives) and
+the state network or ensemble (weights with their
 normalisation buffers, and each one's :class:`~saferace.learning.networks.NetworkConfig`)
 and metadata: the training configuration, the data rounds' manifests, the loss history of
 each network trained (one kept unchanged is named with its source), the validation table,
@@ -30,19 +31,25 @@ FORMAT = "saferace-learned-driver"
 FORMAT_VERSION = 1
 NETWORK_NAMES = ("control", "state")
 #: The metadata entry of the state network's conformal calibration
-#: (:class:`~saferace.safety.conformal.ConformalCalibration` as a dict), if it has one.
+#: (:class:`~saferace.safety.uncertainty.conformal.ConformalCalibration` as a dict), if it has one.
 CONFORMAL_KEY = "conformal"
 
 
 @dataclass
 class LearnedCheckpoint:
-    """The two networks (in eval mode) and the checkpoint's metadata."""
+    """The two networks (in eval mode; ``control`` None in a perception model) and the
+    checkpoint's metadata."""
 
-    control: DrivingNetwork
+    control: DrivingNetwork | None
     state: StateNetwork
     metadata: dict
     path: Path | None = None
     sha256: str | None = None
+
+    def networks(self) -> dict[str, StateNetwork]:
+        """The networks it holds by name (no ``control`` in a perception model)."""
+        named = zip(NETWORK_NAMES, (self.control, self.state), strict=True)
+        return {name: network for name, network in named if network is not None}
 
     def describe(self) -> dict:
         """What a result row records of this checkpoint."""
@@ -50,15 +57,17 @@ class LearnedCheckpoint:
 
 
 def save_checkpoint(
-    path: str | Path, control: DrivingNetwork, state: StateNetwork, metadata: dict
+    path: str | Path, control: DrivingNetwork | None, state: StateNetwork, metadata: dict
 ) -> Path:
-    """Write both networks and ``metadata`` to ``path`` atomically."""
+    """Write both networks (or the state network alone) and ``metadata`` to ``path``
+    atomically."""
     payload = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
         "networks": {
             name: _entry(network)
             for name, network in zip(NETWORK_NAMES, (control, state), strict=True)
+            if network is not None
         },
         "metadata": metadata,
     }
@@ -133,13 +142,15 @@ def load_checkpoint(
             f"{FORMAT_VERSION}: upgrade SafeRace"
         )
     try:
-        control = _single_network(payload["networks"]["control"])
-        state = _network(payload["networks"]["state"])
+        networks = payload["networks"]
+        control = _single_network(networks["control"]) if "control" in networks else None
+        state = _network(networks["state"])
     except (KeyError, RuntimeError, TypeError) as exc:
         raise SafeRaceError(f"{path} holds damaged or mismatched networks: {exc}") from None
     sha256 = hashlib.sha256(raw).hexdigest()
     target = resolve_device(device)
-    control.to(target)
+    if control is not None:
+        control.to(target)
     state.to(target)
     return LearnedCheckpoint(control, state, payload["metadata"], path, sha256)
 

@@ -40,7 +40,7 @@ from saferace.eval.runner import (
 from saferace.learning.configs import CollectionConfig, Perturbation
 from saferace.learning.rounds import FRAME_FIELDS, write_round
 from saferace.safety.decision import NominalAction, nominal_parts
-from saferace.safety.state_sources import true_lane_state
+from saferace.safety.uncertainty.state_sources import true_lane_state
 from saferace.version import __version__
 
 

@@ -75,6 +75,7 @@ def train_and_report(
         "training": scored_training_frames(training, config.seed),
         HELD_OUT: frames.subset(held_out),
     }
+    assert control is not None, "saferace train trains both networks"
     networks = {"control": control, "state": state}
     rows, _ = validation_rows(networks, splits, training, HELD_OUT, mc_samples, config.seed)
     metadata["validation"] = rows
@@ -113,7 +114,7 @@ def validate_checkpoint(
         frames = load_rounds([path])
         check_image_shape(loaded, frames["image"].shape[1:])
         splits[f"{frames['track'][0]} {frames['task'][0]} ({path})"] = frames
-    networks = {"control": loaded.control, "state": loaded.state}
+    networks = loaded.networks()
     rows, predictions = validation_rows(networks, splits, n_samples=mc_samples, seed=seed)
     files = write_table(rows, out_dir / "validation")
     for index, (split, frames) in enumerate(splits.items()):
@@ -161,7 +162,9 @@ def gradcam_report(
     from saferace.learning.gradcam import gradcam_sheet, write_sheet  # captum only here
 
     state = loaded.state.members[0] if isinstance(loaded.state, StateEnsemble) else loaded.state
-    networks = {"control": loaded.control, "state": state}  # an ensemble's first member
+    networks = (  # an ensemble's first member
+        {"state": state} if loaded.control is None else {"control": loaded.control, "state": state}
+    )
     chosen = np.linspace(0, len(observations) - 1, frames).round().astype(int)
     files = []
     for number, index in enumerate(chosen):

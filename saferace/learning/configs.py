@@ -18,6 +18,7 @@ from saferace.names import (
     AUTO,
     DEFAULT_EXPERT_MODEL,
     DRIVING_TASKS,
+    GENERIC_SOURCE,
     MC_SAMPLES,
     OPPONENTS_HELP,
     RANDOMIZATION_PRESETS,
@@ -28,6 +29,8 @@ from saferace.names import (
 
 #: The networks a training run makes, in the order they are trained.
 NETWORKS = ("control", "state")
+#: How the learning rate moves over a training run.
+LR_SCHEDULES = ("constant", "cosine")
 
 
 @dataclass(frozen=True)
@@ -39,7 +42,8 @@ class TrainConfig:
     are a dozen steps, and the networks learn next to nothing). ``max_steps`` (0: none): at
     most this many, the last epoch cut short, so that a warm-started DAgger iteration costs
     the same however large the aggregate has grown. ``networks``: the networks trained; any
-    other is taken unchanged from ``init``.
+    other is taken unchanged from ``init``, or, the state network trained alone without one,
+    left out (a perception model: :mod:`saferace.learning.perception`).
     """
 
     epochs: int = setting(10, "passes over the training frames per network", bounds=COUNT)
@@ -60,6 +64,12 @@ class TrainConfig:
     )
     batch_size: int = setting(32, "frames per Adam step", bounds=COUNT)
     learning_rate: float = setting(1e-3, "Adam's learning rate", flag="--lr", bounds=POSITIVE)
+    lr_schedule: str = setting(
+        "constant",
+        "the learning rate over the training: constant, or cosine (from --lr down to 0 at "
+        "the last step, Loshchilov and Hutter 2017)",
+        choices=LR_SCHEDULES,
+    )
     seed: int = setting(0, "seeds the weights, the shuffling and the dropout", bounds=NON_NEGATIVE)
     val_stretch: tuple[float, float] | None = setting(
         (0.55, 0.7),
@@ -114,17 +124,20 @@ class TrainConfig:
                 "val_stretch",
                 f"must be fractions of the lap 0 <= start < end <= 1, got {self.val_stretch}",
             )
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ConfigError(
+                "lr_schedule", f"must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}"
+            )
         if self.max_steps and self.min_steps > self.max_steps:
             raise ConfigError("min_steps", f"{self.min_steps} is above max_steps {self.max_steps}")
         if self.patience and self.val_stretch is None:
             raise ConfigError("patience", "needs held-out frames to stop on (a --val-stretch)")
         if not set(self.networks) <= set(NETWORKS) or not self.networks:
             raise ConfigError("networks", f"must be some of {NETWORKS}, got {self.networks}")
-        if set(self.networks) != set(NETWORKS) and not self.init:
+        if set(self.networks) != set(NETWORKS) and not self.init and "control" in self.networks:
             raise ConfigError(
                 "init",
-                f"is needed: training only {', '.join(self.networks)} takes the other network "
-                "from it",
+                "is needed: training only the control network takes the state network from it",
             )
         if self.init and self.backbone_weights:
             raise ConfigError(
@@ -262,8 +275,9 @@ class DaggerConfig:
     and looks; the run sets ``init`` and ``networks``); ``collection`` drives each iteration
     (``laps`` per drive, the first counts for the tables; ``train_fraction`` of the lap kept
     for training); ``filter`` is the filter of the iterations after ``filter_from`` (the
-    paper's k): its ``state_source`` is ``learned`` (the run fills in each iteration's
-    checkpoint and ``collection.mc_samples``) or None (the truth).
+    paper's k): its ``state_source`` is ``generic[:RECIPE]`` (the generic perception model,
+    the default), ``learned`` (the paper's: the run fills in each iteration's checkpoint and
+    ``collection.mc_samples``) or None (the truth).
     """
 
     task: str = setting(
@@ -305,12 +319,12 @@ class DaggerConfig:
     episodes: int = setting(1, "drives per iteration (the first is reported)", bounds=COUNT)
     training: TrainConfig = field(default_factory=_dagger_training)
     collection: EpisodeSettings = field(default_factory=_dagger_collection)
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source="learned"))
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source=GENERIC_SOURCE))
 
     def __post_init__(self) -> None:
         check_bounds(self)
         if self.training.state_uncertainty == AUTO:
-            honest = self.perceived and self.filter.uncertainty == "robust"
+            honest = self.own_perception and self.filter.uncertainty == "robust"
             method = "ensemble" if honest else "mc-dropout"
             object.__setattr__(self, "training", replace(self.training, state_uncertainty=method))
         if self.task not in DRIVING_TASKS:
@@ -327,14 +341,15 @@ class DaggerConfig:
             raise ConfigError(
                 "init", "must be None: a DAgger run warm-starts each iteration itself"
             )
-        if self.filter.state_source not in (None, "learned"):
+        source = self.filter.state_source
+        if source not in (None, "learned") and source.partition(":")[0] != GENERIC_SOURCE:
             raise ConfigError(
                 "state_source",
-                f"must be learned (the run's own networks) or None (the truth), "
-                f"got {self.filter.state_source!r}",
+                f"must be generic[:RECIPE] (the generic perception model), learned (the run's "
+                f"own networks) or None (the truth), got {source!r}",
             )
         if (
-            self.perceived
+            self.own_perception
             and self.filter.uncertainty == "robust"
             and self.collection.train_fraction >= 1.0
         ):
@@ -342,6 +357,12 @@ class DaggerConfig:
                 "uncertainty",
                 "robust calibrates the state network on the part of the lap no network "
                 "trained on: it needs train_fraction < 1",
+            )
+        if self.calibrate_spread and self.perceived and not self.own_perception:
+            raise ConfigError(
+                "calibrate_spread",
+                "widens the run's own state network's spread: feed the filter that network "
+                "(state source learned) or drop it",
             )
         if self.calibrates_spread and self.filter.uncertainty == "robust":
             raise ConfigError(
@@ -366,19 +387,25 @@ class DaggerConfig:
 
     @property
     def perceived(self) -> bool:
-        """Whether the filtered drives see the state network's samples (not the truth)."""
+        """Whether the filtered drives see a state network's samples (not the truth)."""
         return self.filters and self.filter.state_source is not None
 
     @property
+    def own_perception(self) -> bool:
+        """Whether the filtered drives see the run's own state network (the paper's)."""
+        return self.filters and self.filter.state_source == "learned"
+
+    @property
     def calibrates_spread(self) -> bool:
-        """Whether the filtered drives widen the state network's spread."""
-        return self.calibrate_spread and self.perceived
+        """Whether the filtered drives widen the run's state network's spread."""
+        return self.calibrate_spread and self.own_perception
 
     @property
     def trained_networks(self) -> tuple[str, ...]:
-        """The networks each warm-started iteration trains: the true-state fork drives and
-        filters without its state network, so it keeps the one it forked with."""
-        if self.filters and not self.perceived and self.warm_start:
+        """The networks each warm-started iteration trains: a fork fed the truth or the
+        generic perception model drives and filters without its own state network, so it
+        keeps the one it forked with."""
+        if self.filters and not self.own_perception and self.warm_start:
             return ("control",)
         return NETWORKS
 
@@ -398,7 +425,7 @@ class DaggerConfig:
             "opponents": list(self.opponents),
             "filter": safety.kind,
             "filter_from": self.filter_from,
-            "state_source": "oracle" if safety.state_source is None else "learned",
+            "state_source": "oracle" if safety.state_source is None else safety.state_source,
             "epochs": training.epochs,
             "min_train_steps": training.min_steps,
             "max_train_steps": training.max_steps,

@@ -6,7 +6,7 @@ Iteration ``i >= 1``: both networks are trained on the rounds of iterations ``0.
 control network drives from the camera and the velocities while the expert labels every
 frame; the round joins the aggregate. A drive ends when the lap is done or the car has left
 the lane (the task terminates it). With a filter the iterations after ``filter_from`` drive
-through :class:`~saferace.safety.filter.SafetyFilter` fed the state network's MC-dropout
+through :class:`~saferace.safety.cbf.filter.SafetyFilter` fed the state network's MC-dropout
 samples (the perceived state) or the truth. A filtered run forks from the unfiltered one:
 it shares iterations ``0..filter_from`` with it, bit for bit (linked with ``fork_of``, or
 recomputed: every stage is seeded and deterministic). With ``train_fraction < 1`` frames are
@@ -57,7 +57,10 @@ METRIC_COLUMNS = (
     "duration_s",
     "mean_abs_deviation_m",
     "time_outside_lane_s",
+    "longest_stop_s",
     "intervention_rate",
+    "alarm_rate",
+    "coverage",
     "at_fault_collisions",
     "overtakes",
     "spread_scale_e_y",
@@ -185,7 +188,7 @@ class DaggerRun:
         config = self.config
         if not config.filtered(iteration):
             return FilterConfig()
-        if not config.perceived:
+        if not config.own_perception:
             return config.filter
         if config.filter.uncertainty == "robust":
             conformal_of(
@@ -242,7 +245,10 @@ class DaggerRun:
             "mean_abs_deviation_m": episode["mean_abs_deviation_m"],
             "max_abs_deviation_m": episode["max_abs_deviation_m"],
             "time_outside_lane_s": episode["time_outside_lane_s"],
+            "longest_stop_s": episode.get("longest_stop_s"),
             "intervention_rate": episode.get("intervention_rate"),
+            "alarm_rate": episode.get("alarm_rate"),
+            "coverage": episode.get("coverage"),
             "at_fault_collisions": episode.get("at_fault_collisions"),
             "overtakes": episode.get("overtakes"),
             "spread_scale_e_y": self._spread_scale_e_y(iteration),

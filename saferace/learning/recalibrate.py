@@ -28,7 +28,7 @@ from saferace.learning.rounds import load_rounds
 from saferace.learning.training import network_data
 from saferace.learning.validation import predict_frames
 from saferace.names import DEFAULT_MONITOR
-from saferace.safety.conformal import Monitor, SpreadMonitor, coverage
+from saferace.safety.uncertainty.conformal import Monitor, SpreadMonitor, coverage
 
 
 def recalibrate(

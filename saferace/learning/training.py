@@ -186,6 +186,10 @@ def fit(
                     loss = training_loss(network, outputs.float(), targets[index.T])
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
+                if config.lr_schedule == "cosine":  # from the step count: resumes exactly
+                    done = len(history["batch_loss"]) / steps
+                    for group in optimizer.param_groups:
+                        group["lr"] = 0.5 * config.learning_rate * (1.0 + math.cos(math.pi * done))
                 optimizer.step()
                 value = loss.item()
                 history["batch_loss"].append(value)
@@ -302,9 +306,10 @@ def train_networks(
     config: TrainConfig,
     progress: bool = True,
     resume_file: str | Path | None = None,
-) -> tuple[DrivingNetwork, DrivingNetwork | StateEnsemble, dict]:
+) -> tuple[DrivingNetwork | None, DrivingNetwork | StateEnsemble, dict]:
     """Train the control and the state network (or ensemble); return them and the run's
-    metadata.
+    metadata. Trained alone, without an ``init``, the state network makes a perception
+    model: no control network (None).
 
     ``resume_file``: where to keep the run's state after every epoch, and to continue from.
     The metadata's ``history`` holds the networks trained (an ensemble's first member;
@@ -373,11 +378,16 @@ def train_networks(
             member_history[unit.name] = losses
         trained.setdefault(name, []).append(network)
     networks = {
-        name: getattr(initial, name) if name not in config.networks else _assembled(trained[name])
+        name: _assembled(trained[name])
+        if name in config.networks
+        else None
+        if initial is None
+        else getattr(initial, name)
         for name in NETWORKS
     }
-    control = networks["control"]
-    assert isinstance(control, DrivingNetwork), "the control network is never an ensemble"
+    control, state = networks["control"], networks["state"]
+    assert control is None or isinstance(control, DrivingNetwork), "never an ensemble"
+    assert state is not None, "every training makes or keeps a state network"
     metadata = {
         "training": config.as_dict(),
         "image_shape": list(frames["image"].shape[1:]),
@@ -392,7 +402,7 @@ def train_networks(
         "packages": package_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    return control, networks["state"], metadata
+    return control, state, metadata
 
 
 @dataclass(frozen=True)
@@ -417,6 +427,9 @@ def training_units(config: TrainConfig, stereo: bool) -> list[TrainingUnit]:
     if config.state_uncertainty == "mc-dropout":
         state = state_config(stereo, config.dropout)
         return [*units, TrainingUnit("state", "state", 0, state, config.seed + 1, config.seed)]
+    if config.state_uncertainty == "heteroscedastic":
+        gaussian = state_config(stereo, 0.0, log_variance=True)
+        return [*units, TrainingUnit("state", "state", 0, gaussian, config.seed + 1, config.seed)]
     if config.state_uncertainty == "mimo":
         mimo = state_config(stereo, 0.0, log_variance=True, subnetworks=config.ensemble_members)
         return [*units, TrainingUnit("state", "state", 0, mimo, config.seed + 1, config.seed)]

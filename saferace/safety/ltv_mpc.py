@@ -1,6 +1,6 @@
 """Linear time-varying MPC on a Frenet vehicle model (paper eq. 2), with OSQP: the QP that the
 expert (:mod:`saferace.agents.mpc`) and the predictive safety filter
-(:mod:`saferace.safety.predictive_plan`) solve, each with its own cost and bounds.
+(:mod:`saferace.safety.predictive.plan`) solve, each with its own cost and bounds.
 
 Each control step linearises the model along the previous plan (shifted by one step),
 discretises every stage exactly (zero-order hold), and solves one sparse QP:

@@ -16,10 +16,11 @@ def plot_iterations(
     setting: TableSetting, rows: dict[tuple[str, int, str], list[dict]], seed: int, path: Path
 ) -> None:
     """Every iteration's path over the track (paper Figs. 5-9): a row per reference line,
-    a column per run (:data:`RUN_KINDS`): without the filter, with it fed the perceived
-    state (chance constraints, then the conformal interval), and fed the true state."""
+    a column per run of :data:`RUN_KINDS` that was driven: without the filter, with it fed
+    the perceived state (chance constraints, the conformal interval, the generic model),
+    and fed the true state."""
     track = Track.load(setting.track)
-    kinds = [kind for kind, _, _ in RUN_KINDS]
+    kinds = [kind for kind, _, _ in RUN_KINDS if any(key[2] == kind for key in rows)]
     figure, axes = plt.subplots(len(TASKS), len(kinds), figsize=(5 * len(kinds), 4.2 * len(TASKS)))
     for i, task in enumerate(TASKS):
         for j, kind in enumerate(kinds):

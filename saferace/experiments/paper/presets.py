@@ -6,16 +6,19 @@ from dataclasses import dataclass, replace
 
 from saferace.eval.filter_config import FilterConfig
 from saferace.learning.configs import DaggerConfig, EpisodeSettings, TrainConfig
-from saferace.names import SQUARED_SLACK
+from saferace.names import GENERIC_SOURCE, PERCEPTION_IMAGE_SIZE, SQUARED_SLACK
 
 #: The runs of a line: name, filter, what feeds the filter the lane state. ``cbf`` is the
 #: paper's filter (chance constraints on the state network's spread, here widened by variance
 #: scaling); ``robust`` the honest one (barriers over the state network's conformal interval,
-#: with its monitor and fallback, see ``saferace.safety.filter``).
+#: with its monitor and fallback, see ``saferace.safety.cbf.filter``); ``generic`` the same
+#: robust filter fed the generic perception model (``saferace.learning.perception``, the
+#: other commands' default) in place of the run's own state network.
 RUN_KINDS = (
     ("none", "none", "learned"),
     ("cbf", "cbf", "learned"),
     ("robust", "cbf", "learned"),
+    ("generic", "cbf", GENERIC_SOURCE),
     ("oracle", "cbf", "oracle"),
 )
 #: How tables and figures name the runs: the filter and its state source.
@@ -23,8 +26,12 @@ RUN_LABELS = {
     "none": "none",
     "cbf": "perceived",
     "robust": "perceived, conformal",
+    "generic": "perceived, generic",
     "oracle": "true state",
 }
+#: The two perception modes whose claims the tables judge: the paper's (the run's own state
+#: network, MC dropout, chance constraints) and the generic model's.
+PERCEPTION_MODES = ("cbf", "generic")
 
 
 @dataclass(frozen=True)
@@ -63,7 +70,7 @@ class Preset:
     MC-dropout spread, 3 to 20 times smaller than its error, by the factor that matches it
     to its error on the part of the lap it never trained on (:mod:`saferace.learning.calibration`).
     ``fuse_odometry`` (off) fuses the state network with odometry and gates its outliers
-    (:mod:`saferace.safety.state_fusion`). On Table 2 it kept every filtered iteration
+    (:mod:`saferace.safety.uncertainty.state_fusion`). On Table 2 it kept every filtered iteration
     inside the lane, where without it a network of lab's centre line, sure of a wrong
     state on the part of the lap it never trained on, let the car out; but on a random
     track it never saw, the racing-line policies behind the fused filter left the lane for
@@ -93,6 +100,14 @@ class Preset:
     random_tracks: tuple[int, ...] = ()
     state_uncertainty: str = "mc-dropout"
     slack: str = SQUARED_SLACK
+    perception: str = GENERIC_SOURCE
+
+
+def run_kinds(preset: Preset, setting: TableSetting) -> tuple[str, ...]:
+    """The runs of a setting's lines: all of :data:`RUN_KINDS`, the generic model's only
+    where the camera gives it the frames it was trained on (mono, its image size)."""
+    sees = not setting.stereo and preset.image_size == PERCEPTION_IMAGE_SIZE
+    return tuple(kind for kind, _, _ in RUN_KINDS if kind != "generic" or sees)
 
 
 #: Both filters use the kinematic model: with the linear-tyre model's HOCBF (the paper's
@@ -116,10 +131,17 @@ TABLE_2 = TableSetting(
     stereo=True,
     filter_from={"CenterLine": 3, "RacingLine": 3},
 )
+#: Table 2's setting with the mono camera: the quick preset's, so that both perception
+#: modes run (the generic perception model sees mono frames).
+TABLE_2_MONO = replace(
+    TABLE_2,
+    title="Table 2: the paper's RC-car setting (lab, 0.8 m lane, kinematic model), mono camera",
+    stereo=False,
+)
 PRESETS = {
     "quick": Preset(
         name="quick",
-        settings=(replace(TABLE_2, filter_from={"CenterLine": 2, "RacingLine": 2}),),
+        settings=(replace(TABLE_2_MONO, filter_from={"CenterLine": 2, "RacingLine": 2}),),
         iterations=3,
         epochs=4,
         min_train_steps=45,
@@ -177,19 +199,22 @@ def dagger_config(preset: Preset, setting: TableSetting, task: str, seed: int) -
     )
 
 
-def run_config(base: DaggerConfig, kind: str) -> DaggerConfig:
+def run_config(base: DaggerConfig, kind: str, perception: str = GENERIC_SOURCE) -> DaggerConfig:
     """One of :data:`RUN_KINDS`' runs of a line: ``base`` with its filter and state source
-    (the ``robust`` run calibrates conformally, instead of scaling the spread)."""
+    (the ``robust`` run calibrates conformally, instead of scaling the spread; the
+    ``generic`` run is fed ``perception``, the generic model of a recipe, in the robust
+    mode)."""
     filter_kind, source = next((f, s) for name, f, s in RUN_KINDS if name == kind)
     perceived = source == "learned"
-    robust = kind == "robust"
+    robust = kind in ("robust", "generic")
+    state_source = "learned" if perceived else perception if kind == "generic" else None
     return replace(
         base,
         calibrate_spread=base.calibrate_spread and not robust,
         filter=replace(
             base.filter,
             kind=filter_kind,
-            state_source="learned" if perceived else None,
+            state_source=state_source,
             fuse_odometry=base.filter.fuse_odometry and perceived,
             uncertainty="robust" if robust else base.filter.uncertainty,
         ),

@@ -8,7 +8,13 @@ import numpy as np
 
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.experiments.paper.plots import plot_iterations
-from saferace.experiments.paper.presets import RUN_KINDS, RUN_LABELS, Preset, TableSetting
+from saferace.experiments.paper.presets import (
+    PERCEPTION_MODES,
+    RUN_KINDS,
+    RUN_LABELS,
+    Preset,
+    TableSetting,
+)
 from saferace.names import TASKS
 
 
@@ -17,9 +23,10 @@ def table_lines(
 ) -> list[list]:
     """The paper's layout: a line per iteration and filter, a column group per reference."""
     iterations = max(row["iteration"] for runs in rows.values() for row in runs)
+    kinds = [kind for kind, _, _ in RUN_KINDS if any(key[2] == kind for key in rows)]
     lines = []
     for iteration in range(iterations + 1):
-        for kind, _, _ in RUN_KINDS:
+        for kind in kinds:
             shown = kind == "none" or any(iteration > setting.filter_from[task] for task in TASKS)
             if not shown:
                 continue
@@ -80,7 +87,7 @@ def _spread(values: list[float | None]) -> str:
 def claims(
     setting: TableSetting,
     rows: dict[tuple[str, int, str], list[dict]],
-    from_1: dict[tuple[str, int], dict],
+    from_1: dict[tuple[str, int, str], dict],
 ) -> list[str]:
     """The paper's claims, measured: first completed lap with and without the filter, laps
     completed in the filtered iterations against the unfiltered run's same iterations, lane
@@ -117,11 +124,69 @@ def claims(
         else:
             text += "; final iteration did not complete its lap"
         lines.append(text)
-    for (task, seed), row in sorted(from_1.items()):
+    for (task, seed, kind), row in sorted(from_1.items()):
         unfiltered_1 = rows[(task, seed, "none")][1]
         lines.append(
-            f"- {task}, seed {seed}, iteration 1 behind the perceived-state filter (a fork "
-            f"with k = 0): {_drive(row)}; without the filter {_drive(unfiltered_1)}"
+            f"- {task}, seed {seed}, iteration 1 behind the filter fed the {RUN_LABELS[kind]} "
+            f"state (a fork with k = 0): {_drive(row)}; without the filter {_drive(unfiltered_1)}"
+        )
+    return lines
+
+
+VERDICT_COLUMNS = (
+    "line",
+    "seed",
+    "perception",
+    "filtered iterations",
+    "first lap, filtered",
+    "first lap, unfiltered",
+    "never leaves the lane",
+    "first lap sooner",
+)
+
+
+def verdicts(
+    setting: TableSetting,
+    rows: dict[tuple[str, int, str], list[dict]],
+    from_1: dict[tuple[str, int, str], dict],
+) -> list[list]:
+    """Whether the paper's two claims hold, per line, seed and perception mode (the paper's
+    and the generic model's): the filtered iterations (those after k, and iteration 1 behind
+    the filter) never leave the lane, and the first completed lap comes at an earlier
+    iteration with the filter than without (iterations up to k are the unfiltered run's)."""
+    lines = []
+    for (task, seed, kind), runs in sorted(rows.items()):
+        if kind not in PERCEPTION_MODES:
+            continue
+        k = setting.filter_from[task]
+        filtered = [row for row in runs if row["filtered"]]
+        first_row = from_1.get((task, seed, kind))
+        if first_row is not None:
+            filtered = [first_row, *filtered]
+        lapped = [row["iteration"] for row in runs if row["iteration"] >= 1 and row["completed"]]
+        if first_row is not None and first_row["completed"]:
+            lapped.append(1)
+        unfiltered = rows[(task, seed, "none")]
+        with_filter = min(lapped, default=None)
+        without = next((r["iteration"] for r in unfiltered[1:] if r["completed"]), None)
+        exits = [row["iteration"] for row in filtered if row["time_outside_lane_s"] > 0]
+        if with_filter is None and without is None:
+            sooner = "neither lapped"
+        elif without is None or (with_filter is not None and with_filter < without):
+            sooner = "holds"
+        else:
+            sooner = "no (same iteration)" if with_filter == without else "no"
+        lines.append(
+            [
+                task,
+                seed,
+                RUN_LABELS[kind],
+                ", ".join(str(row["iteration"]) for row in filtered) + f" (k = {k})",
+                "-" if with_filter is None else with_filter,
+                "-" if without is None else without,
+                "holds" if not exits else "fails: iteration " + ", ".join(map(str, exits)),
+                sooner,
+            ]
         )
     return lines
 
@@ -149,7 +214,7 @@ def write_table(
     preset: Preset,
     setting: TableSetting,
     rows: dict[tuple[str, int, str], list[dict]],
-    from_1: dict[tuple[str, int], dict],
+    from_1: dict[tuple[str, int, str], dict],
     seeds: list[int],
     out_dir: Path,
 ) -> list[Path]:
@@ -161,6 +226,8 @@ def write_table(
         + ", ".join(f"{t} {k}" for t, k in setting.filter_from.items())
         + "; * did not complete the lap (its time is how long the car drove)\n\n"
         + markdown_table(header, lines)
+        + "\n\n## The paper's claims, by perception mode\n\n"
+        + markdown_table(VERDICT_COLUMNS, verdicts(setting, rows, from_1))
         + "\n\n## Claims, measured\n\n"
         + "\n".join(claims(setting, rows, from_1))
         + "\n"

@@ -2,10 +2,11 @@
 
 For each setting (Table 1: the paper's CARLA setting on ``technical``, dynamic model, mono;
 Table 2: its RC-car setting on ``lab``, kinematic model, stereo) and each reference line,
-four DAgger runs per seed: without the filter, the filtered fork (iterations after k fed
+five DAgger runs per seed: without the filter, the filtered fork (iterations after k fed
 the state network's perceived state, the paper's chance constraints), the same fork behind
 the robust filter fed the state network's conformal interval (what honest uncertainty
-costs), and the same fork fed the true state (what perception costs). Written to ``OUT``:
+costs), fed the generic perception model (mono frames of its size only), and fed the true
+state (what perception costs). Written to ``OUT``:
 ``{setting}.md``/``.csv`` in the layout of the paper's tables with the claims measured
 below them, ``{setting}_trajectories.png`` (every iteration's path, without and with the
 filter, one row per line), ``unseen_tracks.md`` (the final policies on tracks they never
@@ -25,13 +26,14 @@ from saferace.eval.drive import drive
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import evaluate, max_steps_for
 from saferace.experiments.paper.presets import (
+    PERCEPTION_MODES,
     PRESETS,
-    RUN_KINDS,
     RUN_LABELS,
     Preset,
     TableSetting,
     dagger_config,
     run_config,
+    run_kinds,
 )
 from saferace.experiments.paper.report import write_summaries, write_table
 from saferace.learning.calibration import conformal_of, spread_scale_of
@@ -50,14 +52,15 @@ def run_dir(out_dir: Path, setting: TableSetting, task: str, seed: int, kind: st
 def run_lines(
     preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, progress: bool
 ) -> dict[tuple[str, int, str], list[dict]]:
-    """The three runs of each line and seed; their metric rows by (task, seed, kind)."""
+    """The runs of each line and seed (:func:`~saferace.experiments.paper.presets.run_kinds`);
+    their metric rows by (task, seed, kind)."""
     rows = {}
     for task in TASKS:
         for seed in seeds:
             base = dagger_config(preset, setting, task, seed)
             unfiltered = run_dir(out_dir, setting, task, seed, "none")
-            for kind, _, _ in RUN_KINDS:
-                config = run_config(base, kind)
+            for kind in run_kinds(preset, setting):
+                config = run_config(base, kind, preset.perception)
                 label = f"{setting.name} {task} seed {seed} {kind}"
                 fork_of = None if kind == "none" else unfiltered
                 run = DaggerRun(
@@ -67,51 +70,57 @@ def run_lines(
     return rows
 
 
-#: The folder of the one-iteration fork filtered from iteration 1 (see :func:`filtered_from_1`).
-FROM_1 = "cbf_from_1"
+def from_1_name(kind: str) -> str:
+    """The folder of the one-iteration fork filtered from iteration 1 behind the filter of
+    perception mode ``kind`` (see :func:`filtered_from_1`)."""
+    return f"{kind}_from_1"
 
 
 def filtered_from_1(
     preset: Preset, setting: TableSetting, seeds: list[int], out_dir: Path, progress: bool
-) -> dict[tuple[str, int], dict]:
-    """Iteration 1 of each line driven behind the perceived-state filter (a fork with
-    ``k = 0``, one iteration long): the paper's headline asks whether the filter lets the
-    learned driver lap earlier, and the forks of the table start after ``k``. Its networks
-    are the unfiltered run's of iteration 1, so this drive is exactly the first of a fork
-    filtered from the start. Its metric row by (task, seed), for lines with ``k >= 1``."""
+) -> dict[tuple[str, int, str], dict]:
+    """Iteration 1 of each line driven behind the filter of each perception mode (a fork
+    with ``k = 0``, one iteration long): the paper's headline asks whether the filter lets
+    the learned driver lap earlier, and the forks of the table start after ``k``. Its
+    networks are the unfiltered run's of iteration 1, so this drive is exactly the first of
+    a fork filtered from the start. Its metric row by (task, seed, kind), for lines with
+    ``k >= 1``."""
     rows = {}
+    modes = [kind for kind in PERCEPTION_MODES if kind in run_kinds(preset, setting)]
     for task in TASKS:
         if setting.filter_from[task] < 1:
             continue
         for seed in seeds:
-            config = replace(
-                run_config(dagger_config(preset, setting, task, seed), "cbf"),
-                filter_from=0,
-                iterations=1,
-            )
-            run = DaggerRun(
-                run_dir(out_dir, setting, task, seed, FROM_1),
-                config,
-                run_dir(out_dir, setting, task, seed, "none"),
-                progress,
-                f"{setting.name} {task} seed {seed} filtered from 1",
-            )
-            rows[(task, seed)] = run.run()[1]
+            for kind in modes:
+                config = replace(
+                    run_config(dagger_config(preset, setting, task, seed), kind, preset.perception),
+                    filter_from=0,
+                    iterations=1,
+                )
+                run = DaggerRun(
+                    run_dir(out_dir, setting, task, seed, from_1_name(kind)),
+                    config,
+                    run_dir(out_dir, setting, task, seed, "none"),
+                    progress,
+                    f"{setting.name} {task} seed {seed} {kind} filtered from 1",
+                )
+                rows[(task, seed, kind)] = run.run()[1]
     return rows
 
 
 def final_policy(
     preset: Preset, setting: TableSetting, run: Path, seed: int, kind: str = "cbf"
 ) -> tuple[str, FilterConfig]:
-    """The agent spec of a run's final networks, and the setting's filter fed their
-    perceived state as the run of ``kind`` feeds it (the spread calibrated as in its
-    filtered iterations; for ``robust``, the conformal interval stored in the checkpoint)."""
+    """The agent spec of a run's final networks, and the setting's filter fed the perceived
+    state as the run of ``kind`` feeds it (the spread calibrated as in its filtered
+    iterations; for ``robust``, the conformal interval stored in the checkpoint; for
+    ``generic``, the generic perception model)."""
     layout = RunLayout(run)
     checkpoint = layout.final_checkpoint()
     spec = f"learned:{checkpoint}"
     iteration = int(checkpoint.stem.removeprefix("iteration_"))
-    robust = kind == "robust"
-    if robust:
+    robust = kind in ("robust", "generic")
+    if kind == "robust":
         conformal_of(layout, iteration, CONFORMAL_ALPHA, preset.mc_samples, seed)
     scale = (
         spread_scale_of(layout, iteration, preset.mc_samples, seed)
@@ -122,7 +131,7 @@ def final_policy(
         kind="cbf",
         model=setting.filter_model,
         gains=preset.filter_gains,
-        state_source=spec,
+        state_source=preset.perception if kind == "generic" else spec,
         samples=preset.mc_samples,
         map_curvature=preset.map_curvature,
         spread_scale=scale,
@@ -142,23 +151,20 @@ def env_settings(preset: Preset, setting: TableSetting) -> dict:
     }
 
 
-#: How the unseen tracks' table names a filter, by its kind and uncertainty mode.
+#: How the unseen tracks' table names the filter a run's policy drives behind, by run.
 UNSEEN_FILTER_LABELS = {
-    ("none", "chance"): "none",
-    ("cbf", "chance"): "perceived state",
-    ("cbf", "robust"): "perceived, conformal",
+    "cbf": "perceived state",
+    "robust": "perceived, conformal",
+    "generic": "perceived, generic",
 }
 
 
 def same_networks(first: Path, second: Path) -> bool:
     """Whether two checkpoints hold the same weights (whatever else their metadata says)."""
-    a, b = load_checkpoint(first), load_checkpoint(second)
-    return all(
+    a, b = (load_checkpoint(path).networks() for path in (first, second))
+    return a.keys() == b.keys() and all(
         left.keys() == right.keys() and all(torch.equal(left[k], right[k]) for k in left)
-        for left, right in (
-            (a.control.state_dict(), b.control.state_dict()),
-            (a.state.state_dict(), b.state.state_dict()),
-        )
+        for left, right in ((a[name].state_dict(), b[name].state_dict()) for name in a)
     )
 
 
@@ -167,14 +173,15 @@ def unseen_track_rows(
 ) -> list[list]:
     """The final policies of the unfiltered run and of the perceived-state forks on tracks
     they never saw, one lap, without and with the filter fed their own state network as
-    their run fed it. A fork whose final networks are the unfiltered run's (it trained
-    nothing of its own) is not scored twice: only behind a filter of its own (the robust
-    fork's conformal one)."""
+    their run fed it (the generic fork: behind the generic model). A fork whose final
+    networks are the unfiltered run's (it trained nothing of its own) is not scored twice:
+    only behind a filter of its own (the robust fork's conformal one)."""
     lines = []
+    kinds = [kind for kind in run_kinds(preset, setting) if kind != "oracle"]
     for task in TASKS:
         for seed in seeds:
             unfiltered = RunLayout(run_dir(out_dir, setting, task, seed, "none")).final_checkpoint()
-            for kind in ("none", "cbf", "robust"):
+            for kind in kinds:
                 run = run_dir(out_dir, setting, task, seed, kind)
                 inherited = kind != "none" and same_networks(
                     RunLayout(run).final_checkpoint(), unfiltered
@@ -203,7 +210,9 @@ def unseen_track_rows(
                                 seed,
                                 f"final of {RUN_LABELS[owner]} run",
                                 Path(track).stem,
-                                UNSEEN_FILTER_LABELS[safety.kind, safety.uncertainty],
+                                "none"
+                                if safety.kind == "none"
+                                else UNSEEN_FILTER_LABELS["cbf" if kind == "none" else kind],
                                 summary["laps_completed"],
                                 summary["mean_lap_time_s"] or "-",
                                 summary["time_outside_lane_s"],

@@ -10,7 +10,7 @@ distribution shift no such guarantee holds (Ovadia et al. 2019): :class:`Adaptiv
 quantile rule fits an out-of-distribution score's threshold: on exchangeable frames it
 raises on at most ``alpha`` of them: on the state network's spread
 (:class:`SpreadMonitor`) or on its backbone features
-(:class:`~saferace.safety.feature_monitor.FeatureMonitor`, which sees a new look).
+(:class:`~saferace.safety.uncertainty.feature_monitor.FeatureMonitor`, which sees a new look).
 
 Numpy only (no learning code), so that the filter's layer can hold and apply a calibration.
 """
@@ -24,7 +24,7 @@ import numpy as np
 from scipy.stats import beta
 
 from saferace.errors import ConfigError, SafeRaceError
-from saferace.safety.feature_monitor import FeatureMonitor, feature_monitor
+from saferace.safety.uncertainty.feature_monitor import FeatureMonitor, feature_monitor
 
 #: Floor of a frame's sigma in a score (an output that never varies has none).
 MIN_SIGMA = 1e-9
@@ -92,7 +92,7 @@ def fit_spread_monitor(sigma: np.ndarray, alpha: float = 0.05) -> SpreadMonitor:
 
 
 def fit_feature_monitor(features: np.ndarray, alpha: float = 0.05, seed: int = 0) -> FeatureMonitor:
-    """The :class:`~saferace.safety.feature_monitor.FeatureMonitor` of held-out frames'
+    """The :class:`~saferace.safety.uncertainty.feature_monitor.FeatureMonitor` of held-out frames'
     ``(n, F)`` backbone features: its Gaussian fitted on a random half of them, its
     threshold the conformal quantile of the other half's scores."""
     features = np.asarray(features, float)
@@ -150,6 +150,13 @@ class ConformalCalibration:
         )
 
 
+def stored_scores(scores: np.ndarray) -> tuple[float, ...]:
+    """The scores a calibration keeps: sorted, at most :data:`MAX_STORED_SCORES` of them
+    evenly spaced in rank."""
+    ranks = np.linspace(0, len(scores) - 1, min(len(scores), MAX_STORED_SCORES))
+    return tuple(float(x) for x in np.sort(scores)[np.round(ranks).astype(int)])
+
+
 def calibrate(
     mean: np.ndarray,
     sigma: np.ndarray,
@@ -169,11 +176,62 @@ def calibrate(
             if features is None
             else fit_feature_monitor(features, monitor_alpha)
         )
-    ranks = np.linspace(0, len(scores) - 1, min(len(scores), MAX_STORED_SCORES))
-    kept = tuple(float(x) for x in np.sort(scores)[np.round(ranks).astype(int)])
     return ConformalCalibration(
-        alpha, conformal_quantile(scores, alpha), len(scores), monitor, kept
+        alpha, conformal_quantile(scores, alpha), len(scores), monitor, stored_scores(scores)
     )
+
+
+def group_calibration(
+    mean: np.ndarray,
+    sigma: np.ndarray,
+    truth: np.ndarray,
+    groups: np.ndarray,
+    alpha: float = 0.05,
+    monitor: FeatureMonitor | None = None,
+    features: np.ndarray | None = None,
+) -> tuple[ConformalCalibration, list[dict]]:
+    """A calibration that holds per group (a track), not only pooled over frames.
+
+    Each group's own conformal quantile of its frames' scores is found, and the interval
+    scale is the largest of the ``m`` groups': a new group exchangeable with them has its
+    own quantile above all ``m`` with probability at most ``1 / (m + 1)``. So a track is
+    covered at ``1 - alpha`` of its frames however its frames are spread over the lap,
+    where a pooled quantile lets easy tracks pay for hard ones. The ``monitor`` (its
+    Gaussian fitted elsewhere, e.g. on training frames) gets its threshold the same way,
+    from ``features``. Also returns a row per group: its frames, quantiles, and the coverage
+    and alarm rate it gets at the shared scale and threshold.
+    """
+    scores = normalised_scores(mean, sigma, truth)
+    groups = np.asarray(groups)
+    names = list(dict.fromkeys(groups.tolist()))
+    if len(names) < 2:
+        raise SafeRaceError(f"a calibration by groups needs at least 2 groups, got {len(names)}")
+    if (monitor is None) != (features is None):
+        raise SafeRaceError("a monitor's threshold by groups needs the frames' features")
+    monitor_scores = None if monitor is None else monitor.scores(np.asarray(features, float))
+    scales = {name: conformal_quantile(scores[groups == name], alpha) for name in names}
+    thresholds = (
+        {}
+        if monitor_scores is None
+        else {name: conformal_quantile(monitor_scores[groups == name], alpha) for name in names}
+    )
+    scale = max(scales.values())
+    if monitor is not None:
+        monitor = replace(monitor, threshold=max(thresholds.values()))
+    rows = []
+    for name in names:
+        mine = groups == name
+        row = {
+            "group": name,
+            "frames": int(mine.sum()),
+            "own scale": scales[name],
+            "coverage": float(np.mean(scores[mine] <= scale)),
+        }
+        if monitor_scores is not None and monitor is not None:
+            row["own threshold"] = thresholds[name]
+            row["alarm rate"] = float(np.mean(monitor_scores[mine] > monitor.threshold))
+        rows.append(row)
+    return ConformalCalibration(alpha, scale, len(scores), monitor, stored_scores(scores)), rows
 
 
 def coverage(

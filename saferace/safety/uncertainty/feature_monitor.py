@@ -101,7 +101,7 @@ def feature_monitor(
     features: np.ndarray, alpha: float, components: int = FEATURE_COMPONENTS
 ) -> FeatureMonitor:
     """The monitor of the Gaussian fitted on ``(n, F)`` ``features``, its threshold not yet
-    set (``inf``: see :func:`saferace.safety.conformal.fit_feature_monitor`)."""
+    set (``inf``: see :func:`saferace.safety.uncertainty.conformal.fit_feature_monitor`)."""
     features = np.asarray(features, float)
     if len(features) < 3:
         raise SafeRaceError(

@@ -17,8 +17,8 @@ from typing import Any, Protocol, TypeGuard, runtime_checkable
 import numpy as np
 
 from saferace.errors import SafeRaceError
-from saferace.safety.conformal import ConformalCalibration, SpreadMonitor
-from saferace.safety.state_sources import StateSource
+from saferace.safety.uncertainty.conformal import ConformalCalibration, SpreadMonitor
+from saferace.safety.uncertainty.state_sources import StateSource
 
 
 @runtime_checkable
@@ -96,10 +96,11 @@ def interval_points(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
 class ConformalStateSource:
     """Another source's samples, with the interval of a conformal calibration of its spread:
     ``mean +- scale * std`` of the samples (a
-    :class:`~saferace.safety.conformal.ConformalCalibration` fitted on frames the source
+    :class:`~saferace.safety.uncertainty.conformal.ConformalCalibration` fitted on frames the source
     never trained on), and the calibration's out-of-distribution monitor: on the samples'
     spread, or on the features the source's network saw (a
-    :class:`~saferace.safety.feature_monitor.FeatureMonitor`, for a :class:`FeatureSource`)."""
+    :class:`~saferace.safety.uncertainty.feature_monitor.FeatureMonitor`, for a
+    :class:`FeatureSource`)."""
 
     def __init__(self, source: StateSource, calibration: ConformalCalibration) -> None:
         self.source = source

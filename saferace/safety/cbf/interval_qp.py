@@ -1,6 +1,6 @@
 """A QP in OSQP's form, ``lo <= A x <= hi``, solved by PIQP with its data updated in place.
 
-The predictive filter's plan (:mod:`saferace.safety.predictive_plan`) weighs its first
+The predictive filter's plan (:mod:`saferace.safety.predictive.plan`) weighs its first
 input about 1e4 times more than the rest of the plan; OSQP's first-order steps took
 thousands of iterations on it (a quarter of the steps hit the iteration limit), where an
 interior point takes about ten. PIQP (a proximal interior point with a sparse LDL^T)

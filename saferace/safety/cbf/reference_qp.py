@@ -8,7 +8,7 @@ import cvxpy as cp
 import numpy as np
 
 from saferace.names import SQUARED_SLACK
-from saferace.safety.qp import FilterProblem
+from saferace.safety.cbf.qp import FilterProblem
 
 
 def covariance_root(covariance: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 """``PredictiveSafetyFilter``: the second filter family, a predictive safety filter (MPSF).
 
 Where the CBF filter judges an action by barrier conditions at the car's current point, the
-predictive filter plans ahead along the map (:mod:`saferace.safety.predictive_plan`): an
+predictive filter plans ahead along the map (:mod:`saferace.safety.predictive.plan`): an
 action is let through if some continuation of it keeps the car inside the lane over the
 horizon and ends where the map's speed limit holds, and is bent as little as that needs
 otherwise. A kink ahead is in the plan before the car reaches it.
@@ -17,13 +17,13 @@ import gymnasium as gym
 import numpy as np
 
 from saferace.names import UNCERTAINTY_MODES
+from saferace.safety.cbf.filter import INTERVENTION_TOLERANCE, SafetyFilter
+from saferace.safety.cbf.filter_map import SPEED_LIMIT_LATERAL_MPS2
 from saferace.safety.decision import SafetyDecision
-from saferace.safety.estimate import checked_action, estimate_state
-from saferace.safety.fallback import FALLBACK_BRAKE_MPS2, fallback_steer_rad
-from saferace.safety.filter import INTERVENTION_TOLERANCE, SafetyFilter
-from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2
-from saferace.safety.predictive_plan import PREDICTIVE_HORIZON, PredictivePlanner
-from saferace.safety.state_sources import StateSource
+from saferace.safety.predictive.plan import PREDICTIVE_HORIZON, PredictivePlanner
+from saferace.safety.uncertainty.estimate import checked_action, estimate_state
+from saferace.safety.uncertainty.fallback import FALLBACK_BRAKE_MPS2, fallback_steer_rad
+from saferace.safety.uncertainty.state_sources import StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
@@ -40,7 +40,7 @@ PREDICTIVE_CONSTRAINTS = ("lane_left", "lane_right", "speed", "terminal_heading"
 class PredictiveSafetyFilter(SafetyFilter):
     """Keep any agent in its lane with a predictive safety filter (model predictive safety
     certification, Wabersich and Zeilinger 2018), behind the same wrapper and ``certify``
-    interface as the CBF filter (:class:`~saferace.safety.filter.SafetyFilter`).
+    interface as the CBF filter (:class:`~saferace.safety.cbf.filter.SafetyFilter`).
 
     Each step it plans from the believed state (the state source's samples' mean, or its
     interval's centre in the robust mode) the inputs over ``horizon`` stages whose first is
@@ -50,7 +50,7 @@ class PredictiveSafetyFilter(SafetyFilter):
     and the last stage below the map's speed limit (``speed_limit_factor`` times the task's
     reference speed, braked for in time). A plan that keeps the lane with its margin (no
     more slack than the uncertainty's tightening and
-    :data:`~saferace.safety.predictive_plan.CERTIFIED_SLACK`) is *certified*:
+    :data:`~saferace.safety.predictive.plan.CERTIFIED_SLACK`) is *certified*:
     its first input is applied and its tail kept. Where none is (the QP failed, needed slack, or the
     state source's monitor raised), the filter follows the tail of the last certified plan
     (the MPSC fallback) while it lasts and the car is where that plan expects it
@@ -61,7 +61,7 @@ class PredictiveSafetyFilter(SafetyFilter):
     Uncertainty: the state's interval (``mean +- z std`` of the samples at confidence
     ``eta``, or a calibrated source's own) tightens the lane by its offset half-width and
     by its heading half-width over the distance driven in
-    :data:`~saferace.safety.predictive_plan.HEADING_CORRECTION_S`; ``probabilistic=False``
+    :data:`~saferace.safety.predictive.plan.HEADING_CORRECTION_S`; ``probabilistic=False``
     plans from the samples' mean alone. ``map_curvature`` and ``uncertainty`` are the CBF
     filter's (the plan always takes the curvature from the map).
     """

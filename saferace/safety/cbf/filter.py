@@ -12,25 +12,28 @@ import numpy as np
 from gymnasium import spaces
 
 from saferace.names import SLACK_PENALTIES, SQUARED_SLACK, UNCERTAINTY_MODES
-from saferace.safety import car_barriers
-from saferace.safety.barriers import (
+from saferace.safety.cbf.barriers import (
     BARRIER_NAMES,
     BarrierContext,
     class_k_gains,
     linearised_constraints,
 )
-from saferace.safety.chance import (
+from saferace.safety.cbf.chance import (
     ConstraintStatistics,
     confidence_quantile,
     constraint_statistics,
     constraint_std,
     spread_at_accel,
 )
-from saferace.safety.dead_reckoning import LastTrusted
+from saferace.safety.cbf.exact_penalty import solve_filter_qp_l1
+from saferace.safety.cbf.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
+from saferace.safety.cbf.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.decision import SafetyDecision, decision_mode, nominal_parts
-from saferace.safety.estimate import checked_action, estimate_state
-from saferace.safety.exact_penalty import solve_filter_qp_l1
-from saferace.safety.fallback import (
+from saferace.safety.models import lane_model_states, param_values, symbolic_model
+from saferace.safety.traffic import car_barriers
+from saferace.safety.uncertainty.dead_reckoning import LastTrusted
+from saferace.safety.uncertainty.estimate import checked_action, estimate_state
+from saferace.safety.uncertainty.fallback import (
     FALLBACK_BRAKE_MPS2,
     FALLBACK_LATERAL_MPS2,
     fallback_steer_rad,
@@ -38,15 +41,8 @@ from saferace.safety.fallback import (
     grip_steer_rad,
     towards_speed,
 )
-from saferace.safety.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
-from saferace.safety.intervals import interval_points
-from saferace.safety.models import (
-    lane_model_states,
-    param_values,
-    symbolic_model,
-)
-from saferace.safety.qp import FilterProblem, FilterSolution, solve_filter_qp
-from saferace.safety.state_sources import OracleStateSource, StateSource
+from saferace.safety.uncertainty.intervals import interval_points
+from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
@@ -89,7 +85,7 @@ class SafetyFilter(gym.Wrapper):
 
         min (u - u_ref)^T diag(u_std^2)^-1 (u - u_ref) + k_err * sum(eps^2)
 
-    within the actuator limits (:mod:`saferace.safety.qp`), never braking the car backwards.
+    within the actuator limits (:mod:`saferace.safety.cbf.qp`), never braking the car backwards.
     With one sample, or ``probabilistic=False``, it is the deterministic HOCBF filter on the
     samples' mean. ``info["safety"]`` holds a ``SafetyDecision`` every step; a failed solve
     brakes at ``FALLBACK_BRAKE_MPS2``, steering the lane's curvature and toward the centre
@@ -97,28 +93,29 @@ class SafetyFilter(gym.Wrapper):
 
     ``uncertainty="robust"`` replaces the chance constraints by barrier conditions that must
     hold at every point of the state's interval (its corners and centre, see
-    :func:`~saferace.safety.intervals.interval_points`; the measurement-robust CBF of Dean
-    et al. 2020 and Cosner et al. 2021: the margin grows with the interval's width). The
-    interval is the source's own (a conformal calibration) or ``mean +- z std`` of its
-    samples; the curvature comes from the map (a network's is its worst output). While the
-    source's monitor raises, the last trusted interval carried forward by odometry stands
-    in for it (:mod:`saferace.safety.dead_reckoning`). Where no control satisfies them, the
-    filter falls back (:mod:`saferace.safety.fallback`): it brakes towards a speed at which
-    the interval fits inside the lane (a stop where even its offsets do not fit), never
-    above the map's speed limit, steering the lane's curvature and towards the centre line
-    from the interval's centre, within the tyres' grip. Such steps count in ``fallbacks``.
+    :func:`~saferace.safety.uncertainty.intervals.interval_points`; the measurement-robust
+    CBF of Dean et al. 2020 and Cosner et al. 2021: the margin grows with the interval's
+    width). The interval is the source's own (a conformal calibration) or ``mean +- z std``
+    of its samples; the curvature comes from the map (a network's is its worst output).
+    While the source's monitor raises, the last trusted interval carried forward by odometry
+    stands in for it (:mod:`saferace.safety.uncertainty.dead_reckoning`). Where no control
+    satisfies them, the filter falls back (:mod:`saferace.safety.uncertainty.fallback`): it
+    brakes towards a speed at which the interval fits inside the lane (a stop where even its
+    offsets do not fit), never above the map's speed limit, steering the lane's curvature
+    and towards the centre line from the interval's centre, within the tyres' grip. Such
+    steps count in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
 
     - the chance constraints' spread is taken at the agent's acceleration
-      (:func:`~saferace.safety.chance.spread_at_accel`), so the filter does not brake at
+      (:func:`~saferace.safety.cbf.chance.spread_at_accel`), so the filter does not brake at
       full force to narrow its own heading spread;
     - below ``creep_speed_mps`` it accelerates at least ``CREEP_ACCEL_MPS2`` (or as the
       agent does, if less): at a standstill the steering drops out of the lane barriers,
       and a stopped car heading for an edge could otherwise be held there for good;
     - ``speed_limit_factor`` adds the barrier ``h_speed = v_limit(s) - v_x`` on the task's
-      speed profile (:mod:`saferace.safety.speed_limit`): the lane barriers cannot make the
+      speed profile (:mod:`saferace.safety.cbf.speed_limit`): the lane barriers cannot make the
       car brake, so a car too fast for the tyres' grip would slide out whatever it steers;
     - ``width_preview_s`` takes the narrowest half width reached within that time, since a
       second-order barrier cannot see a narrowing coming; ``map_curvature`` takes the
@@ -136,9 +133,9 @@ class SafetyFilter(gym.Wrapper):
     models are not exact); ``params``: vehicle parameters (default: identified ones).
     ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`; ``slack_penalty``:
     the QP's squared slack (the paper's) or the exact L1 one
-    (:mod:`~saferace.safety.exact_penalty`). ``GAIN_PRESETS`` names the settings the command
+    (:mod:`~saferace.safety.cbf.exact_penalty`). ``GAIN_PRESETS`` names the settings the command
     line offers. In traffic a barrier per opponent joins the QP, where the car is kept
-    clear before the lane (:mod:`~saferace.safety.car_barriers`; where it cannot be, the
+    clear before the lane (:mod:`~saferace.safety.traffic.car_barriers`; where it cannot be, the
     filter brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise on their
     positions (else the truth, as ``s`` is)."""
 

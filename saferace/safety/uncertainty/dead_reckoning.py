@@ -18,7 +18,7 @@ carrying's error bound per metre driven, holds the car: the bound was measured, 
 assumed (``benchmarks/dead_reckoning_error.py``). A car at rest grows no error: its set
 stays where it stopped. The safety filter certifies from this set while the doubt lasts,
 so a heading error inherited from the last trusted frame is still steered out, and stops
-the car where the set no longer fits the lane (:class:`~saferace.safety.filter.SafetyFilter`).
+the car where the set no longer fits the lane (:class:`~saferace.safety.cbf.filter.SafetyFilter`).
 """
 
 from __future__ import annotations

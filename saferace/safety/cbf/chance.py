@@ -11,7 +11,7 @@ a second-order cone: the mean constraint tightened by ``z`` standard deviations 
 value at ``u`` (a norm, not the squared norm the paper prints).
 
 :func:`spread_at_accel` fixes the acceleration at which the spread is taken (see
-:class:`~saferace.safety.filter.SafetyFilter` for why the filter takes the agent's).
+:class:`~saferace.safety.cbf.filter.SafetyFilter` for why the filter takes the agent's).
 """
 
 from __future__ import annotations

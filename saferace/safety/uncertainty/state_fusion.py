@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from saferace.safety.state_sources import StateSource
+from saferace.safety.uncertainty.state_sources import StateSource
 from saferace.track.track import Track
 
 #: 99% of a chi-square with 2 degrees of freedom: a measurement farther from the

@@ -1,7 +1,7 @@
 """What a safety filter reads from its inputs each step: the agent's action and the state.
 
-Shared by the filter families (:mod:`saferace.safety.filter`,
-:mod:`saferace.safety.predictive`): the action checked and given its spread, the state
+Shared by the filter families (:mod:`saferace.safety.cbf.filter`,
+:mod:`saferace.safety.predictive.filter`): the action checked and given its spread, the state
 source's samples, the interval it holds the state to and its monitor's verdict, and the
 record of all that in a :class:`~saferace.safety.decision.SafetyDecision`.
 """
@@ -13,8 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from saferace.safety.intervals import has_monitor, interval_about
-from saferace.safety.state_sources import StateSource
+from saferace.safety.uncertainty.intervals import has_monitor, interval_about
+from saferace.safety.uncertainty.state_sources import StateSource
 
 
 def checked_action(

@@ -13,7 +13,7 @@ at fault if it runs into the ego):
 ``A`` and ``B`` are the semi-axes: ``2^(1/p)`` times the half extents of the two cars'
 bumpers side by side (so that the curve holds the rectangle where the bumpers would
 touch), plus a margin. The condition is derived as the lane's are
-(:func:`saferace.safety.barriers.time_derivative`, linear class-K functions with the gains
+(:func:`saferace.safety.cbf.barriers.time_derivative`, linear class-K functions with the gains
 ``CAR_GAINS``), to the order at which the steering appears, and linearised in the
 steering around the nominal control. Its rows go into the filter's QP scaled by
 ``CAR_ROW_WEIGHT``: a squared slack on them costs that factor squared more than on a lane
@@ -47,9 +47,9 @@ import numpy as np
 import sympy as sp
 
 from saferace.names import RC10_BUMPER_HALF_EXTENTS_M
-from saferace.safety.barriers import MAX_ORDER, class_k_gains, time_derivative
+from saferace.safety.cbf.barriers import MAX_ORDER, class_k_gains, time_derivative
+from saferace.safety.cbf.qp import FilterProblem
 from saferace.safety.models import symbolic_model
-from saferace.safety.qp import FilterProblem
 from saferace.track.frenet import wrap_arc
 
 BUMPER_HALF_LENGTH_M, BUMPER_HALF_WIDTH_M = RC10_BUMPER_HALF_EXTENTS_M

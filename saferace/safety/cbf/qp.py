@@ -4,7 +4,7 @@
     s.t.   a_j^T u - b_j + z sqrt(c(u)^T Sigma_j c(u)) <= eps_j   (one slack per constraint)
            lower <= u <= upper                                    (actuator limits)
 
-with ``c(u) = [u; -1]`` (see :mod:`saferace.safety.chance`; ``z = 0`` or no covariance is
+with ``c(u) = [u; -1]`` (see :mod:`saferace.safety.cbf.chance`; ``z = 0`` or no covariance is
 the deterministic filter). The best slack is ``eps_j = max(0, g_j(u))`` where ``g_j`` is the
 constraint's left side, so the problem is the minimisation of a strictly convex,
 continuously differentiable function of two variables over a box:

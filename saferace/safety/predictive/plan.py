@@ -16,7 +16,7 @@ the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern
 - each stage's steering inside the tyres' grip at the speed the stage is linearised at;
 - the terminal set: the last stage no faster than the map's speed limit there (off the
   racing line, the lower of the line's and the parallel's), which is braked for in time
-  (:mod:`saferace.safety.speed_limit`), so the car can take what lies beyond the horizon.
+  (:mod:`saferace.safety.cbf.speed_limit`), so the car can take what lies beyond the horizon.
   The other stages are held to the map's limit where they lie, but never below what the
   last step's plan held the same arc lengths to, so that plan's tail stays feasible.
 
@@ -29,9 +29,9 @@ from __future__ import annotations
 import numpy as np
 
 from saferace.envs.drivetrain import DrivetrainParams
-from saferace.safety.interval_qp import IntervalQP
+from saferace.safety.cbf.interval_qp import IntervalQP
+from saferace.safety.cbf.speed_limit import LaneSpeedLimit
 from saferace.safety.ltv_mpc import FrenetMPC, MPCSettings
-from saferace.safety.speed_limit import LaneSpeedLimit
 from saferace.safety.vehicle_params import VehicleParams
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine
@@ -268,7 +268,7 @@ class PredictivePlanner(FrenetMPC):
         (a weave on BrandsHatch accelerated at 4 m/s^2 towards the edge).
 
         The last stage, the terminal set's, is held to the map's invariant limit
-        (:meth:`~saferace.safety.speed_limit.LaneSpeedLimit.invariant_limit`): off the
+        (:meth:`~saferace.safety.cbf.speed_limit.LaneSpeedLimit.invariant_limit`): off the
         racing line, the parallel's where it is lower than the line's, not the blend of
         the two. Held to the blend, plans certified into a corner a little off the line,
         while the agent steered the car further off, met limits 2-3 m/s lower a few steps

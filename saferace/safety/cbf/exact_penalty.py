@@ -4,7 +4,7 @@
     s.t.   a_j^T u - b_j + z sqrt(c(u)^T Sigma_j c(u)) <= eps_j,   eps_j >= 0
            lower <= u <= upper
 
-The squared penalty of :mod:`saferace.safety.qp` lets every active constraint give a
+The squared penalty of :mod:`saferace.safety.cbf.qp` lets every active constraint give a
 little (``eps_j = lambda_j / (2 k_err)``) and, when two constraints cannot both hold (both
 lane sides), balances their squared violations, which braking can shrink together. The L1
 penalty is exact: for ``k_err`` above the constraints' multipliers the solution is the one
@@ -13,7 +13,7 @@ violation, with no pull towards balancing them.
 
 Its kinks defeat the squared solver's Newton steps, so the problem is handed whole to an
 interior-point conic solver: a QP in ``(v, eps)``, ``v`` the control's deviation in units of
-``u_std`` (the scaling of :mod:`saferace.safety.reference_qp`), each chance constraint a
+``u_std`` (the scaling of :mod:`saferace.safety.cbf.reference_qp`), each chance constraint a
 second-order cone ``z |R c(u)| <= eps_j - a_j^T u + b_j`` with ``R^T R = Sigma_j``.
 """
 
@@ -23,14 +23,14 @@ import clarabel
 import numpy as np
 from scipy import sparse
 
-from saferace.safety.qp import (
+from saferace.safety.cbf.qp import (
     FilterProblem,
     FilterSolution,
     PenaltyObjective,
     failed_solution,
     packaged_solution,
 )
-from saferace.safety.reference_qp import covariance_root
+from saferace.safety.cbf.reference_qp import covariance_root
 
 #: Clarabel's tolerances: well below the 1e-5 the filter's solvers are checked to.
 SOLVER_SETTINGS = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}

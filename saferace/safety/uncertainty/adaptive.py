@@ -1,7 +1,7 @@
 """Adaptive conformal intervals for the perceived state, with two kinds of feedback.
 
 :class:`AdaptiveConformalStateSource` widens or narrows a conformally calibrated source's
-interval online (Gibbs and Candes 2021, :class:`~saferace.safety.conformal.
+interval online (Gibbs and Candes 2021, :class:`~saferace.safety.uncertainty.conformal.
 AdaptiveConformal`): after each step it learns whether the interval missed, and the level
 moves by ``gamma (alpha - miss)``. Who says it missed decides whether a real car could use
 it:
@@ -10,7 +10,7 @@ it:
   **oracle feedback**, which no real car has.
 - ``odometry``: no truth. The last interval's centre is carried one step forward with the
   car's own odometry (yaw rate, speed, the map's curvature at the localised ``s``: the
-  Frenet kinematics of :mod:`saferace.safety.state_fusion`); the interval missed if that
+  Frenet kinematics of :mod:`saferace.safety.uncertainty.state_fusion`); the interval missed if that
   prediction of ``[e_y, e_psi]`` falls outside the new one. It flags estimates that jump
   further than their interval allows; a network wrong in the same way for many frames in a
   row passes it.
@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 
 from saferace.names import ADAPTIVE_FEEDBACK as FEEDBACK_KINDS
-from saferace.safety.conformal import AdaptiveConformal
-from saferace.safety.intervals import ConformalStateSource
-from saferace.safety.state_sources import true_lane_state
+from saferace.safety.uncertainty.conformal import AdaptiveConformal
+from saferace.safety.uncertainty.intervals import ConformalStateSource
+from saferace.safety.uncertainty.state_sources import true_lane_state
 from saferace.track.track import Track
 
 #: The step of the level's update: at 20 Hz, a miss rate off by 0.5 moves the level by 0.1

@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from saferace.safety.barriers import BarrierContext
-from saferace.safety.speed_limit import LaneSpeedLimit
+from saferace.safety.cbf.barriers import BarrierContext
+from saferace.safety.cbf.speed_limit import LaneSpeedLimit
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine
 from saferace.track.vehicle_envelope import VehicleEnvelope

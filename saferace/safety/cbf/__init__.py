@@ -1,0 +1,1 @@
+"""The control-barrier-function safety filter: barriers, their QP, its solvers."""

@@ -1,0 +1,1 @@
+"""Barriers that keep the car clear of other cars."""

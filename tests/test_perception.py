@@ -1,0 +1,206 @@
+"""The generic perception model: calibrated by track, cached with a manifest, resumable, and
+named as a state source by every command."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.errors import SafeRaceError
+from saferace.eval.filter_config import FilterConfig
+from saferace.eval.filters import apply_filter
+from saferace.experiments.safety_table import RECKLESS_TASKS, filter_label, run_table
+from saferace.learning.agent import learned_agent
+from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
+from saferace.learning.configs import DaggerConfig
+from saferace.learning.perception import (
+    MANIFEST_FILE,
+    RECIPES,
+    build_perception_model,
+    generic_state_source,
+    model_folder,
+    recipe_named,
+    sha256,
+)
+from saferace.safety.uncertainty.conformal import conformal_quantile, group_calibration
+from saferace.safety.uncertainty.feature_monitor import feature_monitor
+from saferace.safety.uncertainty.intervals import ConformalStateSource
+from tests.cli_helpers import run_cli
+
+#: The quick recipe: a build takes about half a minute.
+TINY = RECIPES["quick"]
+
+
+@pytest.fixture
+def built(quick_perception: Path) -> Path:
+    """The session's quick model (``conftest.quick_perception``), rebuilt where a test
+    took it apart."""
+    return build_perception_model(TINY, progress=False)
+
+
+def test_a_calibration_by_track_covers_the_hard_track_that_pooling_leaves_out():
+    rng = np.random.default_rng(0)
+    easy, hard = 1800, 200
+    truth = np.zeros((easy + hard, 2))
+    sigma = np.ones_like(truth)
+    mean = np.concatenate([rng.normal(0, 1, (easy, 2)), rng.normal(0, 3, (hard, 2))])
+    groups = np.array(["easy"] * easy + ["hard"] * hard)
+    scores = np.abs(mean).max(axis=1)
+    pooled = conformal_quantile(scores, 0.05)
+    assert np.mean(scores[groups == "hard"] <= pooled) < 0.85  # pooling fails the hard track
+    calibration, rows = group_calibration(mean, sigma, truth, groups, 0.05)
+    by_group = {row["group"]: row for row in rows}
+    assert calibration.scale == pytest.approx(by_group["hard"]["own scale"])
+    assert by_group["hard"]["own scale"] > 2 * by_group["easy"]["own scale"]
+    assert min(row["coverage"] for row in rows) >= 0.95
+    assert calibration.frames == easy + hard
+
+
+def test_the_monitor_threshold_by_track_is_the_largest_of_the_tracks():
+    rng = np.random.default_rng(1)
+    reference = rng.normal(0, 1, (500, 8))
+    features = np.concatenate([rng.normal(0, 1, (300, 8)), rng.normal(0.8, 1, (300, 8))])
+    groups = np.repeat(["near", "far"], 300)
+    monitor = feature_monitor(reference, 0.05)
+    truth = np.zeros((600, 2))
+    calibration, rows = group_calibration(
+        truth, np.ones_like(truth), truth, groups, 0.05, monitor, features
+    )
+    assert calibration.monitor is not None
+    assert calibration.monitor.threshold == max(row["own threshold"] for row in rows)
+    assert all(row["alarm rate"] <= 0.05 for row in rows)
+    assert rows[0]["own threshold"] < rows[1]["own threshold"]  # the far track sets it
+
+
+def test_a_calibration_by_track_refuses_one_track_and_a_monitor_without_features():
+    truth = np.zeros((40, 2))
+    with pytest.raises(SafeRaceError, match="at least 2 groups"):
+        group_calibration(truth, np.ones_like(truth), truth, np.zeros(40), 0.05)
+    monitor = feature_monitor(np.random.default_rng(0).normal(size=(50, 4)), 0.05)
+    with pytest.raises(SafeRaceError, match="features"):
+        group_calibration(truth, np.ones_like(truth), truth, np.arange(40) % 2, 0.05, monitor)
+
+
+def test_the_build_writes_a_manifest_of_its_recipe_seeds_commit_and_hashes(built: Path):
+    folder = model_folder(TINY)
+    manifest = json.loads((folder / MANIFEST_FILE).read_text())
+    assert manifest["recipe"]["train_track_seeds"] == list(TINY.train_track_seeds)
+    assert manifest["track_seeds"]["calibration"] == list(TINY.calibration_track_seeds)
+    assert set(manifest["seconds"]) == {"collect", "train", "calibrate"}
+    assert manifest["git_revision"] and manifest["packages"]["torch"]
+    assert manifest["files"]["model.pt"] == sha256(built)
+    assert any(name.endswith("frames.npz") for name in manifest["files"])
+    for name, digest in manifest["files"].items():
+        assert sha256(folder / name) == digest, name
+    rows = manifest["calibration_by_track"]
+    assert [row["group"] for row in rows] == [
+        f"calibration_{s}" for s in TINY.calibration_track_seeds
+    ]
+    assert all(row["coverage"] >= 0.95 and row["alarm rate"] <= 0.05 for row in rows)
+
+
+def test_the_model_perceives_only_and_its_calibration_is_by_track(built: Path):
+    loaded = load_checkpoint(built)
+    assert loaded.control is None
+    assert loaded.state.config.log_variance and loaded.state.config.subnetworks == 1
+    record = loaded.metadata[CONFORMAL_KEY]
+    assert record["scale"] == max(row["own scale"] for row in record["groups"])
+    env = gym.make("saferace/CenterLine-v0", track="lab")
+    try:
+        with pytest.raises(SafeRaceError, match="perception model"):
+            learned_agent(env, built)
+    finally:
+        env.close()
+
+
+def test_a_second_build_reuses_the_model_and_an_interrupted_one_resumes(built: Path):
+    folder = model_folder(TINY)
+    rounds = sorted(folder.glob("rounds/*/round_*/frames.npz"))
+    stamps = {path: path.stat().st_mtime_ns for path in [*rounds, built]}
+    assert build_perception_model(TINY, progress=False) == built
+    assert all(path.stat().st_mtime_ns == stamp for path, stamp in stamps.items())
+    trained = folder / "state_uncalibrated.pt"
+    trained_stamp = trained.stat().st_mtime_ns
+    built.unlink()
+    (folder / MANIFEST_FILE).unlink()
+    build_perception_model(TINY, progress=False)  # calibrates again, nothing else
+    assert trained.stat().st_mtime_ns == trained_stamp
+    assert all(path.stat().st_mtime_ns == stamps[path] for path in rounds)
+    assert load_checkpoint(built).metadata[CONFORMAL_KEY]["groups"]
+
+
+def test_a_build_refuses_a_folder_of_another_recipe(built: Path):
+    with pytest.raises(SafeRaceError, match="another 'quick' recipe"):
+        build_perception_model(replace(TINY, epochs=3), progress=False)
+
+
+def test_generic_names_the_built_model_as_a_calibrated_state_source(built: Path):
+    env = apply_filter(
+        gym.make("saferace/CenterLine-v0", track="lab"),
+        FilterConfig(kind="cbf", state_source="generic:quick"),
+        seed=0,
+    )
+    try:
+        source = env.state_source
+        assert isinstance(source, ConformalStateSource)
+        assert env.robust
+        env.reset(seed=0)
+        _, _, _, _, info = env.step(np.zeros(2))
+        safety = info["safety"]
+        assert safety["mode"] in ("certified", "propagated", "stopping")
+        assert np.all(np.asarray(safety["state_upper"]) >= np.asarray(safety["state_lower"]))
+    finally:
+        env.close()
+
+
+def test_an_unbuilt_or_unknown_recipe_says_what_to_run(quick_perception: Path):
+    with pytest.raises(SafeRaceError, match="saferace perception --recipe default"):
+        generic_state_source("", (64, 64, 3))
+    with pytest.raises(SafeRaceError, match="no perception recipe 'nope'"):
+        recipe_named("generic:nope")
+
+
+def test_the_generic_model_is_the_default_perceived_state_of_dagger_and_robustness():
+    assert DaggerConfig().filter.state_source == "generic"
+    assert DaggerConfig().training.state_uncertainty == "mc-dropout"  # its own net is unused
+    paper = DaggerConfig(filter=FilterConfig(kind="cbf", state_source="learned"))
+    assert paper.training.state_uncertainty == "ensemble"
+    with pytest.raises(SafeRaceError, match="own state network"):
+        DaggerConfig(filter=FilterConfig(kind="cbf", state_source="generic"), calibrate_spread=True)
+    from saferace.cli import build_parser
+    from saferace.cli.safety import robustness_config
+
+    parser = build_parser()
+    filtered = parser.parse_args(["robustness", "--filter", "cbf", "--out", "x"])
+    assert robustness_config(filtered).safety.state_source == "generic"
+    unfiltered = parser.parse_args(["robustness", "--out", "x"])
+    assert robustness_config(unfiltered).safety.state_source is None
+    table = parser.parse_args(["safety-table"])
+    assert table.state_source == "generic"
+
+
+def test_the_command_line_refuses_an_unknown_recipe():
+    done = run_cli("drive", "--filter", "cbf", "--state-source", "generic:nope", "--track", "lab")
+    assert done.returncode != 0
+    assert "no perception recipe 'nope'" in done.stderr
+
+
+def test_the_safety_table_runs_the_reckless_agents_behind_the_generic_model(
+    quick_perception: Path, tmp_path: Path
+):
+    rows = run_table(
+        ["lab"], tmp_path, laps=1, max_seconds=3.0, progress=False, state_source="generic:quick"
+    )
+    generic = [row for row in rows if row["filter"].get("state_source") == "generic:quick"]
+    assert sorted(filter_label(row) for row in generic) == sorted(
+        ["generic-robust", "generic-prob", "generic-det"] * len(RECKLESS_TASKS)
+    )
+    robust = [row for row in generic if filter_label(row) == "generic-robust"]
+    assert all(row["summary"]["coverage"] is not None for row in robust)
+    assert all(row["summary"]["time_outside_lane_s"] == 0.0 for row in robust)
