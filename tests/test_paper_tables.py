@@ -118,7 +118,7 @@ def test_the_claims_are_judged_for_both_perception_modes(tables):
     out, _ = tables
     text = (out / "table2.md").read_text()
     verdicts = text.split("## The paper's claims, by perception mode")[1].split("## Claims")[0]
-    lines = [line for line in verdicts.splitlines() if line.startswith("| ")][2:]
+    lines = [line for line in verdicts.splitlines() if line.startswith("| ")][1:]
     assert len(lines) == len(TASKS) * len(PERCEPTION_MODES)
     for line in lines:
         task, _, mode, filtered, with_filter, without, inside, sooner = (
@@ -164,11 +164,12 @@ def test_unseen_tracks_timings_and_the_recording(tables):
         if line.startswith("| table2")
     ]
     # The forks drive iteration 2 with the unfiltered run's networks: one policy per line,
-    # scored without the filter, behind the paper's and behind the robust conformal one.
-    assert len(unseen) == len(TASKS) * 3
+    # scored without the filter, behind the paper's, the robust conformal and the generic one.
+    assert len(unseen) == len(TASKS) * 4
     assert all(line.split("|")[4].strip() == "final of none run" for line in unseen)
     filters = [line.split("|")[6].strip() for line in unseen]
-    assert sorted(filters) == sorted(["none", "perceived state", "perceived, conformal"] * 2)
+    kinds = ["none", "perceived state", "perceived, conformal", "perceived, generic"]
+    assert sorted(filters) == sorted(kinds * 2)
     assert all(line.split("|")[5].strip() == "oval" for line in unseen)
     seconds = {
         line.split("|")[1].strip(): float(line.split("|")[2])

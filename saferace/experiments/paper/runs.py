@@ -37,7 +37,7 @@ from saferace.experiments.paper.presets import (
 )
 from saferace.experiments.paper.report import write_summaries, write_table
 from saferace.learning.calibration import conformal_of, spread_scale_of
-from saferace.learning.checkpoint import load_checkpoint
+from saferace.learning.checkpoint import NETWORK_NAMES, load_checkpoint
 from saferace.learning.dagger import DaggerRun
 from saferace.learning.run_layout import RunLayout
 from saferace.names import CONFORMAL_ALPHA, TASKS
@@ -159,9 +159,13 @@ UNSEEN_FILTER_LABELS = {
 }
 
 
-def same_networks(first: Path, second: Path) -> bool:
-    """Whether two checkpoints hold the same weights (whatever else their metadata says)."""
-    a, b = (load_checkpoint(path).networks() for path in (first, second))
+def same_networks(first: Path, second: Path, names: tuple[str, ...] = NETWORK_NAMES) -> bool:
+    """Whether two checkpoints hold the same weights of the networks ``names`` (whatever
+    else their metadata says)."""
+    a, b = (
+        {k: v for k, v in load_checkpoint(path).networks().items() if k in names}
+        for path in (first, second)
+    )
     return a.keys() == b.keys() and all(
         left.keys() == right.keys() and all(torch.equal(left[k], right[k]) for k in left)
         for left, right in ((a[name].state_dict(), b[name].state_dict()) for name in a)
@@ -174,8 +178,9 @@ def unseen_track_rows(
     """The final policies of the unfiltered run and of the perceived-state forks on tracks
     they never saw, one lap, without and with the filter fed their own state network as
     their run fed it (the generic fork: behind the generic model). A fork whose final
-    networks are the unfiltered run's (it trained nothing of its own) is not scored twice:
-    only behind a filter of its own (the robust fork's conformal one)."""
+    networks are the unfiltered run's (it trained nothing of its own; for the generic fork,
+    whose own state network feeds nothing, its control network) is not scored twice: only
+    behind a filter of its own (the robust fork's conformal one, the generic model)."""
     lines = []
     kinds = [kind for kind in run_kinds(preset, setting) if kind != "oracle"]
     for task in TASKS:
@@ -183,8 +188,9 @@ def unseen_track_rows(
             unfiltered = RunLayout(run_dir(out_dir, setting, task, seed, "none")).final_checkpoint()
             for kind in kinds:
                 run = run_dir(out_dir, setting, task, seed, kind)
-                inherited = kind != "none" and same_networks(
-                    RunLayout(run).final_checkpoint(), unfiltered
+                driving = ("control",) if kind == "generic" else NETWORK_NAMES  # its own state
+                inherited = kind != "none" and same_networks(  # network feeds nothing
+                    RunLayout(run).final_checkpoint(), unfiltered, driving
                 )
                 if inherited and kind == "cbf":
                     continue
