@@ -339,7 +339,9 @@ def calibrate_by_track(
     recipe: PerceptionRecipe, state_file: Path, tracks: dict[str, list[Path]]
 ) -> list[dict]:
     """Calibrate the network track by track on the calibration tracks (frames with the car
-    inside its lane), its monitor's Gaussian fitted on training frames; write the model.
+    inside its lane), its monitor's Gaussian fitted on training frames of the calibration
+    looks (a look it was trained on but not calibrated for then raises it); write the
+    model.
     The rows of the calibration tracks (read back where the model is written already)."""
     if model_path(recipe).exists():
         return load_checkpoint(model_path(recipe)).metadata[CONFORMAL_KEY]["groups"]
@@ -362,6 +364,8 @@ def calibrate_by_track(
     )
     prediction = predict_frames(loaded.state, network_data(frames)["state"], 1)
     training = load_rounds([rounds_folder(recipe, track) for track in tracks["train"]])
+    looks = np.array([manifest["config"]["randomize"] for manifest in training.manifests])
+    training = training.subset(np.isin(looks[training["source"]], recipe.calibration_looks))
     chosen = np.random.default_rng(recipe.seed).permutation(len(training))[:MONITOR_FIT_FRAMES]
     reference = predict_frames(
         loaded.state, network_data(training.subset(np.sort(chosen)))["state"], 1
