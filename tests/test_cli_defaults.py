@@ -118,14 +118,13 @@ def test_a_learned_state_source_gets_the_robust_filter_by_default(command: str):
     assert (paper.uncertainty, paper.gains) == ("chance", DEFAULT_GAINS)
     oracle, unperceived = built_filter(command, *truth)
     assert (oracle.uncertainty, oracle.gains) == ("chance", DEFAULT_GAINS)
-    generic, default = built_filter(command, "--state-source", "generic")
+    generic, generic_config = built_filter(command, "--state-source", "generic")
     assert (generic.uncertainty, generic.gains) == ("robust", ROBUST_GAINS)
-    if command in ("robustness", "dagger"):  # their perceived state by default
-        assert built_filter(command)[0] == generic
     if command == "dagger":  # the state networks that the robust filter can trust
+        assert built_filter(command)[0] == safety  # its own, by default
         assert config.training.state_uncertainty == "ensemble"
         assert unperceived.training.state_uncertainty == "mc-dropout"
-        assert default.training.state_uncertainty == "mc-dropout"  # the generic model perceives
+        assert generic_config.training.state_uncertainty == "mc-dropout"  # feeds nothing
 
 
 def test_a_config_error_names_the_option(capsys: pytest.CaptureFixture):
@@ -162,7 +161,7 @@ def test_options_of_the_chance_constraints_keep_auto_on_them(tmp_path):
     with pytest.raises(ConfigError, match="calibrate_spread"):
         built_filter("dagger", *own, "--calibrate-spread", "--filter-uncertainty", "robust")
     with pytest.raises(ConfigError, match="run's own state network"):
-        built_filter("dagger", "--calibrate-spread")  # the generic model is not the run's
+        built_filter("dagger", "--state-source", "generic", "--calibrate-spread")
 
 
 def test_a_fork_takes_the_state_networks_of_the_run_it_forks(tmp_path):

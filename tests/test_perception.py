@@ -166,23 +166,26 @@ def test_an_unbuilt_or_unknown_recipe_says_what_to_run(quick_perception: Path):
         recipe_named("generic:nope")
 
 
-def test_the_generic_model_is_the_default_perceived_state_of_dagger_and_robustness():
-    assert DaggerConfig().filter.state_source == "generic"
-    assert DaggerConfig().training.state_uncertainty == "mc-dropout"  # its own net is unused
-    paper = DaggerConfig(filter=FilterConfig(kind="cbf", state_source="learned"))
-    assert paper.training.state_uncertainty == "ensemble"
-    with pytest.raises(SafeRaceError, match="own state network"):
-        DaggerConfig(filter=FilterConfig(kind="cbf", state_source="generic"), calibrate_spread=True)
+def test_every_command_with_a_filter_takes_the_generic_model_by_name():
     from saferace.cli import build_parser
+    from saferace.cli.experiments import dagger_config
     from saferace.cli.safety import robustness_config
 
     parser = build_parser()
-    filtered = parser.parse_args(["robustness", "--filter", "cbf", "--out", "x"])
-    assert robustness_config(filtered).safety.state_source == "generic"
-    unfiltered = parser.parse_args(["robustness", "--out", "x"])
-    assert robustness_config(unfiltered).safety.state_source is None
-    table = parser.parse_args(["safety-table"])
-    assert table.state_source == "generic"
+    generic = ("--filter", "cbf", "--state-source", "generic")
+    dagger = dagger_config(parser.parse_args(["dagger", *generic, "--out", "x"]))
+    assert dagger.filter.state_source == "generic" and dagger.filter.uncertainty == "robust"
+    assert dagger.training.state_uncertainty == "mc-dropout"  # its own network feeds nothing
+    assert dagger.trained_networks == ("control",)
+    own = DaggerConfig(filter=FilterConfig(kind="cbf", state_source="learned"))
+    assert own.training.state_uncertainty == "ensemble"
+    with pytest.raises(SafeRaceError, match="own state network"):
+        DaggerConfig(filter=FilterConfig(kind="cbf", state_source="generic"), calibrate_spread=True)
+    robust = robustness_config(parser.parse_args(["robustness", *generic, "--out", "x"]))
+    assert robust.safety.state_source == "generic" and robust.safety.uncertainty == "robust"
+    table = parser.parse_args(["safety-table", "--state-source", "generic:quick"])
+    assert table.state_source == "generic:quick"
+    assert DaggerConfig().filter.state_source == "learned"  # not yet the default (see docs)
 
 
 def test_the_command_line_refuses_an_unknown_recipe():

@@ -314,5 +314,5 @@ def test_the_cosine_schedule_falls_to_zero_and_resumes_where_it_was(
     torch.manual_seed(0)
     fit(state_network_for(data), data, None, config, "state", False, states[0], None)
     assert rates == pytest.approx(expected[len(expected) // 3 :])  # after the first epoch
-    with pytest.raises(SafeRaceError, match="lr_schedule"):
+    with pytest.raises(SafeRaceError, match="lr_schedule must be one of"):
         TrainConfig(lr_schedule="step")

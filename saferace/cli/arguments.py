@@ -9,7 +9,6 @@ from saferace.cli import values
 from saferace.cli.options import add_config_options
 from saferace.errors import SafeRaceError
 from saferace.names import (
-    AUTO,
     DEFAULT_STATE_NOISE,
     DEVICE_HELP,
     DRIVING_TASKS,
@@ -59,9 +58,8 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     )
 
 
-def add_filter_arguments(parser: argparse.ArgumentParser, state_source: str = "oracle") -> None:
-    """The safety filter's options (generated from ``FilterConfig``) and its state source
-    (``state_source`` by default; ``auto``: the generic perception model behind a filter)."""
+def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
+    """The safety filter's options (generated from ``FilterConfig``) and its state source."""
     from saferace.eval.filter_config import FilterConfig
 
     group = parser.add_argument_group("safety filter")
@@ -72,19 +70,14 @@ def add_filter_arguments(parser: argparse.ArgumentParser, state_source: str = "o
         exclude=("state_noise", "samples", "state_source"),
         command=parser,
     )
-    default = (
-        f"{GENERIC_SOURCE} behind a filter, oracle without"
-        if state_source == AUTO
-        else state_source
-    )
     group.add_argument(
         "--state-source",
-        default=state_source,
+        default="oracle",
         metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
         help="what feeds the filter the lane state: the truth, noisy truth (--state-noise, "
         f"default {DEFAULT_STATE_NOISE[0]} {DEFAULT_STATE_NOISE[1]}), the generic perception "
         "model (built once by saferace perception, recipe default or "
-        f"{'|'.join(PERCEPTION_RECIPES)}), or a checkpoint's state network (default: {default})",
+        f"{'|'.join(PERCEPTION_RECIPES)}), or a checkpoint's state network",
     )
     group.add_argument(
         "--state-noise",
@@ -107,7 +100,7 @@ def filter_config(args: argparse.Namespace):
     from saferace.eval.filter_config import FilterConfig
 
     option = vars(args)
-    source = chosen_state_source(args)
+    source = args.state_source
     learned = is_perceived(source)
     if not learned and source not in ("oracle", "noisy"):
         raise SafeRaceError(
@@ -152,14 +145,6 @@ def check_filter_asked(option: dict, source: str, noise: object) -> None:
             "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale, "
             "--fuse-odometry and --opponent-noise need --filter cbf"
         )
-
-
-def chosen_state_source(args: argparse.Namespace) -> str:
-    """The ``--state-source`` given, ``auto`` settled: the generic perception model behind a
-    filter, the truth without one."""
-    if args.state_source != AUTO:
-        return args.state_source
-    return "oracle" if vars(args)["filter.kind"] == "none" else GENERIC_SOURCE
 
 
 def built_filter_config(args: argparse.Namespace):

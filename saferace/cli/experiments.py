@@ -72,14 +72,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     group.add_argument(
         "--state-source",
-        default=GENERIC_SOURCE,
+        default="learned",
         choices=(
             *DAGGER_STATE_SOURCES,
             *(f"{GENERIC_SOURCE}:{recipe}" for recipe in PERCEPTION_RECIPES),
         ),
-        help="what feeds the filter the lane state: the generic perception model (built once by "
-        "saferace perception; generic:RECIPE for another recipe), the run's own state network "
-        "(learned: the paper's) or the truth",
+        help="what feeds the filter the lane state: the run's own state network (learned: the "
+        "paper's), the generic perception model (built once by saferace perception; "
+        "generic:RECIPE for another recipe) or the truth",
     )
     dagger.add_argument(
         "--fork-of",
@@ -194,10 +194,12 @@ def _dagger(args: argparse.Namespace) -> int:
 def _paper_tables(args: argparse.Namespace) -> int:
     from saferace.experiments.paper import run_paper_tables
     from saferace.experiments.paper.presets import PRESETS
+    from saferace.learning.perception import ensure_perception_model
 
     preset = replace(
         PRESETS[args.preset], state_uncertainty=args.state_uncertainty, slack=args.filter_slack
     )
+    ensure_perception_model(preset.perception)  # its generic runs' model
     for path in run_paper_tables(preset, list(args.seeds), args.out):
         if path.suffix == ".md":
             print(path.read_text())

@@ -65,10 +65,7 @@ class TrainConfig:
     batch_size: int = setting(32, "frames per Adam step", bounds=COUNT)
     learning_rate: float = setting(1e-3, "Adam's learning rate", flag="--lr", bounds=POSITIVE)
     lr_schedule: str = setting(
-        "constant",
-        "the learning rate over the training: constant, or cosine (from --lr down to 0 at "
-        "the last step, Loshchilov and Hutter 2017)",
-        choices=LR_SCHEDULES,
+        "constant", "the learning rate: constant, or cosine from --lr to 0", choices=LR_SCHEDULES
     )
     seed: int = setting(0, "seeds the weights, the shuffling and the dropout", bounds=NON_NEGATIVE)
     val_stretch: tuple[float, float] | None = setting(
@@ -125,9 +122,7 @@ class TrainConfig:
                 f"must be fractions of the lap 0 <= start < end <= 1, got {self.val_stretch}",
             )
         if self.lr_schedule not in LR_SCHEDULES:
-            raise ConfigError(
-                "lr_schedule", f"must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}"
-            )
+            raise ConfigError("lr_schedule", f"must be one of {LR_SCHEDULES}")
         if self.max_steps and self.min_steps > self.max_steps:
             raise ConfigError("min_steps", f"{self.min_steps} is above max_steps {self.max_steps}")
         if self.patience and self.val_stretch is None:
@@ -275,9 +270,9 @@ class DaggerConfig:
     and looks; the run sets ``init`` and ``networks``); ``collection`` drives each iteration
     (``laps`` per drive, the first counts for the tables; ``train_fraction`` of the lap kept
     for training); ``filter`` is the filter of the iterations after ``filter_from`` (the
-    paper's k): its ``state_source`` is ``generic[:RECIPE]`` (the generic perception model,
-    the default), ``learned`` (the paper's: the run fills in each iteration's checkpoint and
-    ``collection.mc_samples``) or None (the truth).
+    paper's k): its ``state_source`` is ``learned`` (the default, the paper's: the run fills
+    in each iteration's checkpoint and ``collection.mc_samples``), ``generic[:RECIPE]`` (the
+    generic perception model) or None (the truth).
     """
 
     task: str = setting(
@@ -319,7 +314,7 @@ class DaggerConfig:
     episodes: int = setting(1, "drives per iteration (the first is reported)", bounds=COUNT)
     training: TrainConfig = field(default_factory=_dagger_training)
     collection: EpisodeSettings = field(default_factory=_dagger_collection)
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source=GENERIC_SOURCE))
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source="learned"))
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -359,11 +354,8 @@ class DaggerConfig:
                 "trained on: it needs train_fraction < 1",
             )
         if self.calibrate_spread and self.perceived and not self.own_perception:
-            raise ConfigError(
-                "calibrate_spread",
-                "widens the run's own state network's spread: feed the filter that network "
-                "(state source learned) or drop it",
-            )
+            message = "widens the run's own state network's spread: feed the filter that one"
+            raise ConfigError("calibrate_spread", message)
         if self.calibrates_spread and self.filter.uncertainty == "robust":
             raise ConfigError(
                 "calibrate_spread",
