@@ -138,8 +138,8 @@ VERDICT_COLUMNS = (
     "seed",
     "perception",
     "filtered iterations",
-    "first lap, filtered",
-    "first lap, unfiltered",
+    "first lap, filtered run",
+    "first lap, unfiltered run",
     "never leaves the lane",
     "first lap sooner",
 )
@@ -153,7 +153,9 @@ def verdicts(
     """Whether the paper's two claims hold, per line, seed and perception mode (the paper's
     and the generic model's): the filtered iterations (those after k, and iteration 1 behind
     the filter) never leave the lane, and the first completed lap comes at an earlier
-    iteration with the filter than without (iterations up to k are the unfiltered run's)."""
+    iteration with the filter than without: in the filtered run (its iterations up to k
+    are the unfiltered run's, driven without the filter; iteration 1 counts where it lapped
+    behind the filter) than in the unfiltered run."""
     lines = []
     for (task, seed, kind), runs in sorted(rows.items()):
         if kind not in PERCEPTION_MODES:
