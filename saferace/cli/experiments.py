@@ -194,12 +194,10 @@ def _dagger(args: argparse.Namespace) -> int:
 def _paper_tables(args: argparse.Namespace) -> int:
     from saferace.experiments.paper import run_paper_tables
     from saferace.experiments.paper.presets import PRESETS
-    from saferace.learning.perception import ensure_perception_model
 
     preset = replace(
         PRESETS[args.preset], state_uncertainty=args.state_uncertainty, slack=args.filter_slack
     )
-    ensure_perception_model(preset.perception)  # its generic runs' model
     for path in run_paper_tables(preset, list(args.seeds), args.out):
         if path.suffix == ".md":
             print(path.read_text())

@@ -39,6 +39,7 @@ from saferace.experiments.paper.report import write_summaries, write_table
 from saferace.learning.calibration import conformal_of, spread_scale_of
 from saferace.learning.checkpoint import NETWORK_NAMES, load_checkpoint
 from saferace.learning.dagger import DaggerRun
+from saferace.learning.perception import ensure_perception_model
 from saferace.learning.run_layout import RunLayout
 from saferace.names import CONFORMAL_ALPHA, TASKS
 from saferace.track.random_track import write_random_tracks
@@ -258,6 +259,8 @@ def run_paper_tables(
     ``timings.md`` are rewritten after each setting, so a long run shows what it has."""
     if isinstance(preset, str):
         preset = PRESETS[preset]
+    if any("generic" in run_kinds(preset, setting) for setting in preset.settings):
+        ensure_perception_model(preset.perception)  # built once, before any run needs it
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
