@@ -161,6 +161,6 @@ def test_the_command_line_fuses_only_a_filtered_uncertain_source(tmp_path):
         run_cli("dagger", "--iterations", "1", "--fuse-odometry", "--out", str(tmp_path)),
     ]
     for result, reason in zip(
-        refused, ("need --filter cbf", "fuses a noisy", "fuses the state"), strict=True
+        refused, ("need --filter cbf", "fuses a noisy", "fuses a state network"), strict=True
     ):
         assert result.returncode != 0 and reason in result.stderr, result.stderr
