@@ -122,7 +122,7 @@ def test_the_model_perceives_only_and_its_calibration_is_by_track(built: Path):
 def test_a_second_build_reuses_the_model_and_an_interrupted_one_resumes(built: Path):
     folder = model_folder(TINY)
     rounds = sorted(folder.glob("rounds/*/round_*/frames.npz"))
-    stamps = {path: path.stat().st_mtime_ns for path in [*rounds, built]}
+    stamps = {path: path.stat().st_mtime_ns for path in [*rounds, built, folder / MANIFEST_FILE]}
     assert build_perception_model(TINY, progress=False) == built
     assert all(path.stat().st_mtime_ns == stamp for path, stamp in stamps.items())
     trained = folder / "state_uncalibrated.pt"

@@ -180,7 +180,7 @@ def build_perception_model(
         "recipe": wanted,
         "track_seeds": {part: list(getattr(recipe, f"{part}_track_seeds")) for part in tracks},
         "seconds": stages.seconds(),
-        "scale": calibration_scale(recipe),
+        "scale": max(row["own scale"] for row in rows),
         "calibration_by_track": rows,
         "files": {
             str(path.relative_to(folder)): sha256(path)
@@ -388,11 +388,6 @@ def calibrate_by_track(
         {**loaded.metadata, CONFORMAL_KEY: record, "perception_recipe": asdict(recipe)},
     )
     return rows
-
-
-def calibration_scale(recipe: PerceptionRecipe) -> float:
-    """The interval scale of ``recipe``'s calibrated model."""
-    return float(load_checkpoint(model_path(recipe)).metadata[CONFORMAL_KEY]["scale"])
 
 
 def inside_frames(folder: Path, track: Path) -> FrameSet:
