@@ -44,6 +44,7 @@ demo: setup
 	$(call stage,overtake,$(BIN)/saferace drive --agent expert --task Overtake --track technical \
 		--laps 2 --video results/technical_overtake.mp4 --rerun results/technical_overtake.rrd)
 	$(call stage,snapshots,$(BIN)/saferace snapshots --out results/snapshots)
+	$(call stage,perception,$(BIN)/saferace perception --workers 2)
 	$(call stage,safety-table,$(BIN)/saferace safety-table --random-tracks 11 23 --out results/safety)
 	rm -rf results/learned
 	$(call stage,collect,$(BIN)/saferace collect --agent expert --task CenterLine --track lab --laps 3 \
@@ -56,7 +57,6 @@ demo: setup
 		--task CenterLine --track lab --laps 3 --out results/learned/eval.jsonl)
 	$(call stage,gradcam,$(BIN)/saferace gradcam results/learned/lab_mono.pt --track lab \
 		--out results/learned/gradcam)
-	$(call stage,perception,$(BIN)/saferace perception --workers 2)
 	$(call stage,paper-tables,$(BIN)/saferace paper-tables --preset quick --out results/paper)
 	@$(MAKE) --no-print-directory demo-summary
 

@@ -120,8 +120,16 @@ def test_a_learned_state_source_gets_the_robust_filter_by_default(command: str):
     assert (oracle.uncertainty, oracle.gains) == ("chance", DEFAULT_GAINS)
     generic, generic_config = built_filter(command, "--state-source", "generic")
     assert (generic.uncertainty, generic.gains) == ("robust", ROBUST_GAINS)
+    # A filter asked for without a source: the generic model where perception decides the
+    # command's claim (dagger, robustness), the truth where a user drives or collects.
+    perceived = command in ("dagger", "robustness")
+    assert built_filter(command)[0] == (generic if perceived else oracle)
+    if command == "robustness":  # a noisy oracle, or a monitor's own source, keeps the truth
+        noisy, _ = built_filter(command, "--state-noise", "0.05", "0.05")
+        assert noisy.state_source is None and noisy.state_noise == (0.05, 0.05)
+        monitored, _ = built_filter(command, "--monitor-state", "learned:m.pt")
+        assert monitored.state_source is None
     if command == "dagger":  # the state networks that the robust filter can trust
-        assert built_filter(command)[0] == safety  # its own, by default
         assert config.training.state_uncertainty == "ensemble"
         assert unperceived.training.state_uncertainty == "mc-dropout"
         assert generic_config.training.state_uncertainty == "mc-dropout"  # feeds nothing

@@ -46,7 +46,9 @@ def test_rounds_one_call_at_a_time_make_the_run_and_forks_link_them(tmp_path: Pa
     assert [{k: r[k] for k in keys} for r in looped] == [{k: r[k] for k in keys} for r in rows]
 
     # A fork filtered from iteration 1 links the unfiltered run's shared files, no copies.
-    paper_filter = replace(ONE_ITERATION.filter, kind="cbf", uncertainty="chance", gains="grip")
+    paper_filter = replace(
+        ONE_ITERATION.filter, kind="cbf", state_source="learned", uncertainty="chance", gains="grip"
+    )
     fork_config = replace(ONE_ITERATION, filter_from=0, filter=paper_filter)
     fork = DaggerRun(tmp_path / "cbf", fork_config, fork_of=tmp_path / "looped", progress=False)
     fork.run()

@@ -26,11 +26,16 @@ from saferace.learning.perception import (
     generic_state_source,
     model_folder,
     recipe_named,
+    rounds_folder,
     sha256,
+    targets_of,
 )
+from saferace.learning.rounds import load_rounds
 from saferace.safety.uncertainty.conformal import conformal_quantile, group_calibration
 from saferace.safety.uncertainty.feature_monitor import feature_monitor
 from saferace.safety.uncertainty.intervals import ConformalStateSource
+from saferace.safety.uncertainty.lane_middle import LaneMiddleStateSource, lane_middle_offset_m
+from saferace.track import Track
 from tests.cli_helpers import run_cli
 
 #: The quick recipe: a build takes about half a minute.
@@ -119,6 +124,63 @@ def test_the_model_perceives_only_and_its_calibration_is_by_track(built: Path):
         env.close()
 
 
+def test_the_lane_middle_lies_left_of_the_centre_line_where_the_lane_is_wider_on_the_left():
+    assert lane_middle_offset_m(0.6, 0.4) == pytest.approx(0.1)
+    assert lane_middle_offset_m(np.array([0.4, 0.5]), np.array([0.6, 0.5])) == pytest.approx(
+        [-0.1, 0.0]
+    )
+
+
+class _Replay:
+    """A state source that returns given rows one by one, with features."""
+
+    def __init__(self, rows: np.ndarray) -> None:
+        self.rows, self.index, self.last_features = rows, 0, np.ones(4)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.index = 0
+
+    def samples(self, observation: dict, info: dict) -> np.ndarray:
+        self.index += 1
+        return self.rows[self.index - 1][None]
+
+
+def test_the_model_learns_the_offset_from_the_lane_middle_and_the_map_moves_it_back(
+    built: Path,
+):
+    """The targets are the true offsets less where the lane's middle lies by the track's
+    widths at each frame (the random tracks' lanes are lopsided by centimetres), and the
+    source moves them back by the widths the env reports: the truth again, exactly."""
+    track_path = model_folder(TINY) / "tracks" / "train_90001.csv"
+    frames = load_rounds([rounds_folder(TINY, track_path)])
+    targets = targets_of(TINY, frames)["state"]
+    w_right, w_left = Track.load(str(track_path)).widths(frames["s_m"])
+    moved = frames["state"][:, 0] - targets[:, 0]
+    assert moved == pytest.approx(0.5 * (w_left - w_right), abs=1e-6)
+    assert np.abs(moved).max() > 0.01
+    assert np.array_equal(targets[:, 1:], frames["state"][:, 1:])
+    assert targets_of(replace(TINY, lane_middle=False), frames) is frames
+    source = LaneMiddleStateSource(_Replay(targets.astype(float)))
+    back = np.array(
+        [
+            source.samples({}, {"w_left_m": left, "w_right_m": right})[0]
+            for left, right in zip(w_left, w_right, strict=True)
+        ]
+    )
+    assert back == pytest.approx(frames["state"], abs=1e-5)
+    assert source.last_features is not None
+    env = apply_filter(
+        gym.make("saferace/CenterLine-v0", track="lab"),
+        FilterConfig(kind="cbf", state_source="generic:quick"),
+        seed=0,
+    )
+    try:
+        assert isinstance(env.state_source, ConformalStateSource)
+        assert isinstance(env.state_source.source, LaneMiddleStateSource)
+    finally:
+        env.close()
+
+
 def test_a_second_build_reuses_the_model_and_an_interrupted_one_resumes(built: Path):
     folder = model_folder(TINY)
     rounds = sorted(folder.glob("rounds/*/round_*/frames.npz"))
@@ -185,7 +247,8 @@ def test_every_command_with_a_filter_takes_the_generic_model_by_name():
     assert robust.safety.state_source == "generic" and robust.safety.uncertainty == "robust"
     table = parser.parse_args(["safety-table", "--state-source", "generic:quick"])
     assert table.state_source == "generic:quick"
-    assert DaggerConfig().filter.state_source == "learned"  # not yet the default (see docs)
+    assert DaggerConfig().filter.state_source == "generic"  # the default
+    assert parser.parse_args(["safety-table"]).state_source == "generic"
 
 
 def test_the_command_line_refuses_an_unknown_recipe():

@@ -316,3 +316,48 @@ def test_the_cosine_schedule_falls_to_zero_and_resumes_where_it_was(
     assert rates == pytest.approx(expected[len(expected) // 3 :])  # after the first epoch
     with pytest.raises(SafeRaceError, match="lr_schedule must be one of"):
         TrainConfig(lr_schedule="step")
+
+
+def test_mirrored_frames_train_on_the_mirror_image_and_the_negated_state(
+    frames, monkeypatch: pytest.MonkeyPatch
+):
+    """With ``mirror``, about half of each batch is flipped left for right, and each flipped
+    frame's target is its state negated (a car left of the lane heading left, mirrored, is
+    right of it heading right); the other frames keep theirs."""
+    data = network_data(frames.subset(np.arange(32)), mirror=True)["state"]
+    assert data.mirrored_targets == pytest.approx(-data.targets)
+    assert network_data(frames.subset(np.arange(4)))["state"].mirrored_targets is None
+    seen: list[tuple[np.ndarray, torch.Tensor | None, torch.Tensor]] = []
+    outputs_of, loss_of = training.network_outputs, training.training_loss
+
+    def outputs(network, data_, index, augmenter=None, flipped=None):
+        seen.append((index.copy(), flipped, torch.empty(0)))
+        return outputs_of(network, data_, index, augmenter, flipped)
+
+    def loss(network, outputs_, targets):
+        seen[-1] = (*seen[-1][:2], targets.detach().clone())
+        return loss_of(network, outputs_, targets)
+
+    monkeypatch.setattr(training, "network_outputs", outputs)
+    monkeypatch.setattr(training, "training_loss", loss)
+    network = state_network_for(data)
+    config = TrainConfig(epochs=1, batch_size=32, augment=True)
+    fit(network, data, None, config, "state", progress=False)
+    ((index, flipped, targets),) = seen
+    assert flipped is not None and 8 <= int(flipped.sum()) <= 24
+    as_tensor = lambda values: torch.as_tensor(values, dtype=torch.float32)  # noqa: E731
+    plain = network.normalise_outputs(as_tensor(data.targets[index]))
+    mirrored = network.normalise_outputs(as_tensor(-data.targets[index]))
+    assert torch.allclose(targets[flipped], mirrored[flipped])
+    assert torch.allclose(targets[~flipped], plain[~flipped])
+    # and the flipped frames' images are the mirror images
+    network.eval()
+    every = torch.ones(4, dtype=torch.bool)
+    with torch.no_grad():
+        flipped_out = outputs_of(network, data, np.arange(4), None, every)
+        by_hand = network(torch.from_numpy(data.images[:4].copy()).flip(2))
+    assert torch.allclose(flipped_out, by_hand)
+    with pytest.raises(SafeRaceError, match="mono"):
+        network_data(frames.subset(np.arange(2)).__class__(
+            {**frames.subset(np.arange(2)).arrays,
+             "image": np.zeros((2, 8, 8, 6), np.uint8)}, []), mirror=True)  # fmt: skip

@@ -58,8 +58,12 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     )
 
 
-def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
-    """The safety filter's options (generated from ``FilterConfig``) and its state source."""
+def add_filter_arguments(
+    parser: argparse.ArgumentParser, perceived_default: str = "oracle"
+) -> None:
+    """The safety filter's options (generated from ``FilterConfig``) and its state source:
+    ``perceived_default`` where a filter is asked for without one (and no monitor's source
+    is named), else the truth."""
     from saferace.eval.filter_config import FilterConfig
 
     group = parser.add_argument_group("safety filter")
@@ -72,13 +76,14 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--state-source",
-        default="oracle",
         metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
         help="what feeds the filter the lane state: the truth, noisy truth (--state-noise, "
         f"default {DEFAULT_STATE_NOISE[0]} {DEFAULT_STATE_NOISE[1]}), the generic perception "
         "model (built once by saferace perception, recipe default or "
-        f"{'|'.join(PERCEPTION_RECIPES)}), or a checkpoint's state network",
+        f"{'|'.join(PERCEPTION_RECIPES)}), or a checkpoint's state network (default: "
+        f"{perceived_default} with a filter)",
     )
+    parser.set_defaults(perceived_default=perceived_default)
     group.add_argument(
         "--state-noise",
         type=values.non_negative,
@@ -100,7 +105,7 @@ def filter_config(args: argparse.Namespace):
     from saferace.eval.filter_config import FilterConfig
 
     option = vars(args)
-    source = args.state_source
+    source = args.state_source or default_state_source(args)
     learned = is_perceived(source)
     if not learned and source not in ("oracle", "noisy"):
         raise SafeRaceError(
@@ -127,6 +132,16 @@ def filter_config(args: argparse.Namespace):
         state_source=source if learned else None,
     )
     return config
+
+
+def default_state_source(args: argparse.Namespace) -> str:
+    """The state source of a command line that names none: its ``perceived_default`` where
+    it asks for a filter with no noise and no monitor's source, else the truth."""
+    option = vars(args)
+    asked = option["filter.kind"] != "none" and args.state_noise is None
+    if asked and not option.get("monitor_state_source"):
+        return option.get("perceived_default", "oracle")
+    return "oracle"
 
 
 def check_filter_asked(option: dict, source: str, noise: object) -> None:

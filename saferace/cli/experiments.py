@@ -72,14 +72,14 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     group.add_argument(
         "--state-source",
-        default="learned",
+        default=GENERIC_SOURCE,
         choices=(
             *DAGGER_STATE_SOURCES,
             *(f"{GENERIC_SOURCE}:{recipe}" for recipe in PERCEPTION_RECIPES),
         ),
-        help="what feeds the filter the lane state: the run's own state network (learned: the "
-        "paper's), the generic perception model (built once by saferace perception; "
-        "generic:RECIPE for another recipe) or the truth",
+        help="what feeds the filter the lane state: the generic perception model (the default, "
+        "built once by saferace perception; generic:RECIPE for another recipe), the run's own "
+        "state network (learned: the paper's) or the truth",
     )
     dagger.add_argument(
         "--fork-of",

@@ -23,6 +23,7 @@ from saferace.names import (
     DEFAULT_GAINS,
     DEFAULT_STATE_NOISE,
     GAIN_NAMES,
+    GENERIC_SOURCE,
     MC_SAMPLES,
     NOISY_SAMPLES,
     VEHICLE_MODELS,
@@ -82,12 +83,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     table.add_argument(
         "--state-source",
-        default="none",
+        default=GENERIC_SOURCE,
         metavar="generic[:RECIPE]|learned:CKPT|none",
         help="also run the reckless agents through the filter fed this state network: robust "
         "over its conformal interval (the default of a learned source), and the paper's chance "
-        "constraints and on the mean: the generic perception model (built once by saferace "
-        "perception) or a checkpoint's; none (the default): only the true and noisy state",
+        "constraints and on the mean: the generic perception model (the default, built once by "
+        "saferace perception) or a checkpoint's; none: only the true and noisy state",
     )
     table.add_argument(
         "--mc-samples",
@@ -130,7 +131,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     robust.add_argument(
         "--out", type=Path, required=True, help="folder of runs.jsonl and the tables"
     )
-    add_filter_arguments(robust)
+    add_filter_arguments(robust, perceived_default=GENERIC_SOURCE)
     add_device_argument(robust)
     robust.set_defaults(command=_robustness)
 

@@ -270,9 +270,9 @@ class DaggerConfig:
     and looks; the run sets ``init`` and ``networks``); ``collection`` drives each iteration
     (``laps`` per drive, the first counts for the tables; ``train_fraction`` of the lap kept
     for training); ``filter`` is the filter of the iterations after ``filter_from`` (the
-    paper's k): its ``state_source`` is ``learned`` (the default, the paper's: the run fills
-    in each iteration's checkpoint and ``collection.mc_samples``), ``generic[:RECIPE]`` (the
-    generic perception model) or None (the truth).
+    paper's k): its ``state_source`` is ``generic[:RECIPE]`` (the default: the generic
+    perception model), ``learned`` (the paper's: the run fills in each iteration's
+    checkpoint and ``collection.mc_samples``) or None (the truth).
     """
 
     task: str = setting(
@@ -314,7 +314,7 @@ class DaggerConfig:
     episodes: int = setting(1, "drives per iteration (the first is reported)", bounds=COUNT)
     training: TrainConfig = field(default_factory=_dagger_training)
     collection: EpisodeSettings = field(default_factory=_dagger_collection)
-    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source="learned"))
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(state_source=GENERIC_SOURCE))
 
     def __post_init__(self) -> None:
         check_bounds(self)

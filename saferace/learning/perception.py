@@ -59,6 +59,8 @@ from saferace.progress import Progress, duration_words
 from saferace.safety.uncertainty.conformal import ConformalCalibration, group_calibration
 from saferace.safety.uncertainty.feature_monitor import feature_monitor
 from saferace.safety.uncertainty.intervals import ConformalStateSource
+from saferace.safety.uncertainty.lane_middle import LaneMiddleStateSource, lane_middle_offset_m
+from saferace.safety.uncertainty.state_sources import StateSource
 from saferace.track import Track
 from saferace.track.random_track import write_random_track
 from saferace.version import __version__
@@ -89,6 +91,8 @@ class PerceptionRecipe:
     radius_range_m: tuple[float, float] = (2.5, 4.5)
     seconds_per_drive: float = 20.0
     steer_noise_rad: float = 0.08
+    mirror: bool = True
+    lane_middle: bool = True
     epochs: int = 14
     lr_schedule: str = "cosine"
     batch_size: int = 64
@@ -116,7 +120,9 @@ class PerceptionRecipe:
 #: the small ones tests and examples use, so an evaluation on a fresh random track is one
 #: nothing was trained or calibrated on.
 RECIPES = {
-    "default": PerceptionRecipe("default", tuple(range(90001, 90025)), tuple(range(91001, 91011))),
+    "default": PerceptionRecipe(
+        "default", tuple(range(90001, 90049)), tuple(range(91001, 91011)), seconds_per_drive=10.0
+    ),
     "quick": PerceptionRecipe(
         "quick",
         (90001, 90002, 90003),
@@ -317,7 +323,7 @@ def train_state_network(recipe: PerceptionRecipe, tracks: list[Path], progress: 
     path = model_folder(recipe) / "state_uncalibrated.pt"
     if path.exists():
         return path
-    frames = load_rounds([rounds_folder(recipe, track) for track in tracks])
+    frames = targets_of(recipe, load_rounds([rounds_folder(recipe, track) for track in tracks]))
     config = TrainConfig(
         epochs=recipe.epochs,
         lr_schedule=recipe.lr_schedule,
@@ -329,7 +335,7 @@ def train_state_network(recipe: PerceptionRecipe, tracks: list[Path], progress: 
         networks=("state",),
     )
     resume = model_folder(recipe) / "training.resume"
-    control, state, metadata = train_networks(frames, config, progress, resume)
+    control, state, metadata = train_networks(frames, config, progress, resume, recipe.mirror)
     save_checkpoint(path, control, state, metadata)
     resume.unlink(missing_ok=True)
     return path
@@ -347,7 +353,8 @@ def calibrate_by_track(
         return load_checkpoint(model_path(recipe)).metadata[CONFORMAL_KEY]["groups"]
     loaded = load_checkpoint(state_file)
     calibration_frames = [
-        inside_frames(rounds_folder(recipe, track), track) for track in tracks["calibration"]
+        inside_frames(recipe, rounds_folder(recipe, track), track)
+        for track in tracks["calibration"]
     ]
     frames = FrameSet(
         {
@@ -390,9 +397,27 @@ def calibrate_by_track(
     return rows
 
 
-def inside_frames(folder: Path, track: Path) -> FrameSet:
+def inside_frames(recipe: PerceptionRecipe, folder: Path, track: Path) -> FrameSet:
     frames = load_rounds([folder])
-    return frames.subset(inside_lane(frames, Track.load(str(track))))
+    return targets_of(recipe, frames.subset(inside_lane(frames, Track.load(str(track)))))
+
+
+def targets_of(recipe: PerceptionRecipe, frames: FrameSet) -> FrameSet:
+    """``frames`` (of the recipe's tracks) with the state the network learns: with
+    ``lane_middle``, ``e_y`` from the lane's middle (``saferace.safety.uncertainty.
+    lane_middle``), by the widths of each frame's track at its arc length."""
+    if not recipe.lane_middle:
+        return frames
+    state = frames["state"].copy()
+    for source, manifest in enumerate(frames.manifests):
+        rows = frames["source"] == source
+        if rows.any():
+            track = Track.load(
+                str(model_folder(recipe) / "tracks" / f"{Path(manifest['path']).parent.name}.csv")
+            )
+            w_right, w_left = track.widths(frames["s_m"][rows])
+            state[rows, 0] -= lane_middle_offset_m(w_left, w_right)
+    return FrameSet({**frames.arrays, "state": state}, frames.manifests)
 
 
 def sha256(path: Path) -> str:
@@ -421,7 +446,11 @@ def generic_state_source(
     check_recipe(recipe)
     loaded = load_checkpoint(path)
     check_image_shape(loaded, image_shape)
-    source = LearnedStateSource(loaded.state, n_samples, seed, checkpoint=loaded.describe())
+    source: StateSource = LearnedStateSource(
+        loaded.state, n_samples, seed, checkpoint=loaded.describe()
+    )
+    if recipe.lane_middle:
+        source = LaneMiddleStateSource(source)
     return ConformalStateSource(
         source, ConformalCalibration.from_dict(loaded.metadata[CONFORMAL_KEY])
     )

@@ -67,11 +67,14 @@ MIN_STD = 1e-3
 
 @dataclass(frozen=True)
 class NetworkData:
-    """What one network trains on: images, velocities (or None), targets."""
+    """What one network trains on: images, velocities (or None), targets, and where the
+    frames may be mirrored left for right in training, the targets of the mirrored frames
+    (:func:`mirrored_state`)."""
 
     images: np.ndarray
     velocity: np.ndarray | None
     targets: np.ndarray
+    mirrored_targets: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.targets)
@@ -85,12 +88,24 @@ def held_out_mask(frames: FrameSet, stretch: tuple[float, float] | None) -> np.n
     return (fraction >= stretch[0]) & (fraction < stretch[1])
 
 
-def network_data(frames: FrameSet) -> dict[str, NetworkData]:
-    """Inputs and targets of the control and the state network."""
+def network_data(frames: FrameSet, mirror: bool = False) -> dict[str, NetworkData]:
+    """Inputs and targets of the control and the state network; with ``mirror``, the
+    state network's frames may be mirrored in training (mono images only)."""
+    if mirror and frames["image"].shape[-1] != 3:
+        raise SafeRaceError("only mono images can be mirrored (a stereo pair swaps its views)")
+    state = frames["state"]
+    mirrored = mirrored_state(state) if mirror else None
     return {
         "control": NetworkData(frames["image"], frames["velocity"], frames["expert"][:, :2]),
-        "state": NetworkData(frames["image"], None, frames["state"]),
+        "state": NetworkData(frames["image"], None, state, mirrored),
     }
+
+
+def mirrored_state(state: np.ndarray) -> np.ndarray:
+    """``[e_y, e_psi, kappa]`` of the mirror image of each frame: a car left of its lane's
+    centre, heading left, in a left bend, seen in a mirror is right of it, heading right,
+    in a right bend (the onboard camera sits on the car's axis, the lane lines are alike)."""
+    return -state
 
 
 def normalisation(data: NetworkData, seed: int) -> dict[str, np.ndarray]:
@@ -156,9 +171,12 @@ def fit(
         augmenter.set_state(resume["augmenter"])
         torch.set_rng_state(resume["torch_rng"])  # dropout's masks
         history, first_epoch, best = resume["history"], resume["epochs_done"], resume["best"]
-    targets = network.normalise_outputs(
-        torch.as_tensor(train.targets, dtype=torch.float32, device=device)
-    )
+
+    def normalised(raw: np.ndarray) -> torch.Tensor:
+        return network.normalise_outputs(torch.as_tensor(raw, dtype=torch.float32, device=device))
+
+    targets = normalised(train.targets)
+    mirrored = None if train.mirrored_targets is None else normalised(train.mirrored_targets)
     batches = math.ceil(len(train) / config.batch_size)
     steps = config.steps_for(len(train))
     epochs = math.ceil(steps / batches)
@@ -179,11 +197,19 @@ def fit(
                 bar.update()
                 if index.shape[-1] == 1:  # BatchNorm cannot train on one frame of 1x1 features
                     continue  # (32x32 images); shuffled, the frame is in the next epoch's batches
+                flipped = mirror_draw(train, index, augmenter if config.augment else None)
+                batch_targets = targets[index.T]
+                if flipped is not None and mirrored is not None:
+                    batch_targets = torch.where(
+                        (flipped.T if flipped.ndim == 2 else flipped)[..., None].to(device),
+                        mirrored[index.T],
+                        batch_targets,
+                    )
                 with autocast(device):
                     outputs = network_outputs(
-                        network, train, index, augmenter if config.augment else None
+                        network, train, index, augmenter if config.augment else None, flipped
                     )
-                    loss = training_loss(network, outputs.float(), targets[index.T])
+                    loss = training_loss(network, outputs.float(), batch_targets)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 if config.lr_schedule == "cosine":  # from the step count: resumes exactly
@@ -281,17 +307,32 @@ def validation_loss(network: DrivingNetwork, data: NetworkData, batch_size: int)
     return total / len(data)
 
 
+def mirror_draw(
+    data: NetworkData, index: np.ndarray, augmenter: torch.Generator | None
+) -> torch.Tensor | None:
+    """Which frames of ``index`` to mirror (half of them, drawn from ``augmenter``), where
+    ``data`` may be mirrored and the images are augmented; None where not."""
+    if augmenter is None or data.mirrored_targets is None:
+        return None
+    return torch.rand(index.shape, generator=augmenter) < 0.5
+
+
 def network_outputs(
     network: DrivingNetwork,
     data: NetworkData,
     index: np.ndarray,
     augmenter: torch.Generator | None = None,
+    flipped: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The network's outputs for frames ``index``, their images augmented with draws from
-    ``augmenter`` where one is given. A ``(K, B)`` index gives a MIMO network's K
-    subnetworks each its own frames, side by side in the channels."""
+    ``augmenter`` where one is given, and mirrored left for right where ``flipped``. A
+    ``(K, B)`` index gives a MIMO network's K subnetworks each its own frames, side by side
+    in the channels."""
     velocity = None if data.velocity is None else torch.from_numpy(data.velocity[index])
     images = torch.from_numpy(data.images[index.reshape(-1)])
+    if flipped is not None:
+        mask = flipped.reshape(-1)
+        images[mask] = images[mask].flip(2)
     if augmenter is not None:
         images = photometric(images, augmenter)
     if index.ndim == 2:  # (K B, H, W, C) -> (B, H, W, K C)
@@ -306,6 +347,7 @@ def train_networks(
     config: TrainConfig,
     progress: bool = True,
     resume_file: str | Path | None = None,
+    mirror: bool = False,
 ) -> tuple[DrivingNetwork | None, DrivingNetwork | StateEnsemble, dict]:
     """Train the control and the state network (or ensemble); return them and the run's
     metadata. Trained alone, without an ``init``, the state network makes a perception
@@ -314,7 +356,8 @@ def train_networks(
     ``resume_file``: where to keep the run's state after every epoch, and to continue from.
     The metadata's ``history`` holds the networks trained (an ensemble's first member;
     ``member_history`` the others'), ``kept`` where the others came from (see
-    ``TrainConfig.networks``).
+    ``TrainConfig.networks``). ``mirror``: the state network also trains on its frames
+    mirrored left for right (with augmentation; :func:`mirrored_state`).
     """
     if config.state_uncertainty not in STATE_UNCERTAINTY_METHODS:  # auto: a DAgger run's
         raise ConfigError(
@@ -334,9 +377,11 @@ def train_networks(
     initial = load_checkpoint(config.init) if config.init else None
     history = {}
     started = time.perf_counter()
-    train_data, validation_data = network_data(train_frames), network_data(validation_frames)
+    train_data = network_data(train_frames, mirror)
+    validation_data = network_data(validation_frames)
     fingerprint = {
         "training": config.as_dict(),
+        "mirror": mirror,
         "data": [(str(Path(m["path"]).resolve()), m["frame_count"]) for m in frames.manifests],
     }
     run = _resumed_run(resume_file, fingerprint)
