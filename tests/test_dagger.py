@@ -26,7 +26,7 @@ from saferace.learning.configs import DaggerConfig, EpisodeSettings, TrainConfig
 from saferace.learning.dagger import DaggerRun, episode_seed, episode_seeds
 from saferace.learning.rounds import FrameSet, load_rounds
 from saferace.learning.run_layout import RunLayout
-from saferace.learning.training import network_data
+from saferace.learning.training_data import network_data
 from saferace.learning.validation import predict_frames
 from saferace.track import Track
 

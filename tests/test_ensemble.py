@@ -17,12 +17,11 @@ from saferace.learning.networks import DrivingNetwork, state_config
 from saferace.learning.rounds import load_rounds
 from saferace.learning.training import (
     MIMO_INPUT_REPETITION,
-    NetworkData,
     epoch_order,
-    network_outputs,
     train_networks,
     training_loss,
 )
+from saferace.learning.training_data import NetworkData, network_outputs
 
 
 def test_the_mixture_variance_is_the_members_noise_plus_their_disagreement():

@@ -94,7 +94,7 @@ def test_the_fitted_interval_covers_its_calibration_frames_as_promised(tiny_chec
     fifth smaller covers fewer (the quantile is no looser than it must be)."""
     from saferace.learning.calibration import CALIBRATED_OUTPUTS, fit_conformal
     from saferace.learning.rounds import load_rounds
-    from saferace.learning.training import network_data
+    from saferace.learning.training_data import network_data
     from saferace.learning.validation import predict_frames
     from saferace.safety.uncertainty.conformal import coverage
 

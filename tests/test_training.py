@@ -18,14 +18,8 @@ from saferace.learning.augmentation import photometric
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
 from saferace.learning.networks import DrivingNetwork, state_config
 from saferace.learning.rounds import load_rounds
-from saferace.learning.training import (
-    TrainConfig,
-    fit,
-    held_out_mask,
-    network_data,
-    normalisation,
-    train_networks,
-)
+from saferace.learning.training import TrainConfig, fit, normalisation, train_networks
+from saferace.learning.training_data import NetworkData, held_out_mask, network_data
 
 FEW = TrainConfig(epochs=1, batch_size=8, val_stretch=(0.05, 0.08))
 
@@ -281,7 +275,7 @@ def test_a_lone_last_frame_of_small_images_is_left_out_of_the_epochs_batches():
     one frame, which 33 frames in batches of 32 leave at the end of every epoch."""
     rng = np.random.default_rng(0)
     images = rng.integers(0, 255, (33, 32, 32, 3), dtype=np.uint8)
-    data = training.NetworkData(images, None, rng.normal(size=(33, 3)).astype(np.float32))
+    data = NetworkData(images, None, rng.normal(size=(33, 3)).astype(np.float32))
     torch.manual_seed(0)
     network = DrivingNetwork(state_config())
     history = fit(network, data, None, TrainConfig(epochs=2), "state", progress=False)

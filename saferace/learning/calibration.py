@@ -34,7 +34,7 @@ from saferace.learning.checkpoint import (
 from saferace.learning.ensemble import StateNetwork
 from saferace.learning.rounds import HELD_OUT_FILE, FrameSet, load_rounds
 from saferace.learning.run_layout import RunLayout
-from saferace.learning.training import network_data
+from saferace.learning.training_data import network_data
 from saferace.learning.validation import predict_frames
 from saferace.names import DEFAULT_MONITOR, OOD_MONITORS
 from saferace.safety.uncertainty.conformal import ConformalCalibration, calibrate

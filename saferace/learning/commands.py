@@ -27,7 +27,8 @@ from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
 from saferace.learning.ensemble import StateEnsemble
 from saferace.learning.plots import first_lap, plot_losses, plot_state_along_lap
 from saferace.learning.rounds import FrameSet, load_rounds
-from saferace.learning.training import TrainConfig, held_out_mask, network_data, train_networks
+from saferace.learning.training import TrainConfig, train_networks
+from saferace.learning.training_data import held_out_mask, network_data
 from saferace.learning.validation import (
     predict_frames,
     scored_training_frames,

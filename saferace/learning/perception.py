@@ -47,7 +47,8 @@ from saferace.learning.checkpoint import (
 from saferace.learning.collect import collect_round
 from saferace.learning.configs import CollectionConfig, EpisodeSettings, Perturbation, TrainConfig
 from saferace.learning.rounds import FrameSet, load_rounds, round_dirs
-from saferace.learning.training import network_data, train_networks
+from saferace.learning.training import train_networks
+from saferace.learning.training_data import network_data
 from saferace.learning.validation import predict_frames
 from saferace.names import (
     CONFORMAL_ALPHA,

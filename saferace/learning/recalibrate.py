@@ -25,7 +25,7 @@ from saferace.learning.calibration import CALIBRATED_OUTPUTS, fit_conformal
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint, save_with_metadata
 from saferace.learning.networks import Prediction
 from saferace.learning.rounds import load_rounds
-from saferace.learning.training import network_data
+from saferace.learning.training_data import network_data
 from saferace.learning.validation import predict_frames
 from saferace.names import DEFAULT_MONITOR
 from saferace.safety.uncertainty.conformal import Monitor, SpreadMonitor, coverage

@@ -19,7 +19,7 @@ from saferace.eval.tables import markdown_table
 from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import Prediction
 from saferace.learning.rounds import FrameSet
-from saferace.learning.training import NetworkData, network_data
+from saferace.learning.training_data import NetworkData, network_data
 
 TABLE_COLUMNS = (
     "split",
