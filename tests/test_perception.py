@@ -16,7 +16,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.filters import apply_filter
 from saferace.experiments.safety_table import RECKLESS_TASKS, filter_label, run_table
-from saferace.learning.agent import learned_agent
+from saferace.learning.agent import learned_agent, learned_state_source
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
 from saferace.learning.configs import DaggerConfig
 from saferace.learning.perception import (
@@ -169,6 +169,8 @@ def test_the_model_learns_the_offset_from_the_lane_middle_and_the_map_moves_it_b
     )
     assert back == pytest.approx(frames["state"], abs=1e-5)
     assert source.last_features is not None
+    with pytest.raises(SafeRaceError, match="name it --state-source generic:quick"):
+        learned_state_source(built, (64, 64, 3))
     env = apply_filter(
         gym.make("saferace/CenterLine-v0", track="lab"),
         FilterConfig(kind="cbf", state_source="generic:quick"),

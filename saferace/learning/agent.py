@@ -160,6 +160,13 @@ def learned_state_source(
     whose images have ``image_shape``; with the checkpoint's conformal calibration (see
     ``saferace calibrate``), if it has one, as its interval and monitor."""
     loaded = load_checkpoint(checkpoint)
+    recipe = loaded.metadata.get("perception_recipe", {})
+    if recipe.get("lane_middle"):
+        raise SafeRaceError(
+            f"{checkpoint} is the generic perception model of the {recipe['name']!r} recipe: its "
+            "e_y is measured from the lane's middle, which only it moves back to the centre "
+            f"line: name it --state-source generic:{recipe['name']}"
+        )
     check_image_shape(loaded, image_shape)
     source = LearnedStateSource(loaded.state, n_samples, seed, checkpoint=loaded.describe())
     calibration = loaded.metadata.get(CONFORMAL_KEY)

@@ -354,7 +354,7 @@ class DaggerConfig:
                 "trained on: it needs train_fraction < 1",
             )
         if self.calibrate_spread and self.perceived and not self.own_perception:
-            message = "widens the run's own state network's spread: feed the filter that one"
+            message = "widens the run's own state network's spread: add --state-source learned"
             raise ConfigError("calibrate_spread", message)
         if self.calibrates_spread and self.filter.uncertainty == "robust":
             raise ConfigError(

@@ -309,7 +309,7 @@ def train_networks(
     validation_data = network_data(validation_frames)
     fingerprint = {
         "training": config.as_dict(),
-        "mirror": mirror,
+        **({"mirror": True} if mirror else {}),  # runs from before mirroring still resume
         "data": [(str(Path(m["path"]).resolve()), m["frame_count"]) for m in frames.manifests],
     }
     run = _resumed_run(resume_file, fingerprint)
