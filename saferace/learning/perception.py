@@ -248,12 +248,17 @@ def write_tracks(recipe: PerceptionRecipe, part: str) -> list[Path]:
     its seed."""
     paths = []
     for seed in getattr(recipe, f"{part}_track_seeds"):
-        path = model_folder(recipe) / "tracks" / f"{part}_{seed}.csv"
+        path = track_file(recipe, f"{part}_{seed}")
         if not path.exists():
             radius = np.random.default_rng([recipe.seed, seed]).uniform(*recipe.radius_range_m)
             write_random_track(path, seed, float(radius))
         paths.append(path)
     return paths
+
+
+def track_file(recipe: PerceptionRecipe, name: str) -> Path:
+    """The CSV of the recipe's track ``name`` (``train_SEED`` or ``calibration_SEED``)."""
+    return model_folder(recipe) / "tracks" / f"{name}.csv"
 
 
 def rounds_folder(recipe: PerceptionRecipe, track: Path) -> Path:
@@ -413,9 +418,7 @@ def targets_of(recipe: PerceptionRecipe, frames: FrameSet) -> FrameSet:
     for source, manifest in enumerate(frames.manifests):
         rows = frames["source"] == source
         if rows.any():
-            track = Track.load(
-                str(model_folder(recipe) / "tracks" / f"{Path(manifest['path']).parent.name}.csv")
-            )
+            track = Track.load(str(track_file(recipe, Path(manifest["path"]).parent.name)))
             w_right, w_left = track.widths(frames["s_m"][rows])
             state[rows, 0] -= lane_middle_offset_m(w_left, w_right)
     return FrameSet({**frames.arrays, "state": state}, frames.manifests)
