@@ -2,19 +2,25 @@
 
 A learned step: render, the control network and the state network with ``n = 10`` MC-dropout
 samples each (or, behind the robust filter: the generic perception model's size, one
-heteroscedastic state network with its feature monitor; a 5-member deep or MIMO ensemble
-of state networks), the PID speed loop, and the filter's QP on the perceived state
+heteroscedastic state network with its feature monitor; a 5-member deep, MIMO or packed
+ensemble of state networks), the PID speed loop, and the filter's QP on the perceived state
 (:class:`~saferace.safety.cbf.filter.SafetyFilter` fed by
 :class:`~saferace.learning.agent.LearnedStateSource`), then physics. The baseline, measured
 in the same run: the expert MPC's step on ground truth (render, MPC, physics). Networks
-have random weights (the time does not depend on them). Target: at least 50 learned steps/s
-at 64x64 mono on 2 cores. The next tables time the control network's inference alone, from
-the naive way (the whole network once per MC sample, NCHW, autograd on) adding one lever at
-a time: one backbone pass with the head sampled in one batch, inference mode, channels-last;
-and the same on one thread. The last table times the deep ensemble's backbones one after
-another, under bfloat16 autocast, and two members at a time on one thread each.
+have random weights (the time does not depend on them). Targets: at least 50 learned steps/s
+at 64x64 mono on 2 cores, 55 with the packed ensemble and 35 with the deep ensemble; on a
+CUDA GPU, 250 with either 5-member ensemble. ``--device auto`` (the default) measures the
+CPU and, where PyTorch sees one, the GPU side by side (the env and the filter stay on the
+CPU; on CUDA the networks replay CUDA graphs, :mod:`saferace.learning.cuda_graphs`).
 
-    python benchmarks/learned_step_speed.py [--steps N] [--track NAME]
+On the CPU the next tables time the control network's inference alone, from the naive way
+(the whole network once per MC sample, NCHW, autograd on) adding one lever at a time: one
+backbone pass with the head sampled in one batch, inference mode, channels-last; and the
+same on one thread. The last table times the deep ensemble's backbones one after another,
+under bfloat16 autocast, and two members at a time on one thread each (what ``predict``
+does on a CPU with two or more threads).
+
+    python benchmarks/learned_step_speed.py [--steps N] [--track NAME] [--device auto|cpu|cuda]
 """
 
 from __future__ import annotations
@@ -33,6 +39,8 @@ from saferace.agents.pid import PIDSpeedController
 from saferace.eval.agents import act
 from saferace.eval.tables import markdown_table
 from saferace.learning.agent import LearnedAgent, LearnedStateSource
+from saferace.learning.configs import TrainConfig
+from saferace.learning.device import resolve_device
 from saferace.learning.ensemble import DEFAULT_MEMBERS, StateEnsemble
 from saferace.learning.networks import DrivingNetwork, control_config, state_config
 from saferace.names import CONFORMAL_ALPHA
@@ -41,6 +49,11 @@ from saferace.safety.uncertainty.conformal import ConformalCalibration, fit_feat
 from saferace.safety.uncertainty.intervals import ConformalStateSource
 
 TARGET_STEPS_PER_S = 50.0
+#: Steps per second each ensemble must reach, on the CPU (2 cores) and on a CUDA GPU.
+ENSEMBLE_TARGETS = {
+    "packed": {"cpu": 55.0, "cuda": 250.0},
+    "ensemble": {"cpu": 35.0, "cuda": 250.0},
+}
 MC_SAMPLES = 10
 
 
@@ -83,12 +96,20 @@ def mimo(stereo: bool, members: int = DEFAULT_MEMBERS) -> DrivingNetwork:
     return DrivingNetwork(config).eval().to(memory_format=torch.channels_last)
 
 
-def generic(stereo: bool) -> ConformalStateSource:
+def packed(stereo: bool, members: int = DEFAULT_MEMBERS) -> DrivingNetwork:
+    """A packed ensemble: ``members`` independent members, the default alpha and gamma."""
+    torch.manual_seed(100)
+    packing = (members, TrainConfig.packed_alpha, TrainConfig.packed_gamma)
+    config = state_config(stereo, dropout=0.0, log_variance=True, packed=packing)
+    return DrivingNetwork(config).eval().to(memory_format=torch.channels_last)
+
+
+def generic(stereo: bool, device: str = "cpu") -> ConformalStateSource:
     """The generic perception model's size and per-step work: one heteroscedastic network
     with a conformal interval and a feature monitor (fitted on random features)."""
     torch.manual_seed(100)
     network = DrivingNetwork(state_config(stereo, dropout=0.0, log_variance=True))
-    network = network.eval().to(memory_format=torch.channels_last)
+    network = network.eval().to(device, memory_format=torch.channels_last)
     features = np.random.default_rng(0).normal(size=(400, 512))
     monitor = fit_feature_monitor(features, CONFORMAL_ALPHA)
     calibration = ConformalCalibration(CONFORMAL_ALPHA, 2.0, len(features), monitor)
@@ -96,18 +117,18 @@ def generic(stereo: bool) -> ConformalStateSource:
 
 
 def learned_env(
-    track: str, stereo: bool, state_uncertainty: str = "mc-dropout"
+    track: str, stereo: bool, state_uncertainty: str = "mc-dropout", device: str = "cpu"
 ) -> tuple[gym.Env, LearnedAgent]:
     """The learned step: MC dropout behind the chance-constrained filter, or behind the
-    robust one the generic model's size or a deep or MIMO ensemble (their interval
-    ``mean +- 2 std``: the conformal scale's cost is the same)."""
-    control, state = networks(stereo)
+    robust one the generic model's size or a deep, MIMO or packed ensemble (their interval
+    ``mean +- 2 std``: the conformal scale's cost is the same); networks on ``device``."""
+    control, state = (network.to(device) for network in networks(stereo))
     env = gym.make("saferace/CenterLine-v0", track=track, stereo=stereo, max_laps=100)
     if state_uncertainty == "generic":
-        env = SafetyFilter(env, state_source=generic(stereo), uncertainty="robust")
+        env = SafetyFilter(env, state_source=generic(stereo, device), uncertainty="robust")
     elif state_uncertainty != "mc-dropout":
-        made = ensemble(stereo) if state_uncertainty == "ensemble" else mimo(stereo)
-        source = LearnedStateSource(made, MC_SAMPLES, seed=0)
+        made = {"ensemble": ensemble, "mimo": mimo, "packed": packed}[state_uncertainty](stereo)
+        source = LearnedStateSource(made.to(device), MC_SAMPLES, seed=0)
         env = SafetyFilter(env, state_source=source, uncertainty="robust")
     else:
         env = SafetyFilter(env, state_source=LearnedStateSource(state, MC_SAMPLES, seed=0))
@@ -157,55 +178,69 @@ def lever_times_ms(network: DrivingNetwork, image: np.ndarray, velocity: np.ndar
     return [(label, median_ms(run, 30)) for label, run in levers]
 
 
+def devices_of(spec: str) -> list[str]:
+    """``auto``: the CPU, and CUDA beside it where PyTorch sees a GPU; else the one named."""
+    if spec == "auto":
+        return ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
+    return [str(resolve_device(spec))]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--track", default="lab")
+    parser.add_argument("--device", default="auto", help="auto (CPU, and GPU if any), cpu, cuda")
     args = parser.parse_args()
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    devices = devices_of(args.device)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, devices {devices}")
 
     expert_env = gym.make("saferace/CenterLine-v0", track=args.track, max_laps=100)
     expert = MPCExpert.for_env(expert_env)
-    rows = [["expert MPC, ground truth (baseline)", step_times_ms(expert_env, expert, args.steps)]]
+    baseline_times = step_times_ms(expert_env, expert, args.steps)
     expert_env.close()
+    rows = [["expert MPC, ground truth (baseline)", "-", baseline_times]]
     kinds = {
         "generic": "the generic perception model's size (one heteroscedastic network)",
         "ensemble": f"{DEFAULT_MEMBERS}-member deep ensemble",
         "mimo": f"{DEFAULT_MEMBERS}-member MIMO ensemble",
+        "packed": f"{DEFAULT_MEMBERS}-member packed ensemble",
     }
-    runs = (
-        (False, "mc-dropout"),
-        (True, "mc-dropout"),
-        (False, "generic"),
-        (False, "ensemble"),
-        (False, "mimo"),
-    )
-    for stereo, uncertainty in runs:
-        env, agent = learned_env(args.track, stereo, uncertainty)
-        camera = "stereo 64x64x6" if stereo else "mono 64x64x3"
-        label = (
-            f"learned, {camera}, perceived-state filter"
-            if uncertainty == "mc-dropout"
-            else f"learned, {camera}, {kinds[uncertainty]}, robust filter"
-        )
-        rows.append([label, step_times_ms(env, agent, args.steps)])
-        env.close()
-    baseline = np.median(rows[0][1])
+    runs = [(False, "mc-dropout"), (True, "mc-dropout"), *((False, kind) for kind in kinds)]
+    verdicts = []
+    for device in devices:
+        for stereo, uncertainty in runs:
+            env, agent = learned_env(args.track, stereo, uncertainty, device)
+            camera = "stereo 64x64x6" if stereo else "mono 64x64x3"
+            label = (
+                f"learned, {camera}, perceived-state filter"
+                if uncertainty == "mc-dropout"
+                else f"learned, {camera}, {kinds[uncertainty]}, robust filter"
+            )
+            times = step_times_ms(env, agent, args.steps)
+            rows.append([label, device, times])
+            env.close()
+            if not stereo:
+                verdicts.append((uncertainty, device, 1e3 / np.median(times)))
+    baseline = np.median(baseline_times)
     table = []
-    for label, times in rows:
+    for label, device, times in rows:
         median = np.median(times)
-        table.append([label, median, np.percentile(times, 95), 1e3 / median, median / baseline])
-    print(markdown_table(["step", "median [ms]", "p95 [ms]", "steps/s", "x expert's time"], table))
-    verdicts = (
-        ("mono", table[1]),
-        ("mono with the generic perception model", table[3]),
-        ("mono with the deep ensemble", table[4]),
-        ("mono with the MIMO ensemble", table[5]),
-    )
-    for name, row in verdicts:
-        verdict = "meets" if row[3] >= TARGET_STEPS_PER_S else "misses"
-        print(f"\n{name}: {row[3]:.0f} steps/s, {verdict} the target of {TARGET_STEPS_PER_S:.0f}")
+        table.append(
+            [label, device, median, np.percentile(times, 95), 1e3 / median, median / baseline]
+        )
+    columns = ["step", "networks on", "median [ms]", "p95 [ms]", "steps/s", "x expert's time"]
+    print(markdown_table(columns, table))
+    for uncertainty, device, rate in verdicts:
+        kind = device.split(":")[0]
+        default = TARGET_STEPS_PER_S if kind == "cpu" and uncertainty == "mc-dropout" else None
+        target = ENSEMBLE_TARGETS.get(uncertainty, {}).get(kind, default)
+        if target is not None:
+            verdict = "meets" if rate >= target else "misses"
+            name = f"mono, {uncertainty}, networks on {device}"
+            print(f"\n{name}: {rate:.0f} steps/s, {verdict} the target of {target:.0f}")
     print()
+    if "cpu" not in devices:
+        return
 
     velocity = np.array([3.0, 0.0, 0.5], np.float32)
     for stereo in (False, True):

@@ -48,9 +48,10 @@ GAIN_NAMES = ("paper", "grip", "tuned")
 UNCERTAINTY_MODES = ("chance", "robust")
 #: How the state network gives its uncertainty: MC dropout (the paper's), a deep ensemble
 #: of heteroscedastic networks (``saferace.learning.ensemble``), a MIMO ensemble of
-#: heteroscedastic subnetworks sharing one ResNet-18 (``NetworkConfig.subnetworks``), or one
-#: heteroscedastic network (its own variance: what a conformal calibration scales).
-STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble", "mimo", "heteroscedastic")
+#: heteroscedastic subnetworks sharing one ResNet-18 (``NetworkConfig.subnetworks``), a
+#: packed ensemble of independent members in grouped layers (``saferace.learning.packed``),
+#: or one heteroscedastic network (its own variance: what a conformal calibration scales).
+STATE_UNCERTAINTY_METHODS = ("mc-dropout", "ensemble", "mimo", "packed", "heteroscedastic")
 #: Feedback an adaptive conformal interval learns from: the truth a step late (oracle
 #: feedback) or the odometry's prediction (``saferace.safety.uncertainty.adaptive``).
 ADAPTIVE_FEEDBACK = ("oracle", "odometry")

@@ -12,8 +12,8 @@ import torch
 from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import load_checkpoint, save_checkpoint
 from saferace.learning.configs import TrainConfig
-from saferace.learning.ensemble import StateEnsemble, mixture
-from saferace.learning.networks import DrivingNetwork, state_config
+from saferace.learning.ensemble import StateEnsemble
+from saferace.learning.networks import DrivingNetwork, mixture, state_config
 from saferace.learning.rounds import load_rounds
 from saferace.learning.training import (
     MIMO_INPUT_REPETITION,

@@ -13,6 +13,10 @@ linear layer to the outputs. MC dropout (paper Sec. 3.4, Gal and Ghahramani 2016
 backbone runs once per frame with BatchNorm on its running statistics, the head is sampled
 ``n`` times in one batch with dropout on, and the samples' mean and (population) standard
 deviation are the prediction and its spread.
+
+A prediction moves its inputs to the device in one copy and its results back in one
+(:mod:`saferace.learning.transfer`); on CUDA the work between is one replayed graph
+(:mod:`saferace.learning.cuda_graphs`).
 """
 
 from __future__ import annotations
@@ -27,6 +31,9 @@ from torch import nn
 from torch.nn import functional
 
 from saferace.errors import SafeRaceError
+from saferace.learning.cuda_graphs import GraphCache
+from saferace.learning.packed import GroupedLinear, PackedResNet18, check_packing
+from saferace.learning.transfer import download, upload
 
 CONTROL_OUTPUTS = ("steer_rad", "target_speed_mps")
 STATE_OUTPUTS = ("e_y_m", "e_psi_rad", "kappa_radpm")
@@ -43,7 +50,10 @@ class NetworkConfig:
     trained on the Gaussian negative log-likelihood); ``subnetworks`` K > 1: a MIMO ensemble
     (Havasi et al., ICLR 2021) of K heteroscedastic subnetworks in one ResNet-18, each with
     its own input channels and outputs, trained on independently drawn frames; predicting,
-    every subnetwork sees the same frame, so one forward pass gives the whole ensemble."""
+    every subnetwork sees the same frame, so one forward pass gives the whole ensemble.
+    ``packed`` M > 1: a packed ensemble (:mod:`saferace.learning.packed`) of M independent
+    heteroscedastic members in grouped layers ``alpha`` times as wide, ``gamma`` groups each,
+    all trained on the same frames."""
 
     outputs: tuple[str, ...]
     in_channels: int = 3
@@ -53,6 +63,9 @@ class NetworkConfig:
     velocity_hidden: int = 64
     log_variance: bool = False
     subnetworks: int = 1
+    packed: int = 1
+    alpha: float = 2.0
+    gamma: int = 1
 
     def __post_init__(self) -> None:
         if self.in_channels not in (3, 6):
@@ -67,6 +80,18 @@ class NetworkConfig:
             raise SafeRaceError(f"subnetworks must be at least 1, got {self.subnetworks}")
         if self.subnetworks > 1 and not self.log_variance:
             raise SafeRaceError("MIMO subnetworks need heteroscedastic heads (log_variance)")
+        if self.packed > 1:
+            check_packing(self.packed, self.alpha, self.gamma)
+            if not self.log_variance or self.uses_velocity or self.subnetworks > 1:
+                raise SafeRaceError(
+                    "a packed ensemble is a state network of heteroscedastic members "
+                    "(log_variance, no velocities, no MIMO subnetworks)"
+                )
+
+    @property
+    def members(self) -> int:
+        """Gaussians the heteroscedastic head outputs: MIMO subnetworks or packed members."""
+        return max(self.subnetworks, self.packed)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -82,10 +107,15 @@ def control_config(stereo: bool = False, dropout: float = 0.2) -> NetworkConfig:
 
 
 def state_config(
-    stereo: bool = False, dropout: float = 0.2, log_variance: bool = False, subnetworks: int = 1
+    stereo: bool = False,
+    dropout: float = 0.2,
+    log_variance: bool = False,
+    subnetworks: int = 1,
+    packed: tuple[int, float, int] | None = None,
 ) -> NetworkConfig:
     """``M_st``: image to ``[e_y_m, e_psi_rad, kappa_radpm]`` (and their log-variances, per
-    MIMO subnetwork)."""
+    MIMO subnetwork or ``packed`` member: ``(members, alpha, gamma)``)."""
+    members, alpha, gamma = packed or (1, NetworkConfig.alpha, NetworkConfig.gamma)
     return NetworkConfig(
         STATE_OUTPUTS,
         6 if stereo else 3,
@@ -93,6 +123,9 @@ def state_config(
         dropout=dropout,
         log_variance=log_variance,
         subnetworks=subnetworks,
+        packed=members,
+        alpha=alpha,
+        gamma=gamma,
     )
 
 
@@ -114,6 +147,15 @@ def mixture(means: np.ndarray, stds: np.ndarray) -> tuple[np.ndarray, np.ndarray
     means, stds = np.asarray(means, float), np.asarray(stds, float)
     variance = np.mean(stds**2, axis=0) + np.var(means, axis=0)
     return means.mean(axis=0), np.sqrt(variance)
+
+
+def gaussian_samples(means: torch.Tensor, stds: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """From members' ``(N, K, outputs)`` means and stds, on their device: the mixture's
+    mean and std (as :func:`mixture`) and every member's two points ``mean_k +- std_k``
+    ``(N, 2 K, outputs)``, whose mean and population spread are exactly the mixture's."""
+    variance = stds.square().mean(dim=1) + means.var(dim=1, correction=0)
+    samples = torch.cat([means - stds, means + stds], dim=1)
+    return means.mean(dim=1), variance.sqrt(), samples
 
 
 def resnet18_features(in_channels: int) -> nn.Module:
@@ -144,20 +186,34 @@ class DrivingNetwork(nn.Module):
         super().__init__()
         self.config = config
         channels, outputs = config.in_channels, len(config.outputs)
-        self.backbone = resnet18_features(channels * config.subnetworks)
-        self.image_branch = nn.Linear(FEATURES, config.hidden)
-        width = config.hidden
-        if config.uses_velocity:
-            self.velocity_branch = nn.Linear(len(VELOCITY_INPUTS), config.velocity_hidden)
-            width += config.velocity_hidden
-        per_subnetwork = 2 * outputs if config.log_variance else outputs
-        self.output_layer = nn.Linear(width, per_subnetwork * config.subnetworks)
+        per_member = 2 * outputs if config.log_variance else outputs
+        self.image_branch: nn.Module
+        self.output_layer: nn.Module
+        if config.packed > 1:
+            self.backbone = PackedResNet18(channels, config.packed, config.alpha, config.gamma)
+            features = self.backbone.features_per_member
+            self.image_branch = GroupedLinear(config.packed, features, config.hidden)
+            self.output_layer = GroupedLinear(config.packed, config.hidden, per_member)
+        else:
+            self.backbone = resnet18_features(channels * config.subnetworks)
+            self.image_branch = nn.Linear(FEATURES, config.hidden)
+            width = config.hidden
+            if config.uses_velocity:
+                self.velocity_branch = nn.Linear(len(VELOCITY_INPUTS), config.velocity_hidden)
+                width += config.velocity_hidden
+            self.output_layer = nn.Linear(width, per_member * config.subnetworks)
         self.register_buffer("image_mean", torch.full((channels,), 0.5))
         self.register_buffer("image_std", torch.full((channels,), 0.25))
         self.register_buffer("velocity_mean", torch.zeros(len(VELOCITY_INPUTS)))
         self.register_buffer("velocity_std", torch.ones(len(VELOCITY_INPUTS)))
         self.register_buffer("output_mean", torch.zeros(outputs))
         self.register_buffer("output_std", torch.ones(outputs))
+        self._graphs = GraphCache(self.predict_tensors)
+
+    def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
+        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs stale."""
+        self._graphs.clear()
+        return super()._apply(fn, recurse)
 
     @property
     def device(self) -> torch.device:
@@ -191,16 +247,28 @@ class DrivingNetwork(nn.Module):
         features: torch.Tensor,
         velocity: torch.Tensor | None,
         sample: bool,
-        generator: torch.Generator | None = None,
+        masks: tuple[torch.Tensor, ...] = (),
     ) -> torch.Tensor:
-        """Normalised outputs from features; ``sample``: dropout on (training or MC)."""
-        x = functional.relu(self.image_branch(self._dropout(features, sample, generator)))
+        """Normalised outputs from features; ``sample``: dropout on (training or MC), with
+        the two dropouts' keep ``masks`` where given (see :meth:`dropout_masks`)."""
+        first, second = masks or (None, None)
+        x = functional.relu(self.image_branch(self._dropout(features, sample, first)))
         if self.config.uses_velocity:
             if velocity is None:
                 raise SafeRaceError("the control network needs the velocities [v_x, v_y, r]")
             v = (velocity.to(self.device).float() - self.velocity_mean) / self.velocity_std
             x = torch.cat([x, functional.relu(self.velocity_branch(v))], dim=1)
-        return self.output_layer(self._dropout(x, sample, generator))
+        return self.output_layer(self._dropout(x, sample, second))
+
+    def dropout_masks(
+        self, rows: int, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The head's two keep masks for ``rows`` samples, drawn on the CPU (from
+        ``generator`` where given): repeatable samples on any device."""
+        config = self.config
+        width = config.hidden + (config.velocity_hidden if config.uses_velocity else 0)
+        first = torch.rand((rows, FEATURES), generator=generator) >= config.dropout
+        return first, torch.rand((rows, width), generator=generator) >= config.dropout
 
     def forward(self, image: torch.Tensor, velocity: torch.Tensor | None = None) -> torch.Tensor:
         return self.head(self.features(image), velocity, sample=self.training)
@@ -233,56 +301,58 @@ class DrivingNetwork(nn.Module):
         image = torch.as_tensor(image)
         if image.ndim == 3:
             image = image[None]
-        if velocity is not None:
-            velocity = torch.as_tensor(velocity, dtype=torch.float32).reshape(len(image), -1)
+        inputs = [image]
+        if self.config.uses_velocity:
+            if velocity is None:
+                raise SafeRaceError("the control network needs the velocities [v_x, v_y, r]")
+            inputs.append(torch.as_tensor(velocity, dtype=torch.float32).reshape(len(image), -1))
+        sampled = n_samples > 1 and self.config.dropout > 0.0 and not self.config.log_variance
+        if sampled:
+            inputs.extend(self.dropout_masks(len(image) * n_samples, generator))
+        return Prediction(*download(*self._graphs(*upload(self.device, *inputs))))
+
+    def predict_tensors(self, image: torch.Tensor, *rest: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """:meth:`predict`'s work on the device: ``(image, [velocity], [keep masks])`` to
+        the mean, std, samples and features, as tensors (what a CUDA graph replays)."""
+        velocity = rest[0] if self.config.uses_velocity else None
+        masks = rest[1:] if self.config.uses_velocity else rest
         features = self.features(image)
         if self.config.log_variance:
-            return self._gaussian_prediction(self.head(features, velocity, False), features)
-        if n_samples == 1 or self.config.dropout == 0.0:
+            return (*self._gaussian_tensors(self.head(features, velocity, False)), features)
+        if not masks:
             samples = self.head(features, velocity, sample=False)[:, None, :]
         else:
-            repeated_velocity = (
-                None if velocity is None else velocity.repeat_interleave(n_samples, 0)
-            )
-            outputs = self.head(
-                features.repeat_interleave(n_samples, 0), repeated_velocity, True, generator
-            )
+            n_samples = len(masks[0]) // len(image)
+            repeated = None if velocity is None else velocity.repeat_interleave(n_samples, 0)
+            outputs = self.head(features.repeat_interleave(n_samples, 0), repeated, True, masks)
             samples = outputs.reshape(len(image), n_samples, -1)
         samples = self.denormalise_outputs(samples)
         mean = samples.mean(dim=1)
         std = torch.zeros_like(mean) if samples.shape[1] == 1 else samples.std(dim=1, correction=0)
-        return Prediction(*(_numpy(tensor) for tensor in (mean, std, samples, features)))
+        return mean, std, samples, features
 
-    def _gaussian_prediction(self, outputs: torch.Tensor, features: torch.Tensor) -> Prediction:
-        """Heteroscedastic heads' mean and std in physical units: the mixture of the
-        subnetworks' Gaussians (mean of means; variance ``mean(var_k) + var(mean_k)``). Its
-        samples are each subnetwork's two points ``mean_k +- std_k``, whose mean and
-        population spread are exactly the mixture's."""
+    def _gaussian_tensors(self, outputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Heteroscedastic heads' mixture mean, std and samples in physical units (see
+        :func:`gaussian_samples`), over the MIMO subnetworks or packed members."""
+        means, stds = self.member_gaussians(outputs)
+        return gaussian_samples(means, stds)
+
+    def member_gaussians(self, outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each member's (MIMO subnetwork's, packed member's) mean and std in physical
+        units, ``(N, K, outputs)``, from a heteroscedastic head's outputs."""
         count = len(self.config.outputs)
-        per_subnetwork = outputs.reshape(len(outputs), self.config.subnetworks, 2 * count)
-        means = self.denormalise_outputs(per_subnetwork[..., :count])
-        log_variance = per_subnetwork[..., count:].clamp(*LOG_VARIANCE_RANGE)
+        per_member = outputs.reshape(len(outputs), self.config.members, 2 * count)
+        log_variance = per_member[..., count:].clamp(*LOG_VARIANCE_RANGE)
         stds = torch.exp(0.5 * log_variance) * self.output_std
-        samples = torch.cat([means - stds, means + stds], dim=1)
-        mean, std = mixture(_numpy(means.transpose(0, 1)), _numpy(stds.transpose(0, 1)))
-        return Prediction(mean, std, _numpy(samples), _numpy(features))
+        return self.denormalise_outputs(per_member[..., :count]), stds
 
-    def _dropout(
-        self, x: torch.Tensor, sample: bool, generator: torch.Generator | None
-    ) -> torch.Tensor:
+    def _dropout(self, x: torch.Tensor, sample: bool, keep: torch.Tensor | None) -> torch.Tensor:
         p = self.config.dropout
         if not sample or p == 0.0:
             return x
-        if generator is None:
+        if keep is None:
             return functional.dropout(x, p, training=True)
-        # seeded masks, drawn on the CPU: repeatable samples on any device
-        keep = (torch.rand(x.shape, generator=generator) >= p).to(x.device)
         return x * keep / (1.0 - p)
-
-
-def _numpy(tensor: torch.Tensor) -> np.ndarray:
-    """A prediction's tensor as a float32 array on the CPU (from any device or precision)."""
-    return tensor.float().cpu().numpy()
 
 
 def load_torchvision_weights(network: DrivingNetwork, path: str | Path) -> None:

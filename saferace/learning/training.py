@@ -239,14 +239,15 @@ def training_loss(
 ) -> torch.Tensor:
     """The MSE of normalised targets, or for heteroscedastic heads the Gaussian negative
     log-likelihood of their means and variances (``targets`` ``(B, K, outputs)`` for K MIMO
-    subnetworks, each its own frame's)."""
+    subnetworks, each its own frame's; ``(B, outputs)`` for every packed member)."""
     if not network.config.log_variance:
         return functional.mse_loss(outputs, targets)
     count = targets.shape[-1]
-    per_subnetwork = outputs.reshape(len(outputs), network.config.subnetworks, 2 * count)
-    log_variance = per_subnetwork[..., count:].clamp(*LOG_VARIANCE_RANGE)
-    means = per_subnetwork[..., :count]
-    return functional.gaussian_nll_loss(means, targets.reshape(means.shape), log_variance.exp())
+    per_member = outputs.reshape(len(outputs), network.config.members, 2 * count)
+    log_variance = per_member[..., count:].clamp(*LOG_VARIANCE_RANGE)
+    means = per_member[..., :count]
+    targets = targets.reshape(len(outputs), -1, count).expand(means.shape)
+    return functional.gaussian_nll_loss(means, targets, log_variance.exp())
 
 
 @torch.inference_mode()
@@ -406,6 +407,10 @@ def training_units(config: TrainConfig, stereo: bool) -> list[TrainingUnit]:
     if config.state_uncertainty == "mimo":
         mimo = state_config(stereo, 0.0, log_variance=True, subnetworks=config.ensemble_members)
         return [*units, TrainingUnit("state", "state", 0, mimo, config.seed + 1, config.seed)]
+    if config.state_uncertainty == "packed":
+        packing = (config.ensemble_members, config.packed_alpha, config.packed_gamma)
+        packed = state_config(stereo, 0.0, log_variance=True, packed=packing)
+        return [*units, TrainingUnit("state", "state", 0, packed, config.seed + 1, config.seed)]
     member_config = state_config(stereo, dropout=0.0, log_variance=True)
     for member in range(config.ensemble_members):
         name = "state" if member == 0 else f"state_member_{member}"
