@@ -243,6 +243,18 @@ def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_num_envs_argument(parser: argparse.ArgumentParser) -> None:
+    """``--num-envs``: episodes driven at once in lockstep (gymnasium's vector API)."""
+    parser.add_argument(
+        "--num-envs",
+        type=values.count,
+        default=1,
+        metavar="N",
+        help="episodes driven at once, each env in its own process, a learned driver's "
+        "network asked once per step for all of them (the same frames as one by one)",
+    )
+
+
 def add_randomize_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--randomize",

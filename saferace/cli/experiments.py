@@ -9,6 +9,7 @@ from pathlib import Path
 from saferace.cli import example, values
 from saferace.cli.arguments import (
     add_device_argument,
+    add_num_envs_argument,
     add_parallel_arguments,
     add_slack_argument,
 )
@@ -88,6 +89,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     dagger.add_argument("--out", type=Path, required=True, help="the run's folder")
     add_parallel_arguments(dagger)
+    add_num_envs_argument(dagger)
     add_device_argument(dagger)
     dagger.set_defaults(command=_dagger)
 
@@ -183,7 +185,12 @@ def _dagger(args: argparse.Namespace) -> int:
     if config.filters:
         ensure_perception_model(config.filter.state_source, args.workers)
     rows = DaggerRun(
-        args.out, config, fork_of=args.fork_of, workers=args.workers, ray_address=args.ray
+        args.out,
+        config,
+        fork_of=args.fork_of,
+        workers=args.workers,
+        ray_address=args.ray,
+        num_envs=args.num_envs,
     ).run()
     cells = [["-" if row.get(c) is None else row.get(c) for c in METRIC_COLUMNS] for row in rows]
     print(markdown_table(METRIC_COLUMNS, cells))

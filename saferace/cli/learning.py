@@ -11,6 +11,7 @@ from saferace.cli.arguments import (
     TRACK_HELP,
     add_device_argument,
     add_filter_arguments,
+    add_num_envs_argument,
     add_parallel_arguments,
     filter_config,
 )
@@ -44,6 +45,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     collect.add_argument("--out", type=Path, required=True, help="dataset folder to add a round to")
     add_filter_arguments(collect)
     add_parallel_arguments(collect)
+    add_num_envs_argument(collect)
     add_device_argument(collect)
     collect.set_defaults(command=_collect)
 
@@ -234,7 +236,9 @@ def _collect(args: argparse.Namespace) -> int:
 
     config = collection_config(args)
     ensure_perception_model(config.safety.state_source, args.workers)
-    collected = collect_round(args.out, config, workers=args.workers, ray_address=args.ray)
+    collected = collect_round(
+        args.out, config, workers=args.workers, ray_address=args.ray, num_envs=args.num_envs
+    )
     rows = [
         {
             "agent": config.agent,

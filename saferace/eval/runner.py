@@ -101,48 +101,71 @@ def run_episode(
     observation, info = env.reset(seed=seed)
     if hasattr(agent, "reset"):
         agent.reset()
-    filtered = _has_safety_filter(env)
-    base = racing_env(env)
-    in_traffic = base.traffic is not None
-    fields = (
-        STEP_FIELDS
-        + ("lane_barrier_m",)
-        + (TRAFFIC_FIELDS if in_traffic else ())
-        + (SAFETY_FIELDS if filtered else ())
-    )
-    records: dict[str, list] = {name: [] for name in fields}
+    recorder = EpisodeRecorder(env)
     terminated = truncated = False
-    half_width = base.car_half_width_m
+    base = racing_env(env)
     with Progress(base.max_steps, base.track.name, "step", enabled=progress) as bar:
         while not (terminated or truncated):
             action = act(agent, observation, info)
-            if not filtered:
+            if not recorder.filtered:
                 action = nominal_parts(action)[0]
             observation, _, terminated, truncated, info = env.step(action)
-            for name in STEP_FIELDS:
-                records[name].append(info[name])
-            records["lane_barrier_m"].append(
-                min(info["w_left_m"] - info["e_y_m"], info["w_right_m"] + info["e_y_m"])
-                - half_width
-            )
-            if in_traffic:
-                for name, value in traffic_step_record(info).items():
-                    records[name].append(value)
-            if filtered:
-                for name, value in safety_step_record(info["safety"]).items():
-                    records[name].append(value)
+            recorder.record(info)
             if on_step is not None:
-                applied = info["safety"]["filtered_action"] if filtered else action
+                applied = info["safety"]["filtered_action"] if recorder.filtered else action
                 on_step(observation, info, np.asarray(applied, dtype=float))
             bar.update()
             if bar.terminal:  # not formatted every step where nothing shows it
                 bar.show(f"lap={info['lap']}, v={info['v_x_mps']:.1f}m/s")
-        steps = {name: np.asarray(values) for name, values in records.items()}
-        laps = lap_metrics(steps, info["lap_times_s"], base.control_dt_s)
-        traffic = traffic_summary(steps) if in_traffic else None
-        result = EpisodeResult(steps, laps, terminated, truncated, traffic)
+        result = recorder.result(info, terminated, truncated)
         bar.report(f"episode (seed {seed})", episode_words(result.summary), time_left=False)
     return result
+
+
+class EpisodeRecorder:
+    """One episode's per-step records (what :func:`run_episode` keeps) and its result.
+
+    ``env`` tells what to record: the :data:`STEP_FIELDS` and the true lane barrier
+    always, the :data:`TRAFFIC_FIELDS` in traffic, the :data:`SAFETY_FIELDS` behind a
+    :class:`~saferace.safety.cbf.filter.SafetyFilter`.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        base = racing_env(env)
+        self.filtered = _has_safety_filter(env)
+        self.in_traffic = base.traffic is not None
+        self.half_width_m = base.car_half_width_m
+        self.control_dt_s = base.control_dt_s
+        fields = (
+            STEP_FIELDS
+            + ("lane_barrier_m",)
+            + (TRAFFIC_FIELDS if self.in_traffic else ())
+            + (SAFETY_FIELDS if self.filtered else ())
+        )
+        self.records: dict[str, list] = {name: [] for name in fields}
+
+    def record(self, info: dict[str, Any]) -> None:
+        """Keep one step's ``info``."""
+        records = self.records
+        for name in STEP_FIELDS:
+            records[name].append(info[name])
+        records["lane_barrier_m"].append(
+            min(info["w_left_m"] - info["e_y_m"], info["w_right_m"] + info["e_y_m"])
+            - self.half_width_m
+        )
+        if self.in_traffic:
+            for name, value in traffic_step_record(info).items():
+                records[name].append(value)
+        if self.filtered:
+            for name, value in safety_step_record(info["safety"]).items():
+                records[name].append(value)
+
+    def result(self, last_info: dict[str, Any], terminated: bool, truncated: bool) -> EpisodeResult:
+        """The episode's result, ``last_info`` its last step's."""
+        steps = {name: np.asarray(values) for name, values in self.records.items()}
+        laps = lap_metrics(steps, last_info["lap_times_s"], self.control_dt_s)
+        traffic = traffic_summary(steps) if self.in_traffic else None
+        return EpisodeResult(steps, laps, terminated, truncated, traffic)
 
 
 def episode_words(summary: dict) -> str:

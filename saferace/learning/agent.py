@@ -74,12 +74,38 @@ class LearnedAgent:
         prediction = self.network.predict(
             observation["image"], velocity, self.mc_samples, self._generator
         )
-        (steer, target_speed), (steer_std, speed_std) = prediction.mean[0], prediction.std[0]
+        return self._action(prediction.mean[0], prediction.std[0], velocity)
+
+    def _action(self, mean: np.ndarray, std: np.ndarray, velocity: np.ndarray) -> NominalAction:
+        """The nominal action from the network's mean and spread: the PID loop turns the
+        target speed into an acceleration (and its spread, by the loop's gain)."""
+        (steer, target_speed), (steer_std, speed_std) = mean, std
         accel = self.speed_controller.command(target_speed, float(velocity[0]))
         accel_std = self.speed_controller.gains.kp_per_s * speed_std
         return NominalAction(
             np.array([steer, accel], dtype=float), np.array([steer_std, accel_std], dtype=float)
         )
+
+    @staticmethod
+    def act_together(
+        agents: list[LearnedAgent], observations: list[dict[str, np.ndarray]]
+    ) -> list[NominalAction]:
+        """What each agent would do on its observation, from one forward pass of their
+        shared network: each draws its own dropout masks, as it would alone (the features
+        of a batch agree with one frame's to float rounding, not bit for bit)."""
+        network = agents[0].network
+        if any(agent.network is not network for agent in agents):
+            raise SafeRaceError("agents driven together must share one network")
+        if len({agent.mc_samples for agent in agents}) != 1:
+            raise SafeRaceError("agents driven together must take the same MC samples")
+        images = np.stack([observation["image"] for observation in observations])
+        velocities = np.stack([observation["velocity"] for observation in observations])
+        generators = [agent._generator for agent in agents]
+        prediction = network.predict(images, velocities, agents[0].mc_samples, generators)
+        return [
+            agent._action(prediction.mean[k], prediction.std[k], velocities[k])
+            for k, agent in enumerate(agents)
+        ]
 
     def describe(self) -> dict:
         """What a result row records: the checkpoint and the number of MC samples."""

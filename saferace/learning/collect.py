@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ import numpy as np
 
 from saferace.agents.mpc import TARGET_SPEED_LOOKAHEAD_S, MPCExpert
 from saferace.envs.unwrap import racing_env
+from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.metrics import span_metrics, thinned_trajectory
 from saferace.eval.parallel import run_jobs
@@ -37,7 +39,9 @@ from saferace.eval.runner import (
     package_versions,
     run_episode,
 )
+from saferace.eval.vector_runner import run_together
 from saferace.learning.configs import CollectionConfig, Perturbation
+from saferace.learning.expert_labels import ExpertLabels, LabelsFromInfo
 from saferace.learning.rounds import FRAME_FIELDS, write_round
 from saferace.safety.decision import NominalAction, nominal_parts
 from saferace.safety.uncertainty.state_sources import true_lane_state
@@ -103,13 +107,23 @@ class LabellingDriver:
     def act(
         self, observation: dict[str, np.ndarray], info: dict[str, Any]
     ) -> np.ndarray | NominalAction:
+        driver_action = act(self.driver, observation, info) if self.driver_acts() else None
+        return self.labelled(observation, info, driver_action)
+
+    def driver_acts(self) -> bool:
+        """Whether the driver acts this step (else the expert): a draw of the mixing
+        schedule, taken before the driver is asked (so that drivers can be asked together,
+        :func:`act_labellers`)."""
+        return self.driver is not None and not (self.beta and self._mixing.random() < self.beta)
+
+    def labelled(
+        self, observation: dict[str, np.ndarray], info: dict[str, Any], driver_action: Any
+    ) -> np.ndarray | NominalAction:
+        """Record the frame with the expert's label; the action: the driver's (None: the
+        expert's) with the steering noise."""
         expert_action = self.expert.act(observation, info)
         label = (expert_action[0], self.expert.planned_speed_mps(), expert_action[1])
-        driver = self.driver
-        if driver is None or (self.beta and self._mixing.random() < self.beta):
-            action = expert_action  # the expert drives
-        else:
-            action = act(driver, observation, info)
+        action = expert_action if driver_action is None else driver_action
         mean, std = nominal_parts(action)
         mean = mean.copy()
         mean[0] += self.noise.sample()
@@ -165,28 +179,39 @@ def collect_round(
     progress: bool = True,
     workers: int = 1,
     ray_address: str | None = None,
+    num_envs: int = 1,
 ) -> CollectedRound:
     """Drive one episode per seed, label every frame, write it all as the next round.
 
     Each episode's summary holds its lap metrics, those of the part of the lap past
     ``train_fraction`` (``held_out``, when it is below 1) and a downsampled trajectory.
     The episodes are independent: ``workers`` processes or Ray tasks (``ray_address``,
-    see :func:`~saferace.eval.parallel.run_jobs`) drive them at once, and the round is the
-    same as a serial one.
+    see :func:`~saferace.eval.parallel.run_jobs`) drive them at once, or ``num_envs`` > 1
+    of them at a time run in lockstep (:func:`collect_episodes_together`); the round is
+    the same as a serial one.
     """
+    if num_envs > 1 and (workers > 1 or ray_address is not None):
+        raise SafeRaceError("choose --num-envs or --workers/--ray: both drive episodes at once")
     collected: dict[int, CollectedEpisode] = {}
-    jobs = [
-        (config, episode, seed, progress and workers <= 1)
-        for episode, seed in enumerate(config.seeds)
-    ]
-    run_jobs(
-        collect_episode,
-        jobs,
-        lambda job, result: collected.__setitem__(job[1], result),
-        workers=workers,
-        ray_address=ray_address,
-        describe=lambda job: f"episode {job[1]} (seed {job[2]})",
-    )
+    if num_envs > 1:
+        seeds = list(config.seeds)
+        for start in range(0, len(seeds), num_envs):
+            group = range(start, min(start + num_envs, len(seeds)))
+            episodes = collect_episodes_together(config, list(group), progress)
+            collected.update(zip(group, episodes, strict=True))
+    else:
+        jobs = [
+            (config, episode, seed, progress and workers <= 1)
+            for episode, seed in enumerate(config.seeds)
+        ]
+        run_jobs(
+            collect_episode,
+            jobs,
+            lambda job, result: collected.__setitem__(job[1], result),
+            workers=workers,
+            ray_address=ray_address,
+            describe=lambda job: f"episode {job[1]} (seed {job[2]})",
+        )
     episodes = [collected[episode] for episode in range(len(config.seeds))]
     arrays, held_out_arrays = (
         {name: np.concatenate([getattr(e, part)[name] for e in episodes]) for name in FRAME_FIELDS}
@@ -214,8 +239,86 @@ def collect_episode(
     config: CollectionConfig, episode: int, seed: int, progress: bool = False
 ) -> CollectedEpisode:
     """Drive and label episode ``episode`` of a round (seeded by ``seed``)."""
+    env = task_env(config, seed)
+    try:
+        # in traffic, the expert plans around the opponents
+        expert = make_agent("expert", env, config.episode.expert_model)
+        assert isinstance(expert, MPCExpert)
+        labeller = labelling_driver(config, env, expert, episode, seed)
+        result = run_episode(
+            env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
+        )
+    finally:
+        env.close()
+    return collected_episode(config, env, labeller, result, seed)
+
+
+def collect_episodes_together(
+    config: CollectionConfig, episodes: list[int], progress: bool = False
+) -> list[CollectedEpisode]:
+    """Drive and label ``episodes`` of a round at once, each env (with the expert that
+    labels it, :class:`~saferace.learning.expert_labels.ExpertLabels`) in its own process;
+    drivers that can act together (:meth:`~saferace.learning.agent.LearnedAgent.
+    act_together`) take one batched forward pass per step."""
+    seeds = [config.seeds[episode] for episode in episodes]
+    like = task_env(config, seeds[0])
+    try:
+        labellers = [
+            labelling_driver(config, like, LabelsFromInfo(), episode, seed)
+            for episode, seed in zip(episodes, seeds, strict=True)
+        ]
+        drivers = [labeller.driver for labeller in labellers]
+        if config.agent.startswith("learned:"):  # one network, for one forward pass
+            for driver in drivers[1:]:
+                driver.network = drivers[0].network  # type: ignore[union-attr]
+        make_envs = [
+            partial(labelled_task_env, config, seed, config.episode.expert_model) for seed in seeds
+        ]
+        results = run_together(
+            make_envs,
+            labellers,
+            seeds,
+            like,
+            act_labellers,
+            [labeller.after_step for labeller in labellers],
+            progress,
+        )
+    finally:
+        like.close()
+    return [
+        collected_episode(config, like, labeller, result, seed)
+        for labeller, result, seed in zip(labellers, results, seeds, strict=True)
+    ]
+
+
+def act_labellers(
+    labellers: Sequence[LabellingDriver], observations: Sequence[dict], infos: Sequence[dict]
+) -> list:
+    """Every labeller's action; the drivers that act this step asked together where they
+    can be (one batched forward pass), else one by one."""
+    acting = [labeller.driver_acts() for labeller in labellers]
+    asked = [k for k, acts in enumerate(acting) if acts]
+    drivers = [labellers[k].driver for k in asked]
+    kind = type(drivers[0]) if drivers else None
+    if kind is not None and hasattr(kind, "act_together") and all(type(d) is kind for d in drivers):
+        answers = kind.act_together(drivers, [observations[k] for k in asked])
+    else:
+        answers = [act(labellers[k].driver, observations[k], infos[k]) for k in asked]
+    driver_actions: list[Any] = [None] * len(labellers)
+    for k, answer in zip(asked, answers, strict=True):
+        driver_actions[k] = answer
+    return [
+        labeller.labelled(observation, info, driver_action)
+        for labeller, observation, info, driver_action in zip(
+            labellers, observations, infos, driver_actions, strict=True
+        )
+    ]
+
+
+def task_env(config: CollectionConfig, seed: int) -> gym.Env:
+    """The env an episode of ``config`` is driven in (with its filter, if any)."""
     settings = config.episode
-    env = make_task_env(
+    return make_task_env(
         config.task,
         config.track,
         settings.laps,
@@ -227,25 +330,39 @@ def collect_episode(
         randomize=settings.randomize,
         **({"opponents": list(config.opponents)} if config.opponents else {}),
     )
-    try:
-        base = racing_env(env)
-        track_length = base.track.length_m
-        expert = make_agent("expert", env, settings.expert_model)  # in traffic, it plans around
-        assert isinstance(expert, MPCExpert)
-        driver = (
-            None
-            if config.agent == "expert"
-            else make_agent(config.agent, env, settings.expert_model, settings.mc_samples, seed)
-        )
-        noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
-        labeller = LabellingDriver(
-            expert, driver, noise, base.action_space, episode, config.beta, seed
-        )
-        result = run_episode(
-            env, labeller, seed=seed, progress=progress, on_step=labeller.after_step
-        )
-    finally:
-        env.close()
+
+
+def labelled_task_env(config: CollectionConfig, seed: int, expert_model: str) -> gym.Env:
+    """:func:`task_env` with the expert's labels in its infos (a vector's worker's env)."""
+    return ExpertLabels(task_env(config, seed), expert_model)
+
+
+def labelling_driver(
+    config: CollectionConfig, env: gym.Env, expert: Any, episode: int, seed: int
+) -> LabellingDriver:
+    """The labeller of episode ``episode``: ``config``'s driver (None: the expert) with its
+    steering noise and mixing, labelled by ``expert``."""
+    settings = config.episode
+    base = racing_env(env)
+    driver = (
+        None
+        if config.agent == "expert"
+        else make_agent(config.agent, env, settings.expert_model, settings.mc_samples, seed)
+    )
+    noise = SteeringNoise(config.perturbation, base.control_dt_s, seed)
+    return LabellingDriver(expert, driver, noise, base.action_space, episode, config.beta, seed)
+
+
+def collected_episode(
+    config: CollectionConfig,
+    env: gym.Env,
+    labeller: LabellingDriver,
+    result: EpisodeResult,
+    seed: int,
+) -> CollectedEpisode:
+    """An episode's frames split at ``train_fraction`` of the lap, and its summary."""
+    settings, base = config.episode, racing_env(env)
+    track_length = base.track.length_m
     frames = labeller.arrays()
     kept = np.mod(frames["s_m"] / track_length, 1.0) < settings.train_fraction
     return CollectedEpisode(

@@ -87,10 +87,12 @@ class DaggerRun:
         label: str = "dagger",
         workers: int = 1,
         ray_address: str | None = None,
+        num_envs: int = 1,
     ) -> None:
-        """``workers``/``ray_address``: where an iteration's episodes are driven (see
-        :func:`~saferace.learning.collect.collect_round`); the rounds are the same."""
-        self.workers, self.ray_address = workers, ray_address
+        """``workers``/``ray_address``/``num_envs``: where and how many of an iteration's
+        episodes are driven at once (see :func:`~saferace.learning.collect.collect_round`);
+        the rounds are the same."""
+        self.workers, self.ray_address, self.num_envs = workers, ray_address, num_envs
         self.layout = RunLayout(Path(out_dir))
         self.config = config
         self.fork_of = None if fork_of is None else RunLayout(Path(fork_of))
@@ -224,6 +226,7 @@ class DaggerRun:
             progress=self.progress,
             workers=self.workers,
             ray_address=self.ray_address,
+            num_envs=self.num_envs,
         )
         if collected.path != self.layout.round(iteration):
             raise SafeRaceError(

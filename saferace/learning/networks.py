@@ -21,6 +21,7 @@ A prediction moves its inputs to the device in one copy and its results back in 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -285,14 +286,16 @@ class DrivingNetwork(nn.Module):
         image: np.ndarray | torch.Tensor,
         velocity: np.ndarray | torch.Tensor | None = None,
         n_samples: int = 10,
-        generator: torch.Generator | None = None,
+        generator: torch.Generator | Sequence[torch.Generator] | None = None,
     ) -> Prediction:
         """Mean and spread of ``n_samples`` MC-dropout passes of the head.
 
         ``image`` is ``(H, W, C)`` or ``(N, H, W, C)`` uint8. With ``n_samples=1`` or no
         dropout the head runs once without dropout and the spread is exactly 0; a
-        heteroscedastic head runs once and gives its own variance. Call ``eval()`` first:
-        BatchNorm must use its running statistics.
+        heteroscedastic head runs once and gives its own variance. ``generator``: where the
+        dropout masks come from, or one generator per frame (N episodes driven together,
+        each with the masks it would draw alone). Call ``eval()`` first: BatchNorm must use
+        its running statistics.
         """
         if self.training:
             raise SafeRaceError("call eval() before predict(): MC dropout samples the head only")
@@ -308,7 +311,13 @@ class DrivingNetwork(nn.Module):
             inputs.append(torch.as_tensor(velocity, dtype=torch.float32).reshape(len(image), -1))
         sampled = n_samples > 1 and self.config.dropout > 0.0 and not self.config.log_variance
         if sampled:
-            inputs.extend(self.dropout_masks(len(image) * n_samples, generator))
+            if isinstance(generator, Sequence):
+                if len(generator) != len(image):
+                    raise SafeRaceError(f"{len(generator)} generators for {len(image)} frames")
+                per_frame = [self.dropout_masks(n_samples, each) for each in generator]
+                inputs.extend(torch.cat(masks) for masks in zip(*per_frame, strict=True))
+            else:
+                inputs.extend(self.dropout_masks(len(image) * n_samples, generator))
         return Prediction(*download(*self._graphs(*upload(self.device, *inputs))))
 
     def predict_tensors(self, image: torch.Tensor, *rest: torch.Tensor) -> tuple[torch.Tensor, ...]:

@@ -1,0 +1,178 @@
+"""Several episodes driven at once through gymnasium's vector API, each as it would run alone.
+
+:func:`run_together` steps N environments in lockstep, each in its own process
+(``gymnasium.vector.AsyncVectorEnv``), so that their physics, rendering and filters run side
+by side,
+while the agents act in this process, where ``act_all`` may answer all of them with one
+batched forward pass. Each episode keeps the records of :func:`~saferace.eval.runner.
+run_episode` and, with the same seed and agent, the same steps: an episode that ends waits
+(:class:`VectorSlot` replays its last step without simulating) until every one has.
+
+The workers fork from a server process that has imported the modules they need (the
+scenes, the filters, the expert: seconds of imports a spawned worker would pay each,
+:data:`PRELOADED`) and has never rendered or started PyTorch (a child forked from a
+process that did would share its OpenGL and PyTorch state). Each worker gets one thread
+for BLAS, OpenMP and PyTorch (N busy workers each starting a thread per core fight over the
+cores).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+
+from saferace.eval.agents import act
+from saferace.eval.parallel import limit_threads
+from saferace.eval.runner import EpisodeRecorder, EpisodeResult, episode_words
+from saferace.progress import Progress
+from saferace.safety.decision import NominalAction, nominal_parts
+
+#: What the workers' server imports once, before it forks them.
+PRELOADED = ("saferace.eval.runner", "saferace.agents.mpc", "saferace.learning.expert_labels")
+
+#: ``info`` of a :class:`VectorSlot` step holds the episode's own info under this key, in
+#: an :class:`InfoBox` (gymnasium would turn each field of a dict into an array).
+INFO_KEY = "episode"
+
+
+class InfoBox:
+    """One env's step info, carried whole through the vector."""
+
+    __slots__ = ("info",)
+
+    def __init__(self, info: dict) -> None:
+        self.info = info
+
+
+class VectorSlot(gym.Wrapper):
+    """One env of a vector: takes an agent's action as ``[mean, std]`` (std NaN for a plain
+    action), returns its info whole under :data:`INFO_KEY`, and once its episode has ended
+    answers every further step with its last one, without simulating."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        size = int(np.prod(env.action_space.shape))
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (2 * size,), np.float64)
+        self._last: tuple | None = None
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict]:
+        self._last = None
+        observation, info = self.env.reset(**kwargs)
+        return observation, {INFO_KEY: InfoBox(info)}
+
+    def step(self, action: np.ndarray) -> tuple:
+        if self._last is not None:
+            return self._last
+        mean, std = np.split(np.asarray(action, dtype=float), 2)
+        decoded = mean if np.isnan(std).all() else NominalAction(mean, std)
+        observation, reward, terminated, truncated, info = self.env.step(decoded)
+        result = (observation, reward, terminated, truncated, {INFO_KEY: InfoBox(info)})
+        if terminated or truncated:
+            self._last = result
+        return result
+
+
+def encoded(action: Any, filtered: bool) -> np.ndarray:
+    """An agent's action as a :class:`VectorSlot` takes it (without a filter, its mean)."""
+    mean, std = nominal_parts(action)
+    if not filtered or std is None:
+        std = np.full_like(mean, np.nan)
+    return np.concatenate([mean, std])
+
+
+def vector_slot(make_env: Callable[[], gym.Env]) -> VectorSlot:
+    """A worker's env: one thread for its libraries, then ``make_env()`` in a slot."""
+    limit_threads(1)
+    return VectorSlot(make_env())
+
+
+def per_env(observations: dict[str, np.ndarray], count: int) -> list[dict[str, np.ndarray]]:
+    """A vector's batched observations as one dict per env (copies)."""
+    return [
+        {key: np.array(values[k]) for key, values in observations.items()} for k in range(count)
+    ]
+
+
+ActAll = Callable[[Sequence[Any], Sequence[dict], Sequence[dict]], list]
+
+
+def act_each(agents: Sequence[Any], observations: Sequence[dict], infos: Sequence[dict]) -> list:
+    """Every agent on its own observation: ``act_all`` where nothing is batched."""
+    return [act(agent, o, i) for agent, o, i in zip(agents, observations, infos, strict=True)]
+
+
+def run_together(
+    make_envs: Sequence[Callable[[], gym.Env]],
+    agents: Sequence[Any],
+    seeds: Sequence[int],
+    like: gym.Env,
+    act_all: ActAll = act_each,
+    on_steps: Sequence[Callable[[dict, dict, np.ndarray], None]] | None = None,
+    progress: bool = False,
+) -> list[EpisodeResult]:
+    """Drive ``agents[k]`` on ``make_envs[k]()`` (seeded ``seeds[k]``), all at once; each
+    one's :class:`~saferace.eval.runner.EpisodeResult` as :func:`~saferace.eval.runner.
+    run_episode` gives it. ``like``: an env built as the others (not stepped), to read what
+    to record; ``act_all(agents, observations, infos)``: the active agents' actions;
+    ``on_steps[k]``: as ``run_episode``'s ``on_step``, for env ``k``."""
+    count = len(make_envs)
+    multiprocessing.set_forkserver_preload(list(PRELOADED))  # where no server runs yet
+    vector = gym.vector.AsyncVectorEnv(
+        [partial(vector_slot, make) for make in make_envs],
+        shared_memory=False,
+        context="forkserver",
+        autoreset_mode=AutoresetMode.DISABLED,
+    )
+    recorders = [EpisodeRecorder(like) for _ in range(count)]
+    filtered = recorders[0].filtered
+    base = like.unwrapped
+    ends: list[tuple[dict, bool, bool] | None] = [None] * count
+    try:
+        batched, infos = vector.reset(seed=list(seeds))
+        observations = per_env(batched, count)
+        step_infos = [box.info for box in infos[INFO_KEY]]
+        for agent in agents:
+            if hasattr(agent, "reset"):
+                agent.reset()
+        total = base.max_steps * count
+        with Progress(total, f"{count} envs", "step", enabled=progress) as bar:
+            while any(end is None for end in ends):
+                active = [k for k in range(count) if ends[k] is None]
+                chosen = act_all(
+                    [agents[k] for k in active],
+                    [observations[k] for k in active],
+                    [step_infos[k] for k in active],
+                )
+                actions = np.zeros((count, vector.single_action_space.shape[0]))
+                for k, action in zip(active, chosen, strict=True):
+                    actions[k] = encoded(action, filtered)
+                batched, _, terminated, truncated, infos = vector.step(actions)
+                observations = per_env(batched, count)
+                for k in active:
+                    info = step_infos[k] = infos[INFO_KEY][k].info
+                    recorders[k].record(info)
+                    if on_steps is not None:
+                        half = len(actions[k]) // 2
+                        applied = (
+                            info["safety"]["filtered_action"] if filtered else actions[k][:half]
+                        )
+                        on_steps[k](observations[k], info, np.asarray(applied, dtype=float))
+                    if terminated[k] or truncated[k]:
+                        ends[k] = (info, bool(terminated[k]), bool(truncated[k]))
+                        bar.update(base.max_steps - len(recorders[k].records["s_m"]))
+                bar.update(len(active))
+            results = [
+                recorder.result(*end)  # type: ignore[misc]  # every episode has ended
+                for recorder, end in zip(recorders, ends, strict=True)
+            ]
+            for seed, result in zip(seeds, results, strict=True):
+                bar.report(f"episode (seed {seed})", episode_words(result.summary), False)
+    finally:
+        vector.close()
+    return results

@@ -1,0 +1,95 @@
+"""Episodes collected together (``--num-envs``) give the frames they give one by one."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from saferace.agents.pid import PIDSpeedController
+from saferace.errors import SafeRaceError
+from saferace.learning.agent import LearnedAgent
+from saferace.learning.collect import collect_episode, collect_episodes_together, collect_round
+from saferace.learning.configs import CollectionConfig, EpisodeSettings, Perturbation
+from saferace.learning.networks import DrivingNetwork, control_config
+from saferace.learning.rounds import load_rounds
+from tests.cli_helpers import run_cli
+
+
+def short_config(**overrides) -> CollectionConfig:
+    values = dict(
+        agent="drift",
+        task="CenterLine",
+        track="lab",
+        seeds=(3, 4, 5),
+        episode=EpisodeSettings(max_seconds=1.5, train_fraction=0.5, randomize="mild"),
+        perturbation=Perturbation(0.05),
+        beta=0.5,
+    )
+    return CollectionConfig(**{**values, **overrides})
+
+
+def test_episodes_driven_together_give_the_serial_frames_bit_for_bit():
+    config = short_config()  # a driver, the expert's mixing and steering noise all drawn
+    serial = [collect_episode(config, episode, seed) for episode, seed in enumerate(config.seeds)]
+    together = collect_episodes_together(config, [0, 1, 2])
+    for alone, batched in zip(serial, together, strict=True):
+        for part in ("frames", "held_out"):
+            for name, values in getattr(alone, part).items():
+                assert np.array_equal(values, getattr(batched, part)[name]), (part, name)
+        assert alone.summary == batched.summary
+    assert not np.array_equal(serial[0].frames["image"], serial[1].frames["image"][:1])
+    assert len({tuple(episode.frames["driver_action"][:, 0][:5]) for episode in serial}) == 3
+
+
+def test_a_round_collected_in_groups_is_the_serial_round(tmp_path):
+    config = short_config(agent="expert", seeds=(1, 2, 3), beta=0.0)
+    serial = load_rounds([collect_round(tmp_path / "serial", config, progress=False).path])
+    grouped = collect_round(tmp_path / "grouped", config, progress=False, num_envs=2).path
+    together = load_rounds([grouped])
+    for name in ("image", "state", "expert", "applied_action", "episode"):
+        assert np.array_equal(serial[name], together[name]), name
+    with pytest.raises(SafeRaceError, match="num-envs"):
+        collect_round(tmp_path / "both", config, progress=False, workers=2, num_envs=2)
+
+
+def learned_agents(count: int) -> list[LearnedAgent]:
+    torch.manual_seed(0)
+    network = DrivingNetwork(control_config()).eval()
+    return [LearnedAgent(network, PIDSpeedController(0.05), 10, seed) for seed in range(count)]
+
+
+def test_learned_agents_acting_together_draw_their_own_masks_in_one_forward_pass():
+    agents = learned_agents(3)
+    alone = copy.deepcopy(agents)
+    alone_network = alone[0].network
+    for agent in alone:
+        agent.network = alone_network  # deepcopy keeps one network shared too
+    rng = np.random.default_rng(0)
+    observations = [
+        {"image": rng.integers(0, 255, (64, 64, 3), dtype=np.uint8),
+         "velocity": np.array([2.0 + k, 0.0, 0.1], np.float32)}
+        for k in range(3)
+    ]  # fmt: skip
+    for _ in range(2):  # the masks move on as they would alone
+        together = LearnedAgent.act_together(agents, observations)
+        each = [
+            agent.act(observation) for agent, observation in zip(alone, observations, strict=True)
+        ]
+        for batched, single in zip(together, each, strict=True):
+            np.testing.assert_allclose(batched.mean, single.mean, atol=1e-5)
+            np.testing.assert_allclose(batched.std, single.std, atol=1e-5)
+    assert not np.allclose(together[0].std, together[1].std)  # each its own masks
+    with pytest.raises(SafeRaceError, match="share one network"):
+        LearnedAgent.act_together([agents[0], learned_agents(1)[0]], observations[:2])
+
+
+def test_collect_takes_num_envs(tmp_path):
+    result = run_cli(
+        "collect", "--track", "lab", "--seeds", "0", "1", "--max-seconds", "1",
+        "--num-envs", "2", "--out", str(tmp_path / "data"),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert load_rounds([tmp_path / "data"])["episode"].max() == 1
