@@ -50,6 +50,7 @@ class StateEnsemble(nn.Module):
             self.add_module(f"member_{index}", member)
         self._graphs = GraphCache(self.predict_tensors)
         self._pool: ThreadPoolExecutor | None = None
+        self._streams: list[torch.cuda.Stream] | None = None
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
         """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs stale."""
@@ -92,8 +93,10 @@ class StateEnsemble(nn.Module):
         """Every member's means, stds and features. On a CPU with several threads the
         members run side by side, one thread each: a batch-1 ResNet-18 keeps one core busy
         better than it splits over two (measured 1.4x on 2 cores)."""
+        if image.device.type == "cuda":
+            return self._members_on_streams(image)
         threads = torch.get_num_threads()
-        if image.device.type != "cpu" or threads < 2:
+        if threads < 2:
             return [_member_outputs(member, image) for member in self.members]
         if self._pool is None:
             self._pool = ThreadPoolExecutor(threads, thread_name_prefix="ensemble")
@@ -102,6 +105,21 @@ class StateEnsemble(nn.Module):
             return list(self._pool.map(lambda member: _member_outputs(member, image), self.members))
         finally:
             torch.set_num_threads(threads)
+
+    def _members_on_streams(self, image: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
+        """On a GPU every member on its own stream (in a captured graph, its own branch):
+        at batch 1 one member leaves most of the GPU idle."""
+        current = torch.cuda.current_stream(image.device)
+        if self._streams is None:
+            self._streams = [torch.cuda.Stream(image.device) for _ in self.members]
+        outputs = []
+        for member, stream in zip(self.members, self._streams, strict=True):
+            stream.wait_stream(current)
+            with torch.cuda.stream(stream):
+                outputs.append(_member_outputs(member, image))
+        for stream in self._streams:
+            current.wait_stream(stream)
+        return outputs
 
 
 @torch.inference_mode()  # thread-local: the pool's threads need it too
