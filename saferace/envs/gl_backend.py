@@ -138,6 +138,12 @@ def check_gl_process() -> None:
         )
 
 
+def has_rendered() -> bool:
+    """Whether this process (or one it was forked from) has made an OpenGL context: a child
+    forked from it could not render."""
+    return _GL_OWNER_PID is not None
+
+
 def note_gl_process() -> None:
     """Record this process as one that has made an OpenGL context."""
     global _GL_OWNER_PID

@@ -8,10 +8,13 @@ batched forward pass. Each episode keeps the records of :func:`~saferace.eval.ru
 run_episode` and, with the same seed and agent, the same steps: an episode that ends waits
 (:class:`VectorSlot` replays its last step without simulating) until every one has.
 
-The workers fork from a server process that has imported the modules they need (the
-scenes, the filters, the expert: seconds of imports a spawned worker would pay each,
-:data:`PRELOADED`) and has never rendered or started PyTorch (a child forked from a
-process that did would share its OpenGL and PyTorch state). Each worker gets one thread
+The workers are forked from this process where it has neither rendered nor loaded
+PyTorch: they start at once, with every module imported (a collection driven by the
+expert). Elsewhere (a child forked from a process that did would share its OpenGL and
+PyTorch state) they fork from a server process that has imported the modules they need
+(the scenes, the filters, the expert: seconds of imports a spawned worker would pay each,
+:data:`PRELOADED`) and the main module (which a worker imports again otherwise: a script
+that imports PyTorch cost each of 8 workers 0.7 s more). Each worker gets one thread
 for BLAS, OpenMP and PyTorch (N busy workers each starting a thread per core fight over the
 cores).
 """
@@ -19,6 +22,7 @@ cores).
 from __future__ import annotations
 
 import multiprocessing
+import sys
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -27,6 +31,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
+from saferace.envs.gl_backend import has_rendered
 from saferace.eval.agents import act
 from saferace.eval.parallel import limit_threads
 from saferace.eval.runner import EpisodeRecorder, EpisodeResult, episode_words
@@ -86,6 +91,16 @@ def encoded(action: Any, filtered: bool) -> np.ndarray:
     return np.concatenate([mean, std])
 
 
+def worker_context() -> str:
+    """``fork`` where this process has neither rendered nor loaded PyTorch, else
+    ``forkserver`` (its server preloading :data:`PRELOADED` and the main module)."""
+    if not has_rendered() and "torch" not in sys.modules:
+        return "fork"
+    # where no server runs yet; with the main module, which each worker would import again
+    multiprocessing.set_forkserver_preload(["__main__", *PRELOADED])
+    return "forkserver"
+
+
 def vector_slot(make_env: Callable[[], gym.Env]) -> VectorSlot:
     """A worker's env: one thread for its libraries, then ``make_env()`` in a slot."""
     limit_threads(1)
@@ -122,11 +137,10 @@ def run_together(
     to record; ``act_all(agents, observations, infos)``: the active agents' actions;
     ``on_steps[k]``: as ``run_episode``'s ``on_step``, for env ``k``."""
     count = len(make_envs)
-    multiprocessing.set_forkserver_preload(list(PRELOADED))  # where no server runs yet
     vector = gym.vector.AsyncVectorEnv(
         [partial(vector_slot, make) for make in make_envs],
         shared_memory=False,
-        context="forkserver",
+        context=worker_context(),
         autoreset_mode=AutoresetMode.DISABLED,
     )
     recorders = [EpisodeRecorder(like) for _ in range(count)]
