@@ -93,3 +93,25 @@ def test_collect_takes_num_envs(tmp_path):
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert load_rounds([tmp_path / "data"])["episode"].max() == 1
+
+
+def test_eval_rows_of_episodes_driven_together_are_the_serial_rows(tmp_path):
+    from saferace.eval.filters import FilterConfig
+    from saferace.eval.runner import evaluate
+
+    kwargs = dict(laps=1, progress=False, env_kwargs={"max_steps": 30, "randomize": "mild"})
+    safety = FilterConfig(kind="cbf", state_noise=(0.05, 0.05))  # seeded by each seed
+    serial = evaluate("weave", "CenterLine", "lab", [0, 1, 2], safety=safety, **kwargs)
+    together = evaluate(
+        "weave", "CenterLine", "lab", [0, 1, 2], safety=safety, num_envs=2, **kwargs
+    )
+    for alone, grouped in zip(serial, together, strict=True):
+        for key in ("summary", "trajectory", "config"):
+            assert alone[key] == grouped[key], key
+    assert serial[0]["trajectory"] != serial[1]["trajectory"]
+    result = run_cli(
+        "eval", "--agent", "pure-pursuit", "--track", "lab", "--seeds", "0", "1",
+        "--max-seconds", "1", "--num-envs", "2", "--out", str(tmp_path / "rows.jsonl"),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 2

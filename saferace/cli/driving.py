@@ -11,6 +11,7 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_episode_arguments,
     add_filter_arguments,
+    add_num_envs_argument,
     add_parallel_arguments,
     built_filter_config,
 )
@@ -74,6 +75,7 @@ def register(commands: argparse._SubParsersAction) -> None:
     evaluate.add_argument(
         "--max-seconds", type=values.positive, help="end an episode after this much simulated time"
     )
+    add_num_envs_argument(evaluate)
     add_device_argument(evaluate)
     evaluate.set_defaults(command=_eval)
 
@@ -206,6 +208,7 @@ def _eval(args: argparse.Namespace) -> int:
         },
         safety=built_filter_config(args),
         mc_samples=args.mc_samples,
+        num_envs=args.num_envs,
     )
     print(leaderboard_markdown(rows))
     print(f"{len(rows)} rows appended to {args.out}")

@@ -9,7 +9,7 @@ import platform
 import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, partial
 from importlib import metadata
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -198,41 +198,59 @@ def evaluate(
     env_kwargs: dict[str, Any] | None = None,
     safety: FilterConfig | None = None,
     mc_samples: int = 10,
+    num_envs: int = 1,
 ) -> list[dict]:
     """One JSON row per seed: metrics, trajectory, configuration, versions; appended to ``out``.
 
-    ``safety`` wraps the agent in a safety filter. Rows are written as each episode ends,
-    so an interrupted run keeps what it finished. A learned agent or state source is
-    recorded by its checkpoint (``agent_checkpoint``, ``state_source``).
+    ``safety`` wraps the agent in a safety filter. Rows are written as each episode ends
+    (``num_envs`` > 1: as each group of that many, driven at once, ends; see
+    :func:`~saferace.eval.vector_runner.run_together`), so an interrupted run keeps what it
+    finished. A learned agent or state source is recorded by its checkpoint
+    (``agent_checkpoint``, ``state_source``).
     """
     safety = safety or FilterConfig()
+    env_kwargs = env_kwargs or {}
     rows = []
-    for seed in seeds:
-        env = make_task_env(task, track, laps, safety, seed, **(env_kwargs or {}))
+    for start in range(0, len(seeds), num_envs):
+        group = list(seeds[start : start + num_envs])
+        env = make_task_env(task, track, laps, safety, group[0], **env_kwargs)
         try:
-            agent = make_agent(agent_spec, env, model=model, mc_samples=mc_samples, seed=seed)
-            result = run_episode(env, agent, seed=seed, progress=progress)
-            row = result_row(
-                agent_spec, task, racing_env(env).track.name, track, seed, laps, model, result,
-                safety=safety,
-            )  # fmt: skip
-            row["config"]["env"] = env_kwargs or {}
-            if hasattr(agent, "describe"):
-                row["agent_checkpoint"] = agent.describe()
-            describe_source = getattr(getattr(env, "state_source", None), "describe", None)
-            if describe_source is not None:
-                row["state_source"] = describe_source()
-            if hasattr(agent, "stats"):
-                row["solver"] = solver_summary(agent.stats)
-            if "solve_time_s" in result.steps:
-                row["filter_solver"] = _solve_times_ms(
-                    result.steps["solve_time_s"], result.steps["filter_time_s"]
-                )
+            agents = [
+                make_agent(agent_spec, env, model=model, mc_samples=mc_samples, seed=seed)
+                for seed in group
+            ]
+            if len(group) == 1:
+                results = [run_episode(env, agents[0], seed=group[0], progress=progress)]
+            else:
+                from saferace.eval.vector_runner import run_together
+
+                make_envs = [
+                    partial(make_task_env, task, track, laps, safety, seed, **env_kwargs)
+                    for seed in group
+                ]
+                results = run_together(make_envs, agents, group, env, progress=progress)
+            for seed, agent, result in zip(group, agents, results, strict=True):
+                row = result_row(
+                    agent_spec, task, racing_env(env).track.name, track, seed, laps, model,
+                    result, safety=safety,
+                )  # fmt: skip
+                row["config"]["env"] = env_kwargs
+                if hasattr(agent, "describe"):
+                    row["agent_checkpoint"] = agent.describe()
+                describe_source = getattr(getattr(env, "state_source", None), "describe", None)
+                if describe_source is not None:
+                    row["state_source"] = describe_source()
+                if hasattr(agent, "stats"):
+                    row["solver"] = solver_summary(agent.stats)
+                if "solve_time_s" in result.steps:
+                    row["filter_solver"] = _solve_times_ms(
+                        result.steps["solve_time_s"], result.steps["filter_time_s"]
+                    )
+                rows.append(row)
+                if out is not None:
+                    append_jsonl(out, row)
         finally:
             env.close()
-        rows.append(row)
-        if out is not None:
-            append_jsonl(out, row)
     return rows
 
 

@@ -117,9 +117,28 @@ def per_env(observations: dict[str, np.ndarray], count: int) -> list[dict[str, n
 ActAll = Callable[[Sequence[Any], Sequence[dict], Sequence[dict]], list]
 
 
-def act_each(agents: Sequence[Any], observations: Sequence[dict], infos: Sequence[dict]) -> list:
-    """Every agent on its own observation: ``act_all`` where nothing is batched."""
+def act_all_agents(
+    agents: Sequence[Any], observations: Sequence[dict], infos: Sequence[dict]
+) -> list:
+    """Every agent's action: in one batched forward pass where all are learned agents of
+    one network (their class's ``act_together``), else each on its own observation."""
+    kind = type(agents[0]) if agents else None
+    if (
+        hasattr(kind, "act_together")
+        and all(type(agent) is kind for agent in agents)
+        and len({id(agent.network) for agent in agents}) == 1
+    ):
+        return kind.act_together(list(agents), list(observations))  # type: ignore[union-attr]
     return [act(agent, o, i) for agent, o, i in zip(agents, observations, infos, strict=True)]
+
+
+def share_networks(agents: Sequence[Any]) -> None:
+    """Give learned agents of one checkpoint (each loaded its own copy) the first one's
+    network, so that they act in one forward pass."""
+    learned = [agent for agent in agents if hasattr(agent, "act_together")]
+    for agent in learned[1:]:
+        if type(agent) is type(learned[0]) and agent.checkpoint == learned[0].checkpoint:
+            agent.network = learned[0].network
 
 
 def run_together(
@@ -127,16 +146,18 @@ def run_together(
     agents: Sequence[Any],
     seeds: Sequence[int],
     like: gym.Env,
-    act_all: ActAll = act_each,
+    act_all: ActAll = act_all_agents,
     on_steps: Sequence[Callable[[dict, dict, np.ndarray], None]] | None = None,
     progress: bool = False,
 ) -> list[EpisodeResult]:
     """Drive ``agents[k]`` on ``make_envs[k]()`` (seeded ``seeds[k]``), all at once; each
     one's :class:`~saferace.eval.runner.EpisodeResult` as :func:`~saferace.eval.runner.
     run_episode` gives it. ``like``: an env built as the others (not stepped), to read what
-    to record; ``act_all(agents, observations, infos)``: the active agents' actions;
+    to record; ``act_all(agents, observations, infos)``: the active agents' actions
+    (default :func:`act_all_agents`, after :func:`share_networks`);
     ``on_steps[k]``: as ``run_episode``'s ``on_step``, for env ``k``."""
     count = len(make_envs)
+    share_networks(agents)
     vector = gym.vector.AsyncVectorEnv(
         [partial(vector_slot, make) for make in make_envs],
         shared_memory=False,

@@ -39,7 +39,7 @@ from saferace.eval.runner import (
     package_versions,
     run_episode,
 )
-from saferace.eval.vector_runner import run_together
+from saferace.eval.vector_runner import act_all_agents, run_together, share_networks
 from saferace.learning.configs import CollectionConfig, Perturbation
 from saferace.learning.expert_labels import ExpertLabels, LabelsFromInfo
 from saferace.learning.rounds import FRAME_FIELDS, write_round
@@ -267,10 +267,7 @@ def collect_episodes_together(
             labelling_driver(config, like, LabelsFromInfo(), episode, seed)
             for episode, seed in zip(episodes, seeds, strict=True)
         ]
-        drivers = [labeller.driver for labeller in labellers]
-        if config.agent.startswith("learned:"):  # one network, for one forward pass
-            for driver in drivers[1:]:
-                driver.network = drivers[0].network  # type: ignore[union-attr]
+        share_networks([labeller.driver for labeller in labellers])
         make_envs = [
             partial(labelled_task_env, config, seed, config.episode.expert_model) for seed in seeds
         ]
@@ -298,12 +295,11 @@ def act_labellers(
     can be (one batched forward pass), else one by one."""
     acting = [labeller.driver_acts() for labeller in labellers]
     asked = [k for k, acts in enumerate(acting) if acts]
-    drivers = [labellers[k].driver for k in asked]
-    kind = type(drivers[0]) if drivers else None
-    if kind is not None and hasattr(kind, "act_together") and all(type(d) is kind for d in drivers):
-        answers = kind.act_together(drivers, [observations[k] for k in asked])
-    else:
-        answers = [act(labellers[k].driver, observations[k], infos[k]) for k in asked]
+    answers = act_all_agents(
+        [labellers[k].driver for k in asked],
+        [observations[k] for k in asked],
+        [infos[k] for k in asked],
+    )
     driver_actions: list[Any] = [None] * len(labellers)
     for k, answer in zip(asked, answers, strict=True):
         driver_actions[k] = answer
