@@ -42,7 +42,7 @@ from saferace.safety.uncertainty.fallback import (
     towards_speed,
 )
 from saferace.safety.uncertainty.intervals import interval_points
-from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource
+from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource, prefetch
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
@@ -239,6 +239,7 @@ class SafetyFilter(gym.Wrapper):
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         self._last_trusted.reset()
+        prefetch(self.state_source, observation)  # the agent's network runs beside it
         return observation, info
 
     def step(self, action):
@@ -251,6 +252,7 @@ class SafetyFilter(gym.Wrapper):
         )
         info = {**info, "safety": decision.as_dict()}
         self._observation, self._info = observation, info
+        prefetch(self.state_source, observation)
         return observation, reward, terminated, truncated, info
 
     def certify(

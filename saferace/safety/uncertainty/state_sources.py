@@ -27,6 +27,15 @@ class StateSource(Protocol):
         ...
 
 
+def prefetch(source: StateSource, observation: dict[str, np.ndarray]) -> None:
+    """Let the source under ``source`` (through its wrappers' ``source``) that can start on
+    an observation early (a learned one: ``prefetch``) start on ``observation`` now."""
+    while source is not None and not hasattr(source, "prefetch"):
+        source = getattr(source, "source", None)
+    if source is not None:
+        source.prefetch(observation)
+
+
 def true_lane_state(info: dict[str, Any]) -> np.ndarray:
     """The simulator's ``[e_y, e_psi, kappa]`` from ``info``."""
     return np.array([info[name] for name in LANE_STATE_NAMES], dtype=float)
