@@ -13,11 +13,10 @@ host-to-device and device-to-host copies of one prediction counted by the PyTorc
 from __future__ import annotations
 
 import os
-import time
 
 import numpy as np
 import torch
-from learned_step_speed import ensemble, networks, packed
+from learned_step_speed import ensemble, median_ms, networks, packed
 from torch.profiler import ProfilerActivity, profile
 
 from saferace.eval.tables import markdown_table
@@ -27,15 +26,11 @@ from saferace.learning.device import resolve_device
 REPEATS = 100
 
 
-def median_ms(run, repeats: int = REPEATS) -> float:
+def warm_median_ms(run) -> float:
+    """The median of :data:`REPEATS` calls after a few (a graph is captured on its first)."""
     for _ in range(5):
         run()
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - started)
-    return float(np.median(times) * 1e3)
+    return median_ms(run, REPEATS)
 
 
 def main() -> None:
@@ -58,9 +53,9 @@ def main() -> None:
             return network.predict(image, speeds, 10, torch.Generator().manual_seed(0))
 
         os.environ[GRAPHS_VARIABLE] = "0"
-        eager, eager_ms = predict(), median_ms(predict)
+        eager, eager_ms = predict(), warm_median_ms(predict)
         os.environ[GRAPHS_VARIABLE] = "1"
-        graphed, graphs_ms = predict(), median_ms(predict)
+        graphed, graphs_ms = predict(), warm_median_ms(predict)
         fields = ("mean", "std", "samples", "features")
         difference = max(
             float(np.abs(getattr(eager, f) - getattr(graphed, f)).max()) for f in fields

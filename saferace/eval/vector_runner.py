@@ -32,6 +32,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 
 from saferace.envs.gl_backend import has_rendered
+from saferace.envs.unwrap import racing_env
 from saferace.eval.agents import act
 from saferace.eval.parallel import limit_threads
 from saferace.eval.runner import EpisodeRecorder, EpisodeResult, episode_words
@@ -39,7 +40,7 @@ from saferace.progress import Progress
 from saferace.safety.decision import NominalAction, nominal_parts
 
 #: What the workers' server imports once, before it forks them.
-PRELOADED = ("saferace.eval.runner", "saferace.agents.mpc", "saferace.learning.expert_labels")
+PRELOADED = ("saferace.eval.runner", "saferace.agents.mpc")
 
 #: ``info`` of a :class:`VectorSlot` step holds the episode's own info under this key, in
 #: an :class:`InfoBox` (gymnasium would turn each field of a dict into an array).
@@ -62,8 +63,7 @@ class VectorSlot(gym.Wrapper):
 
     def __init__(self, env: gym.Env) -> None:
         super().__init__(env)
-        size = int(np.prod(env.action_space.shape))
-        self.action_space = gym.spaces.Box(-np.inf, np.inf, (2 * size,), np.float64)
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (encoded_size(env),), np.float64)
         self._last: tuple | None = None
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
@@ -83,6 +83,13 @@ class VectorSlot(gym.Wrapper):
         return result
 
 
+def encoded_size(env: gym.Env) -> int:
+    """The length of ``env``'s actions as a :class:`VectorSlot` takes them: mean and std."""
+    shape = env.action_space.shape
+    assert shape is not None, "SafeRace actions are a Box"
+    return 2 * int(np.prod(shape))
+
+
 def encoded(action: Any, filtered: bool) -> np.ndarray:
     """An agent's action as a :class:`VectorSlot` takes it (without a filter, its mean)."""
     mean, std = nominal_parts(action)
@@ -91,13 +98,14 @@ def encoded(action: Any, filtered: bool) -> np.ndarray:
     return np.concatenate([mean, std])
 
 
-def worker_context() -> str:
+def worker_context(preload: Sequence[str] = ()) -> str:
     """``fork`` where this process has neither rendered nor loaded PyTorch, else
-    ``forkserver`` (its server preloading :data:`PRELOADED` and the main module)."""
+    ``forkserver`` (its server preloading :data:`PRELOADED`, ``preload`` and the main
+    module)."""
     if not has_rendered() and "torch" not in sys.modules:
         return "fork"
     # where no server runs yet; with the main module, which each worker would import again
-    multiprocessing.set_forkserver_preload(["__main__", *PRELOADED])
+    multiprocessing.set_forkserver_preload(["__main__", *PRELOADED, *preload])
     return "forkserver"
 
 
@@ -149,24 +157,26 @@ def run_together(
     act_all: ActAll = act_all_agents,
     on_steps: Sequence[Callable[[dict, dict, np.ndarray], None]] | None = None,
     progress: bool = False,
+    preload: Sequence[str] = (),
 ) -> list[EpisodeResult]:
     """Drive ``agents[k]`` on ``make_envs[k]()`` (seeded ``seeds[k]``), all at once; each
     one's :class:`~saferace.eval.runner.EpisodeResult` as :func:`~saferace.eval.runner.
     run_episode` gives it. ``like``: an env built as the others (not stepped), to read what
     to record; ``act_all(agents, observations, infos)``: the active agents' actions
     (default :func:`act_all_agents`, after :func:`share_networks`);
-    ``on_steps[k]``: as ``run_episode``'s ``on_step``, for env ``k``."""
+    ``on_steps[k]``: as ``run_episode``'s ``on_step``, for env ``k``; ``preload``: modules
+    the workers need beyond :data:`PRELOADED` (see :func:`worker_context`)."""
     count = len(make_envs)
     share_networks(agents)
     vector = gym.vector.AsyncVectorEnv(
         [partial(vector_slot, make) for make in make_envs],
         shared_memory=False,
-        context=worker_context(),
+        context=worker_context(preload),
         autoreset_mode=AutoresetMode.DISABLED,
     )
     recorders = [EpisodeRecorder(like) for _ in range(count)]
     filtered = recorders[0].filtered
-    base = like.unwrapped
+    base = racing_env(like)
     ends: list[tuple[dict, bool, bool] | None] = [None] * count
     try:
         batched, infos = vector.reset(seed=list(seeds))
@@ -184,7 +194,7 @@ def run_together(
                     [observations[k] for k in active],
                     [step_infos[k] for k in active],
                 )
-                actions = np.zeros((count, vector.single_action_space.shape[0]))
+                actions = np.zeros((count, encoded_size(like)))
                 for k, action in zip(active, chosen, strict=True):
                     actions[k] = encoded(action, filtered)
                 batched, _, terminated, truncated, infos = vector.step(actions)

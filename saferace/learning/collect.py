@@ -107,7 +107,9 @@ class LabellingDriver:
     def act(
         self, observation: dict[str, np.ndarray], info: dict[str, Any]
     ) -> np.ndarray | NominalAction:
-        driver_action = act(self.driver, observation, info) if self.driver_acts() else None
+        driver = self.driver
+        acts = driver is not None and self.driver_acts()
+        driver_action = act(driver, observation, info) if acts else None  # type: ignore[arg-type]
         return self.labelled(observation, info, driver_action)
 
     def driver_acts(self) -> bool:
@@ -279,6 +281,7 @@ def collect_episodes_together(
             act_labellers,
             [labeller.after_step for labeller in labellers],
             progress,
+            preload=(ExpertLabels.__module__,),
         )
     finally:
         like.close()

@@ -17,6 +17,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from saferace.agents.mpc import MPCExpert
 from saferace.eval.agents import make_agent
 
 #: Where :class:`ExpertLabels` puts the expert's ``action`` and ``planned_speed_mps``.
@@ -29,7 +30,9 @@ class ExpertLabels(gym.Wrapper):
 
     def __init__(self, env: gym.Env, expert_model: str) -> None:
         super().__init__(env)
-        self.expert = make_agent("expert", env, expert_model)
+        expert = make_agent("expert", env, expert_model)  # in traffic, it plans around
+        assert isinstance(expert, MPCExpert), "the expert is an MPC"
+        self.expert = expert
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         observation, info = self.env.reset(**kwargs)

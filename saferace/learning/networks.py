@@ -190,9 +190,10 @@ class DrivingNetwork(nn.Module):
         per_member = 2 * outputs if config.log_variance else outputs
         self.image_branch: nn.Module
         self.output_layer: nn.Module
+        self.backbone: nn.Module
         if config.packed > 1:
-            self.backbone = PackedResNet18(channels, config.packed, config.alpha, config.gamma)
-            features = self.backbone.features_per_member
+            packed = PackedResNet18(channels, config.packed, config.alpha, config.gamma)
+            self.backbone, features = packed, packed.features_per_member
             self.image_branch = GroupedLinear(config.packed, features, config.hidden)
             self.output_layer = GroupedLinear(config.packed, config.hidden, per_member)
         else:

@@ -30,10 +30,11 @@ class StateSource(Protocol):
 def prefetch(source: StateSource, observation: dict[str, np.ndarray]) -> None:
     """Let the source under ``source`` (through its wrappers' ``source``) that can start on
     an observation early (a learned one: ``prefetch``) start on ``observation`` now."""
-    while source is not None and not hasattr(source, "prefetch"):
-        source = getattr(source, "source", None)
-    if source is not None:
-        source.prefetch(observation)
+    current: Any = source
+    while current is not None and not hasattr(current, "prefetch"):
+        current = getattr(current, "source", None)
+    if current is not None:
+        current.prefetch(observation)
 
 
 def true_lane_state(info: dict[str, Any]) -> np.ndarray:
