@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import copy
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from saferace.agents.pid import PIDSpeedController
 from saferace.errors import SafeRaceError
+from saferace.eval.vector_runner import VectorSlot, encoded
 from saferace.learning.agent import LearnedAgent
 from saferace.learning.collect import collect_episode, collect_episodes_together, collect_round
 from saferace.learning.configs import CollectionConfig, EpisodeSettings, Perturbation
 from saferace.learning.networks import DrivingNetwork, control_config
 from saferace.learning.rounds import load_rounds
+from saferace.safety.decision import NominalAction, nominal_parts
 from tests.cli_helpers import run_cli
 
 
@@ -101,13 +104,15 @@ def test_eval_rows_of_episodes_driven_together_are_the_serial_rows(tmp_path):
 
     kwargs = dict(laps=1, progress=False, env_kwargs={"max_steps": 30, "randomize": "mild"})
     safety = FilterConfig(kind="cbf", state_noise=(0.05, 0.05))  # seeded by each seed
+    threads = torch.get_num_threads()
     serial = evaluate("weave", "CenterLine", "lab", [0, 1, 2], safety=safety, **kwargs)
     together = evaluate(
         "weave", "CenterLine", "lab", [0, 1, 2], safety=safety, num_envs=2, **kwargs
     )
+    assert torch.get_num_threads() == threads  # the workers' limit stays theirs
     for alone, grouped in zip(serial, together, strict=True):
-        for key in ("summary", "trajectory", "config"):
-            assert alone[key] == grouped[key], key
+        for key in ("summary", "trajectory", "config", "state_source"):
+            assert alone.get(key) == grouped.get(key), key
     assert serial[0]["trajectory"] != serial[1]["trajectory"]
     result = run_cli(
         "eval", "--agent", "pure-pursuit", "--track", "lab", "--seeds", "0", "1",
@@ -115,3 +120,42 @@ def test_eval_rows_of_episodes_driven_together_are_the_serial_rows(tmp_path):
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 2
+
+
+class Recording(gym.Env):
+    """Keeps the action it was given; ends after one step."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (1,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.action = action
+        return np.zeros(1, np.float32), 0.0, True, False, {}
+
+
+@pytest.mark.parametrize(
+    "action, filtered",
+    [
+        (np.array([0.1, -0.5]), True),
+        (NominalAction(np.array([0.1, -0.5]), np.array([0.02, 0.3])), True),
+        (NominalAction(np.array([0.1, -0.5]), np.array([np.nan, np.nan])), True),
+        (NominalAction(np.array([0.1, -0.5]), np.array([0.02, 0.3])), False),
+    ],
+)
+def test_a_slot_hands_its_env_the_action_as_a_serial_run_would(action, filtered):
+    slot = VectorSlot(Recording())
+    slot.reset()
+    slot.step(encoded(action, filtered))
+    given = slot.env.action
+    mean, std = nominal_parts(action)
+    if filtered and std is not None:
+        assert isinstance(given, NominalAction)
+        np.testing.assert_array_equal(given.mean, mean)
+        np.testing.assert_array_equal(given.std, std)  # NaN where it was NaN
+    else:
+        assert not isinstance(given, NominalAction)
+        np.testing.assert_array_equal(given, mean)
+    assert slot.step(encoded(action, filtered))[2] and slot.env.action is given  # held

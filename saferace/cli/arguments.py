@@ -251,7 +251,8 @@ def add_num_envs_argument(parser: argparse.ArgumentParser) -> None:
         default=1,
         metavar="N",
         help="episodes driven at once, each env in its own process, a learned driver's "
-        "network asked once per step for all of them (the same frames as one by one)",
+        "network asked once per step for all of them (the frames of one by one: bit for bit "
+        "with the expert and scripted drivers, to float rounding with a learned one)",
     )
 
 

@@ -57,6 +57,8 @@ class EpisodeResult:
     terminated: bool
     truncated: bool
     traffic: dict[str, int] | None = None
+    #: Its state source's description at the end, where it ran in another process.
+    source_description: dict | None = None
 
     @property
     def summary(self) -> dict:
@@ -238,7 +240,9 @@ def evaluate(
                 if hasattr(agent, "describe"):
                     row["agent_checkpoint"] = agent.describe()
                 describe_source = getattr(getattr(env, "state_source", None), "describe", None)
-                if describe_source is not None:
+                if result.source_description is not None:
+                    row["state_source"] = result.source_description
+                elif describe_source is not None:
                     row["state_source"] = describe_source()
                 if hasattr(agent, "stats"):
                     row["solver"] = solver_summary(agent.stats)

@@ -39,6 +39,8 @@ from saferace.eval.runner import EpisodeRecorder, EpisodeResult, episode_words
 from saferace.progress import Progress
 from saferace.safety.decision import NominalAction, nominal_parts
 
+#: The last info of an episode holds its state source's description under this key.
+SOURCE_KEY = "state_source_description"
 #: What the workers' server imports once, before it forks them.
 PRELOADED = ("saferace.eval.runner", "saferace.agents.mpc")
 
@@ -57,8 +59,9 @@ class InfoBox:
 
 
 class VectorSlot(gym.Wrapper):
-    """One env of a vector: takes an agent's action as ``[mean, std]`` (std NaN for a plain
-    action), returns its info whole under :data:`INFO_KEY`, and once its episode has ended
+    """One env of a vector: takes an agent's action as ``[has std, mean, std]`` (see
+    :func:`encoded`), returns its info whole under :data:`INFO_KEY` (the last one with its
+    state source's description under :data:`SOURCE_KEY`), and once its episode has ended
     answers every further step with its last one, without simulating."""
 
     def __init__(self, env: gym.Env) -> None:
@@ -74,9 +77,12 @@ class VectorSlot(gym.Wrapper):
     def step(self, action: np.ndarray) -> tuple:
         if self._last is not None:
             return self._last
-        mean, std = np.split(np.asarray(action, dtype=float), 2)
-        decoded = mean if np.isnan(std).all() else NominalAction(mean, std)
+        has_std, (mean, std) = action[0] > 0.0, np.split(np.asarray(action[1:], dtype=float), 2)
+        decoded = NominalAction(mean, std) if has_std else mean
         observation, reward, terminated, truncated, info = self.env.step(decoded)
+        if terminated or truncated:
+            describe = getattr(getattr(self.env, "state_source", None), "describe", None)
+            info = {**info, SOURCE_KEY: None if describe is None else describe()}
         result = (observation, reward, terminated, truncated, {INFO_KEY: InfoBox(info)})
         if terminated or truncated:
             self._last = result
@@ -84,18 +90,19 @@ class VectorSlot(gym.Wrapper):
 
 
 def encoded_size(env: gym.Env) -> int:
-    """The length of ``env``'s actions as a :class:`VectorSlot` takes them: mean and std."""
+    """The length of ``env``'s actions as a :class:`VectorSlot` takes them: a flag, the mean
+    and the std."""
     shape = env.action_space.shape
     assert shape is not None, "SafeRace actions are a Box"
-    return 2 * int(np.prod(shape))
+    return 1 + 2 * int(np.prod(shape))
 
 
 def encoded(action: Any, filtered: bool) -> np.ndarray:
-    """An agent's action as a :class:`VectorSlot` takes it (without a filter, its mean)."""
+    """An agent's action as a :class:`VectorSlot` takes it: whether it has a spread (only a
+    filter takes one), its mean and its spread (zeros where it has none)."""
     mean, std = nominal_parts(action)
-    if not filtered or std is None:
-        std = np.full_like(mean, np.nan)
-    return np.concatenate([mean, std])
+    has_std = filtered and std is not None
+    return np.concatenate([[float(has_std)], mean, std if has_std else np.zeros_like(mean)])
 
 
 def worker_context(preload: Sequence[str] = ()) -> str:
@@ -110,8 +117,10 @@ def worker_context(preload: Sequence[str] = ()) -> str:
 
 
 def vector_slot(make_env: Callable[[], gym.Env]) -> VectorSlot:
-    """A worker's env: one thread for its libraries, then ``make_env()`` in a slot."""
-    limit_threads(1)
+    """A worker's env: one thread for its libraries, then ``make_env()`` in a slot (gymnasium
+    also builds the first in this process, for its spaces: its threads stay as they are)."""
+    if multiprocessing.parent_process() is not None:
+        limit_threads(1)
     return VectorSlot(make_env())
 
 
@@ -168,17 +177,18 @@ def run_together(
     the workers need beyond :data:`PRELOADED` (see :func:`worker_context`)."""
     count = len(make_envs)
     share_networks(agents)
-    vector = gym.vector.AsyncVectorEnv(
-        [partial(vector_slot, make) for make in make_envs],
-        shared_memory=False,
-        context=worker_context(preload),
-        autoreset_mode=AutoresetMode.DISABLED,
-    )
     recorders = [EpisodeRecorder(like) for _ in range(count)]
     filtered = recorders[0].filtered
     base = racing_env(like)
     ends: list[tuple[dict, bool, bool] | None] = [None] * count
+    vector = None
     try:
+        vector = gym.vector.AsyncVectorEnv(
+            [partial(vector_slot, make) for make in make_envs],
+            shared_memory=False,
+            context=worker_context(preload),
+            autoreset_mode=AutoresetMode.DISABLED,
+        )
         batched, infos = vector.reset(seed=list(seeds))
         observations = per_env(batched, count)
         step_infos = [box.info for box in infos[INFO_KEY]]
@@ -203,21 +213,21 @@ def run_together(
                     info = step_infos[k] = infos[INFO_KEY][k].info
                     recorders[k].record(info)
                     if on_steps is not None:
-                        half = len(actions[k]) // 2
-                        applied = (
-                            info["safety"]["filtered_action"] if filtered else actions[k][:half]
-                        )
+                        mean = actions[k][1 : 1 + (len(actions[k]) - 1) // 2]
+                        applied = info["safety"]["filtered_action"] if filtered else mean
                         on_steps[k](observations[k], info, np.asarray(applied, dtype=float))
                     if terminated[k] or truncated[k]:
                         ends[k] = (info, bool(terminated[k]), bool(truncated[k]))
                         bar.update(base.max_steps - len(recorders[k].records["s_m"]))
                 bar.update(len(active))
-            results = [
-                recorder.result(*end)  # type: ignore[misc]  # every episode has ended
-                for recorder, end in zip(recorders, ends, strict=True)
-            ]
+            results = []
+            for recorder, end in zip(recorders, ends, strict=True):
+                assert end is not None, "every episode has ended"
+                results.append(recorder.result(*end))
+                results[-1].source_description = end[0][SOURCE_KEY]
             for seed, result in zip(seeds, results, strict=True):
                 bar.report(f"episode (seed {seed})", episode_words(result.summary), False)
     finally:
-        vector.close()
+        if vector is not None:
+            vector.close()
     return results

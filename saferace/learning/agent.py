@@ -22,7 +22,7 @@ import torch
 from saferace.agents.pid import PIDGains, PIDSpeedController
 from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import CONFORMAL_KEY, LearnedCheckpoint, load_checkpoint
-from saferace.learning.ensemble import StateEnsemble, StateNetwork
+from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import DrivingNetwork, Prediction
 from saferace.safety.decision import NominalAction
 from saferace.safety.uncertainty.conformal import ConformalCalibration
@@ -151,11 +151,13 @@ class LearnedStateSource:
         """Start predicting ``observation`` in a background thread, which :meth:`samples`
         then takes: the agent's network runs beside it (the filter calls this when a step
         returns an observation). Each thread keeps its own number of PyTorch threads, so
-        the results do not depend on the timing. One network only: an ensemble (deep, MIMO
+        the results do not depend on the timing. On the CPU only: on a GPU two threads
+        would capture CUDA graphs at once. One network only: an ensemble (deep, MIMO
         or packed) beside the agent's network fought it for the cores (on 2 cores the step
         with a deep ensemble ran at 22 steps/s instead of 29, with a packed one at 57
         instead of 68; with MC dropout at 84 instead of 65)."""
-        if isinstance(self.network, StateEnsemble) or self.network.config.members > 1:
+        one_network = isinstance(self.network, DrivingNetwork) and self.network.config.members == 1
+        if not one_network or self.network.device.type != "cpu":
             return
         self._settled()
         if self._pool is None:
@@ -181,7 +183,10 @@ class LearnedStateSource:
         return None if pending is None else (pending[0], pending[1].result())
 
     def __getstate__(self) -> dict[str, Any]:
-        self._settled()
+        """A copy without the thread, once the prediction under way is done (this one still
+        takes it)."""
+        if self._pending is not None:
+            self._pending[1].result()
         return {**self.__dict__, "_pool": None, "_pending": None}
 
     def describe(self) -> dict:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable
 
 import torch
@@ -28,6 +29,7 @@ GRAPHS_VARIABLE = "SAFERACE_CUDA_GRAPHS"
 WARMUP_CALLS = 3
 
 Signature = tuple[tuple[tuple[int, ...], torch.dtype], ...]
+_CAPTURING = threading.Lock()
 
 
 def graphs_enabled(device: torch.device) -> bool:
@@ -39,21 +41,24 @@ class _Graph:
     """One captured call: its input buffers, its output buffers and the graph."""
 
     def __init__(self, function: Callable[..., tuple[torch.Tensor, ...]], inputs: tuple) -> None:
+        self.device = inputs[0].device
         self.inputs = tuple(tensor.clone() for tensor in inputs)
-        stream = torch.cuda.Stream(inputs[0].device)
-        stream.wait_stream(torch.cuda.current_stream(inputs[0].device))
-        with torch.cuda.stream(stream):
-            for _ in range(WARMUP_CALLS):
-                function(*self.inputs)
-        torch.cuda.current_stream(inputs[0].device).wait_stream(stream)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph):
-            self.outputs = function(*self.inputs)
+        with torch.cuda.device(self.device):  # the capture stream is the current device's
+            stream = torch.cuda.Stream(self.device)
+            stream.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(stream):
+                for _ in range(WARMUP_CALLS):
+                    function(*self.inputs)
+            torch.cuda.current_stream(self.device).wait_stream(stream)
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph, stream=stream, capture_error_mode="thread_local"):
+                self.outputs = function(*self.inputs)
 
     def __call__(self, inputs: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
         for buffer, tensor in zip(self.inputs, inputs, strict=True):
             buffer.copy_(tensor)
-        self.graph.replay()
+        with torch.cuda.device(self.device):
+            self.graph.replay()
         return self.outputs
 
 
@@ -73,13 +78,18 @@ class GraphCache:
         graph = self._graphs.get(signature)
         if graph is None:
             try:
-                graph = _Graph(self.function, inputs)
+                with _CAPTURING:  # one capture at a time in a process
+                    graph = _Graph(self.function, inputs)
             except RuntimeError as exc:  # an op that cannot be captured: run eagerly
                 LOG.warning("CUDA graph capture failed (%s); the networks run eagerly", exc)
                 self._failed = True
                 return self.function(*inputs)
             self._graphs[signature] = graph
         return graph(inputs)
+
+    def __getstate__(self) -> dict:
+        """A copy captures its own graphs (these hold this one's buffers)."""
+        return {**self.__dict__, "_graphs": {}}
 
     def clear(self) -> None:
         """Forget the captured graphs (after the weights moved to another device)."""

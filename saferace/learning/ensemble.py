@@ -53,8 +53,10 @@ class StateEnsemble(nn.Module):
         self._streams: list[torch.cuda.Stream] | None = None
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
-        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs stale."""
+        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs and the
+        members' streams stale."""
         self._graphs.clear()
+        self._streams = None
         return super()._apply(fn, recurse)
 
     @property
@@ -102,7 +104,7 @@ class StateEnsemble(nn.Module):
         threads = torch.get_num_threads()
         if threads < 2:
             return [_member_outputs(member, image) for member in self.members]
-        if self._pool is None:  # PyTorch's thread count is each thread's own
+        if self._pool is None:  # each pool thread sets its own PyTorch thread count
             self._pool = ThreadPoolExecutor(
                 threads, "ensemble", initializer=torch.set_num_threads, initargs=(1,)
             )

@@ -95,7 +95,13 @@ class NetworkConfig:
         return max(self.subnetworks, self.packed)
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The fields, without the packing of a network that is not packed (so that a
+        checkpoint without one reads in versions from before packed ensembles)."""
+        values = asdict(self)
+        if self.packed == 1:
+            for name in ("packed", "alpha", "gamma"):
+                del values[name]
+        return values
 
     @classmethod
     def from_dict(cls, values: dict) -> NetworkConfig:
