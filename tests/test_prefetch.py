@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -29,8 +31,22 @@ def drive(steps: int, seed: int) -> tuple[list[dict], LearnedStateSource]:
     return decisions, source
 
 
+def in_other_thread(function, *args) -> None:
+    thread = threading.Thread(target=function, args=args)
+    thread.start()
+    thread.join()
+
+
 def test_prefetched_samples_are_the_ones_asked_for_at_the_step(monkeypatch: pytest.MonkeyPatch):
-    prefetched, source = drive(6, seed=3)
+    # This thread's own count set, another thread's set to 1 sets that of threads started
+    # later (the background one): the prediction must still be this thread's.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    in_other_thread(torch.set_num_threads, 1)
+    try:
+        prefetched, source = drive(6, seed=3)
+    finally:
+        in_other_thread(torch.set_num_threads, threads)
     assert source._pending is not None  # the last observation is under way
     monkeypatch.setattr(LearnedStateSource, "prefetch", lambda self, observation: None)
     asked, _ = drive(6, seed=3)

@@ -150,9 +150,10 @@ class LearnedStateSource:
     def prefetch(self, observation: dict[str, np.ndarray]) -> None:
         """Start predicting ``observation`` in a background thread, which :meth:`samples`
         then takes: the agent's network runs beside it (the filter calls this when a step
-        returns an observation). Each thread keeps its own number of PyTorch threads, so
-        the results do not depend on the timing. On the CPU only: on a GPU two threads
-        would capture CUDA graphs at once. One network only: an ensemble (deep, MIMO
+        returns an observation). The background thread predicts with the calling thread's
+        number of PyTorch threads (each thread has its own), so the results are the ones
+        the calling thread would get, whatever the timing. On the CPU only: on a GPU two
+        threads would capture CUDA graphs at once. One network only: an ensemble (deep, MIMO
         or packed) beside the agent's network fought it for the cores (on 2 cores the step
         with a deep ensemble ran at 22 steps/s instead of 29, with a packed one at 57
         instead of 68; with MC dropout at 84 instead of 65)."""
@@ -162,7 +163,8 @@ class LearnedStateSource:
         self._settled()
         if self._pool is None:
             self._pool = ThreadPoolExecutor(1, thread_name_prefix="state-source")
-        self._pending = (observation, self._pool.submit(self._predict, observation["image"]))
+        threads, image = torch.get_num_threads(), observation["image"]
+        self._pending = (observation, self._pool.submit(self._predict, image, threads))
 
     def samples(self, observation: dict[str, np.ndarray], info: Any = None) -> np.ndarray:
         prefetched = self._settled()
@@ -174,7 +176,10 @@ class LearnedStateSource:
         self.last_features = prediction.features[0]
         return prediction.samples[0]
 
-    def _predict(self, image: np.ndarray) -> Prediction:
+    def _predict(self, image: np.ndarray, threads: int | None = None) -> Prediction:
+        """The network's prediction, on ``threads`` PyTorch threads (None: this thread's)."""
+        if threads is not None:
+            torch.set_num_threads(threads)
         return self.network.predict(image, None, self.n_samples, self._generator)
 
     def _settled(self) -> tuple[dict, Prediction] | None:

@@ -97,17 +97,17 @@ class StateEnsemble(nn.Module):
 
     def _members_on(self, image: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
         """Every member's means, stds and features. On a CPU with several threads the
-        members run side by side, one PyTorch thread each: a batch-1 ResNet-18 keeps one
-        core busy better than it splits over two."""
+        members run side by side, as many at once as PyTorch has threads: a batch-1
+        ResNet-18 keeps the cores busier that way than one after another. (Each pool thread
+        keeps PyTorch's default number of threads: setting its own would change the default
+        of every thread started later, and MKL's for the whole process.)"""
         if image.device.type == "cuda":
             return self._members_on_streams(image)
         threads = torch.get_num_threads()
         if threads < 2:
             return [_member_outputs(member, image) for member in self.members]
-        if self._pool is None:  # each pool thread sets its own PyTorch thread count
-            self._pool = ThreadPoolExecutor(
-                threads, "ensemble", initializer=torch.set_num_threads, initargs=(1,)
-            )
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(threads, thread_name_prefix="ensemble")
         return list(self._pool.map(lambda member: _member_outputs(member, image), self.members))
 
     def _members_on_streams(self, image: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
