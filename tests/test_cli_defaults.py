@@ -130,7 +130,7 @@ def test_a_learned_state_source_gets_the_robust_filter_by_default(command: str):
         monitored, _ = built_filter(command, "--monitor-state", "learned:m.pt")
         assert monitored.state_source is None
     if command == "dagger":  # the state networks that the robust filter can trust
-        assert config.training.state_uncertainty == "packed"
+        assert config.training.state_uncertainty == "ensemble"
         assert unperceived.training.state_uncertainty == "mc-dropout"
         assert generic_config.training.state_uncertainty == "mc-dropout"  # feeds nothing
 

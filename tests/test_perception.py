@@ -242,7 +242,7 @@ def test_every_command_with_a_filter_takes_the_generic_model_by_name():
     assert dagger.training.state_uncertainty == "mc-dropout"  # its own network feeds nothing
     assert dagger.trained_networks == ("control",)
     own = DaggerConfig(filter=FilterConfig(kind="cbf", state_source="learned"))
-    assert own.training.state_uncertainty == "packed"
+    assert own.training.state_uncertainty == "ensemble"
     with pytest.raises(SafeRaceError, match="own state network"):
         DaggerConfig(filter=FilterConfig(kind="cbf", state_source="generic"), calibrate_spread=True)
     robust = robustness_config(parser.parse_args(["robustness", *generic, "--out", "x"]))

@@ -52,7 +52,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         dest="training.state_uncertainty",
         default=AUTO,
         choices=(AUTO, *STATE_UNCERTAINTY_METHODS),
-        help="the state network's uncertainty (see saferace train); auto: a packed ensemble "
+        help="the state network's uncertainty (see saferace train); auto: a deep ensemble "
         "where the filter takes the perceived state in the robust mode (the default with "
         "--filter cbf), MC dropout otherwise, and with --fork-of the method of the run it "
         "forks",

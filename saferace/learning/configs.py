@@ -197,7 +197,7 @@ class DaggerConfig:
         check_bounds(self)
         if self.training.state_uncertainty == AUTO:
             honest = self.own_perception and self.filter.uncertainty == "robust"
-            method = "packed" if honest else "mc-dropout"
+            method = "ensemble" if honest else "mc-dropout"
             object.__setattr__(self, "training", replace(self.training, state_uncertainty=method))
         if self.task not in DRIVING_TASKS:
             raise ConfigError(
