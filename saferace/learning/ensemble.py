@@ -18,8 +18,6 @@ mixture on the device, and reads them back once; on CUDA all members replay as o
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import torch
 from torch import nn
@@ -49,7 +47,6 @@ class StateEnsemble(nn.Module):
         for index, member in enumerate(members):
             self.add_module(f"member_{index}", member)
         self._graphs = GraphCache(self.predict_tensors)
-        self._pool: ThreadPoolExecutor | None = None
         self._streams: list[torch.cuda.Stream] | None = None
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
@@ -64,8 +61,8 @@ class StateEnsemble(nn.Module):
         return self.members[0].device
 
     def __getstate__(self) -> dict:
-        """A copy starts its own threads and streams."""
-        return {**super().__getstate__(), "_pool": None, "_streams": None}
+        """A copy makes its own streams."""
+        return {**super().__getstate__(), "_streams": None}
 
     @property
     def config(self) -> NetworkConfig:
@@ -96,19 +93,13 @@ class StateEnsemble(nn.Module):
         return (*gaussian_samples(means, stds), torch.cat([f for _, _, f in outputs], dim=1))
 
     def _members_on(self, image: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
-        """Every member's means, stds and features. On a CPU with several threads the
-        members run side by side, as many at once as PyTorch has threads: a batch-1
-        ResNet-18 keeps the cores busier that way than one after another. (Each pool thread
-        keeps PyTorch's default number of threads: setting its own would change the default
-        of every thread started later, and MKL's for the whole process.)"""
+        """Every member's means, stds and features: on a GPU each member on its own
+        stream, on the CPU one after another. (Side by side in threads they ran 20% faster
+        on 2 cores, but OpenMP then throttled every later parallel region of the process: a
+        MIMO step after them ran at 41 steps/s instead of 70.)"""
         if image.device.type == "cuda":
             return self._members_on_streams(image)
-        threads = torch.get_num_threads()
-        if threads < 2:
-            return [_member_outputs(member, image) for member in self.members]
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(threads, thread_name_prefix="ensemble")
-        return list(self._pool.map(lambda member: _member_outputs(member, image), self.members))
+        return [_member_outputs(member, image) for member in self.members]
 
     def _members_on_streams(self, image: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
         """On a GPU every member on its own stream (in a captured graph, its own branch):
@@ -126,7 +117,7 @@ class StateEnsemble(nn.Module):
         return outputs
 
 
-@torch.inference_mode()  # thread-local: the pool's threads need it too
+@torch.inference_mode()
 def _member_outputs(member: DrivingNetwork, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
     features = member.features(image)
     return (*member.member_gaussians(member.head(features, None, False)), features)
