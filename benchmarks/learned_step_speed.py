@@ -17,8 +17,8 @@ On the CPU the next tables time the control network's inference alone, from the 
 (the whole network once per MC sample, NCHW, autograd on) adding one lever at a time: one
 backbone pass with the head sampled in one batch, inference mode, channels-last; and the
 same on one thread. The last table times the deep ensemble's backbones one after another,
-under bfloat16 autocast, and two members at a time on one thread each (what ``predict``
-does on a CPU with two or more threads).
+under bfloat16 autocast, and two members at a time on one thread each (faster, but threads
+left OpenMP throttling the rest of the process, so ``predict`` does not).
 
     python benchmarks/learned_step_speed.py [--steps N] [--track NAME] [--device auto|cpu|cuda]
 """
