@@ -41,7 +41,7 @@ from saferace.eval.runner import (
 )
 from saferace.eval.vector_runner import act_all_agents, run_together, share_networks
 from saferace.learning.configs import CollectionConfig, Perturbation
-from saferace.learning.expert_labels import ExpertLabels, LabelsFromInfo
+from saferace.learning.expert_labels import ExpertLabels, LabelsFromInfo, labelling_expert
 from saferace.learning.rounds import FRAME_FIELDS, write_round
 from saferace.safety.decision import NominalAction, nominal_parts
 from saferace.safety.uncertainty.state_sources import true_lane_state
@@ -108,8 +108,9 @@ class LabellingDriver:
         self, observation: dict[str, np.ndarray], info: dict[str, Any]
     ) -> np.ndarray | NominalAction:
         driver = self.driver
-        acts = driver is not None and self.driver_acts()
-        driver_action = act(driver, observation, info) if acts else None  # type: ignore[arg-type]
+        driver_action = (
+            act(driver, observation, info) if driver is not None and self.driver_acts() else None
+        )
         return self.labelled(observation, info, driver_action)
 
     def driver_acts(self) -> bool:
@@ -243,9 +244,7 @@ def collect_episode(
     """Drive and label episode ``episode`` of a round (seeded by ``seed``)."""
     env = task_env(config, seed)
     try:
-        # in traffic, the expert plans around the opponents
-        expert = make_agent("expert", env, config.episode.expert_model)
-        assert isinstance(expert, MPCExpert)
+        expert = labelling_expert(env, config.episode.expert_model)
         labeller = labelling_driver(config, env, expert, episode, seed)
         result = run_episode(
             env, labeller, seed=seed, progress=progress, on_step=labeller.after_step

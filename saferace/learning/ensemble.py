@@ -24,7 +24,13 @@ from torch import nn
 
 from saferace.errors import SafeRaceError
 from saferace.learning.cuda_graphs import GraphCache
-from saferace.learning.networks import DrivingNetwork, NetworkConfig, Prediction, gaussian_samples
+from saferace.learning.networks import (
+    DrivingNetwork,
+    NetworkConfig,
+    Prediction,
+    frames,
+    gaussian_samples,
+)
 from saferace.learning.transfer import download, upload
 
 #: Members of an ensemble by default (Lakshminarayanan et al. used 5).
@@ -79,10 +85,8 @@ class StateEnsemble(nn.Module):
         """The mixture's mean and std, with ``2 K`` samples and the members' features side by
         side (``n_samples`` and ``generator`` are a dropout network's: an ensemble is
         deterministic)."""
-        image = torch.as_tensor(image)
-        if image.ndim == 3:
-            image = image[None]
-        return Prediction(*download(*self._graphs(*upload(self.device, image))))
+        on_device = upload(self.device, frames(image))
+        return Prediction(*download(*self._graphs(*on_device)))
 
     def predict_tensors(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """:meth:`predict`'s work on the device: the mixture's mean and std, the samples and

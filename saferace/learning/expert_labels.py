@@ -24,15 +24,21 @@ from saferace.eval.agents import make_agent
 LABEL_KEY = "expert_label"
 
 
+def labelling_expert(env: gym.Env, expert_model: str) -> MPCExpert:
+    """The expert that labels ``env``'s frames (in traffic, the one that plans around the
+    opponents)."""
+    expert = make_agent("expert", env, expert_model)
+    assert isinstance(expert, MPCExpert), "the expert is an MPC"
+    return expert
+
+
 class ExpertLabels(gym.Wrapper):
     """The expert (``make_agent("expert", ...)``) acting on every observation ``env``
     returns; its action and planned speed in ``info[LABEL_KEY]``."""
 
     def __init__(self, env: gym.Env, expert_model: str) -> None:
         super().__init__(env)
-        expert = make_agent("expert", env, expert_model)  # in traffic, it plans around
-        assert isinstance(expert, MPCExpert), "the expert is an MPC"
-        self.expert = expert
+        self.expert = labelling_expert(env, expert_model)
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict]:
         observation, info = self.env.reset(**kwargs)

@@ -165,6 +165,12 @@ def gaussian_samples(means: torch.Tensor, stds: torch.Tensor) -> tuple[torch.Ten
     return means.mean(dim=1), variance.sqrt(), samples
 
 
+def frames(image: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """``(H, W, C)`` or ``(N, H, W, C)`` images as an ``(N, H, W, C)`` tensor (no copy)."""
+    image = torch.as_tensor(image)
+    return image[None] if image.ndim == 3 else image
+
+
 def resnet18_features(in_channels: int) -> nn.Module:
     """torchvision's ResNet-18 (random weights), ``in_channels`` in, 512 features out."""
     backbone = torchvision.models.resnet18(weights=None)
@@ -308,9 +314,7 @@ class DrivingNetwork(nn.Module):
             raise SafeRaceError("call eval() before predict(): MC dropout samples the head only")
         if n_samples < 1:
             raise SafeRaceError(f"n_samples must be at least 1, got {n_samples}")
-        image = torch.as_tensor(image)
-        if image.ndim == 3:
-            image = image[None]
+        image = frames(image)
         inputs = [image]
         if self.config.uses_velocity:
             if velocity is None:
@@ -334,7 +338,8 @@ class DrivingNetwork(nn.Module):
         masks = rest[1:] if self.config.uses_velocity else rest
         features = self.features(image)
         if self.config.log_variance:
-            return (*self._gaussian_tensors(self.head(features, velocity, False)), features)
+            gaussians = self.member_gaussians(self.head(features, velocity, False))
+            return (*gaussian_samples(*gaussians), features)
         if not masks:
             samples = self.head(features, velocity, sample=False)[:, None, :]
         else:
@@ -346,12 +351,6 @@ class DrivingNetwork(nn.Module):
         mean = samples.mean(dim=1)
         std = torch.zeros_like(mean) if samples.shape[1] == 1 else samples.std(dim=1, correction=0)
         return mean, std, samples, features
-
-    def _gaussian_tensors(self, outputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Heteroscedastic heads' mixture mean, std and samples in physical units (see
-        :func:`gaussian_samples`), over the MIMO subnetworks or packed members."""
-        means, stds = self.member_gaussians(outputs)
-        return gaussian_samples(means, stds)
 
     def member_gaussians(self, outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each member's (MIMO subnetwork's, packed member's) mean and std in physical
