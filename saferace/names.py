@@ -120,3 +120,5 @@ VERIFY_RUNS = 4
 #: variable that carries the command line's choice into worker processes and Ray tasks.
 DEVICE_HELP = "auto (a GPU where PyTorch sees one), cpu, cuda or cuda:N"
 DEVICE_VARIABLE = "SAFERACE_DEVICE"
+#: Set to 0 to run networks eagerly on the CPU (``saferace.learning.cpu_compile``).
+COMPILE_VARIABLE = "SAFERACE_COMPILE"

@@ -8,12 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from saferace.names import DEVICE_VARIABLE
+from saferace.names import COMPILE_VARIABLE, DEVICE_VARIABLE
 from saferace.track import Track, builtin_track_names
 from saferace.track.random_track import write_random_track
 
 # The tests' exact comparisons hold on the CPU; a GPU machine runs them there too.
 os.environ[DEVICE_VARIABLE] = "cpu"
+# Eager networks: compiling one for the CPU takes 10-20 s (tests/test_cpu_compile.py does).
+os.environ[COMPILE_VARIABLE] = "0"
 #: A file of the honest submission made beforehand, for runs of the tests many times over
 #: code that does not make it (``scripts/mutation_run.py`` makes it once and sets this).
 PREBUILT_SUBMISSION_VARIABLE = "SAFERACE_TEST_PREBUILT_SUBMISSION"
@@ -70,7 +72,8 @@ def quick_perception(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The generic perception model of the ``quick`` recipe (``--state-source
     generic:quick``), built once (about half a minute) into a cache folder of the session's
     own, never the user's; its model's path."""
-    from saferace.learning.perception import CACHE_VARIABLE, RECIPES, build_perception_model
+    from saferace.cache import CACHE_VARIABLE
+    from saferace.learning.perception import RECIPES, build_perception_model
 
     os.environ[CACHE_VARIABLE] = str(tmp_path_factory.mktemp("cache"))
     return build_perception_model(RECIPES["quick"], progress=False)

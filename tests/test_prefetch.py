@@ -12,6 +12,7 @@ import torch
 import saferace  # noqa: F401  - registers the tasks
 from saferace.learning.agent import LearnedStateSource
 from saferace.learning.networks import DrivingNetwork, state_config
+from saferace.names import COMPILE_VARIABLE
 from saferace.safety.cbf.filter import SafetyFilter
 
 TIMES = ("solve_time_s", "filter_time_s")
@@ -75,3 +76,14 @@ def test_samples_of_another_observation_than_the_prefetched_one_are_its_own():
     plain = LearnedStateSource(network, 10, seed=2)
     plain.samples({"image": images[0]})  # the masks the prefetch drew
     assert np.array_equal(other, plain.samples({"image": images[1]}))
+
+
+def test_a_network_compiled_for_the_cpu_is_not_prefetched(monkeypatch: pytest.MonkeyPatch):
+    source = LearnedStateSource(DrivingNetwork(state_config()).eval(), 10, seed=0)
+    image = np.zeros((64, 64, 3), np.uint8)
+    monkeypatch.setenv(COMPILE_VARIABLE, "1")  # side by side, compiled networks fight
+    source.prefetch({"image": image})
+    assert source._pending is None
+    monkeypatch.setenv(COMPILE_VARIABLE, "0")
+    source.prefetch({"image": image})
+    assert source._pending is not None

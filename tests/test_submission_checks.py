@@ -25,10 +25,12 @@ from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leade
 from saferace.experiments.submission_checks import CONTROL_DT_S, check_submission
 from saferace.experiments.verify import (
     choose_runs,
+    replay_compiled,
     replay_device,
     verification_record,
     verify_submission,
 )
+from saferace.names import COMPILE_VARIABLE
 from saferace.track import Track
 
 SOURCE = "sub.json"
@@ -631,3 +633,12 @@ def test_runs_replay_on_the_device_the_submissions_networks_ran_on():
     assert replay_device({**networks, "device": None}) == "cpu"
     assert replay_device(networks) == "cpu"  # made before submissions named their device
     assert replay_device({"files_sha256": {}, "device": "cuda:0"}) == "cpu"  # no network
+
+
+def test_runs_replay_compiled_only_where_the_submissions_networks_ran_compiled(monkeypatch):
+    monkeypatch.setenv(COMPILE_VARIABLE, "1")
+    made = replay_record(f"learned:{Path(__file__)}", 10)  # any file stands in for weights
+    assert made["compiled"] is True and replay_compiled(made)
+    monkeypatch.setenv(COMPILE_VARIABLE, "0")
+    assert replay_record(f"learned:{Path(__file__)}", 10)["compiled"] is False
+    assert not replay_compiled({"files_sha256": {"agent.pt": "0" * 64}})  # made before

@@ -392,8 +392,8 @@ def _keyed(row: dict, replay: dict, spec: RunSpec) -> dict:
 def replay_record(agent: str, mc_samples: int) -> dict:
     """What ``saferace verify`` needs to drive ``agent`` again: its spec, its settings, the
     sha256 of every file it loads and one hash of them all (the page's agent hash), the
-    device its networks ran on (agents with files), and the sha256 of the car's identified
-    parameters."""
+    device its networks ran on and whether they ran compiled for the CPU (agents with
+    files), and the sha256 of the car's identified parameters."""
     files = {}
     for path in agent_files(agent):
         if not path.is_file():
@@ -408,6 +408,7 @@ def replay_record(agent: str, mc_samples: int) -> dict:
         "files_sha256": files,
         "agent_sha256": hashlib.sha256(identity.encode()).hexdigest(),
         "device": _network_device() if files else None,
+        "compiled": _networks_compiled() if files else None,
         "vehicle_params_sha256": vehicle_params_sha256(),
     }
 
@@ -417,6 +418,14 @@ def _network_device() -> str:
     from saferace.learning.device import resolve_device
 
     return str(resolve_device())
+
+
+def _networks_compiled() -> bool:
+    """Whether this process's networks run compiled (``saferace.learning.cpu_compile``)."""
+    from saferace.learning.cpu_compile import compile_enabled
+    from saferace.learning.device import resolve_device
+
+    return compile_enabled(resolve_device())
 
 
 def vehicle_params_sha256() -> str:

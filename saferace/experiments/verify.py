@@ -33,7 +33,7 @@ from saferace.experiments.benchmark import (
 )
 from saferace.experiments.submission_checks import read_submission
 from saferace.learning.device import use_device
-from saferace.names import VERIFY_RUNS
+from saferace.names import COMPILE_VARIABLE, VERIFY_RUNS
 from saferace.progress import Progress
 from saferace.version import __version__
 
@@ -210,6 +210,13 @@ def replay_device(replay: dict) -> str:
     return replay.get("device") or "cpu"
 
 
+def replay_compiled(replay: dict) -> bool:
+    """Whether a submission's networks replay compiled for the CPU: as they ran (compiled
+    and eager results differ in the last digits, which a lap amplifies); eagerly for a
+    submission made before networks were compiled."""
+    return bool(replay.get("compiled"))
+
+
 def _replay(
     path: Path, sha256: str, runs: int | None, workers: int, seed: int, progress: bool
 ) -> Verification:
@@ -217,6 +224,7 @@ def _replay(
     replay = data["replay"]
     check_agent_files(replay, str(path))
     use_device(replay_device(replay))
+    os.environ[COMPILE_VARIABLE] = "1" if replay_compiled(replay) else "0"  # and its workers
     suite = load_suite(data["suite_version"])  # checked: a version this SafeRace ships
     rows = {RunSpec.of_row(row).key: row for row in data["rows"]}
     chosen = choose_runs(list(rows), runs, seed)

@@ -22,6 +22,7 @@ import torch
 from saferace.agents.pid import PIDGains, PIDSpeedController
 from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import CONFORMAL_KEY, LearnedCheckpoint, load_checkpoint
+from saferace.learning.cpu_compile import compile_enabled
 from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import DrivingNetwork, Prediction
 from saferace.safety.decision import NominalAction
@@ -156,9 +157,12 @@ class LearnedStateSource:
         threads would capture CUDA graphs at once. One network only: an ensemble (deep, MIMO
         or packed) beside the agent's network fought it for the cores (on 2 cores the step
         with a deep ensemble ran at 22 steps/s instead of 29, with a packed one at 57
-        instead of 68; with MC dropout at 84 instead of 65)."""
+        instead of 68; with MC dropout at 84 instead of 65). Eager networks only: two
+        networks compiled for the CPU (:mod:`~saferace.learning.cpu_compile`) side by side
+        fought for the cores too (MC dropout's step: 76 steps/s, one after the other 149)."""
         one_network = isinstance(self.network, DrivingNetwork) and self.network.config.members == 1
-        if not one_network or self.network.device.type != "cpu":
+        device = self.network.device
+        if not one_network or device.type != "cpu" or compile_enabled(device):
             return
         self._settled()
         if self._pool is None:

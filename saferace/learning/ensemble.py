@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from saferace.errors import SafeRaceError
+from saferace.learning.cpu_compile import CompiledStep
 from saferace.learning.cuda_graphs import GraphCache
 from saferace.learning.networks import (
     DrivingNetwork,
@@ -52,13 +53,15 @@ class StateEnsemble(nn.Module):
         self.members = list(members)
         for index, member in enumerate(members):
             self.add_module(f"member_{index}", member)
-        self._graphs = GraphCache(self.predict_tensors)
+        self._compiled = CompiledStep(self)
+        self._graphs = GraphCache(self._compiled)
         self._streams: list[torch.cuda.Stream] | None = None
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
         """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs and the
         members' streams stale."""
         self._graphs.clear()
+        self._compiled.clear()
         self._streams = None
         return super()._apply(fn, recurse)
 
@@ -121,7 +124,6 @@ class StateEnsemble(nn.Module):
         return outputs
 
 
-@torch.inference_mode()
 def _member_outputs(member: DrivingNetwork, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
     features = member.features(image)
     return (*member.member_gaussians(member.head(features, None, False)), features)

@@ -32,6 +32,7 @@ from torch import nn
 from torch.nn import functional
 
 from saferace.errors import SafeRaceError
+from saferace.learning.cpu_compile import CompiledStep
 from saferace.learning.cuda_graphs import GraphCache
 from saferace.learning.packed import GroupedLinear, PackedResNet18, check_packing
 from saferace.learning.transfer import download, upload
@@ -222,11 +223,13 @@ class DrivingNetwork(nn.Module):
         self.register_buffer("velocity_std", torch.ones(len(VELOCITY_INPUTS)))
         self.register_buffer("output_mean", torch.zeros(outputs))
         self.register_buffer("output_std", torch.ones(outputs))
-        self._graphs = GraphCache(self.predict_tensors)
+        self._compiled = CompiledStep(self)
+        self._graphs = GraphCache(self._compiled)
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
         """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs stale."""
         self._graphs.clear()
+        self._compiled.clear()
         return super()._apply(fn, recurse)
 
     @property

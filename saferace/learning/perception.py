@@ -23,7 +23,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -32,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from saferace.cache import cache_root
 from saferace.errors import SafeRaceError
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.parallel import run_jobs
@@ -67,8 +67,6 @@ from saferace.track.random_track import write_random_track
 from saferace.version import __version__
 
 LOG = logging.getLogger(__name__)
-#: Where caches live: this variable, or ``~/.cache/saferace``.
-CACHE_VARIABLE = "SAFERACE_CACHE"
 MODEL_FILE = "model.pt"
 MANIFEST_FILE = "manifest.json"
 RECIPE_FILE = "recipe.json"
@@ -148,10 +146,6 @@ def recipe_named(source: str) -> PerceptionRecipe:
             f"no perception recipe {name!r}: use {', '.join(PERCEPTION_RECIPES)} (generic:RECIPE)"
         )
     return recipe
-
-
-def cache_root() -> Path:
-    return Path(os.environ.get(CACHE_VARIABLE) or "~/.cache/saferace").expanduser()
 
 
 def model_folder(recipe: PerceptionRecipe) -> Path:

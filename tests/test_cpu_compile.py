@@ -1,0 +1,160 @@
+"""Networks compiled for the CPU: the eager results within float tolerance, a package per
+weights kept and reused, stale weights never used, and a clean fallback to eager."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from saferace.cache import CACHE_VARIABLE
+from saferace.learning import cpu_compile
+from saferace.learning.ensemble import StateEnsemble
+from saferace.learning.networks import DrivingNetwork, Prediction, control_config, state_config
+
+IMAGE = np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8)
+VELOCITY = np.array([3.0, 0.1, 0.2], np.float32)
+
+
+@pytest.fixture
+def compiling(monkeypatch, tmp_path):
+    """Compiling on (the suite runs eagerly), into a cache of this test's own."""
+    monkeypatch.setenv(cpu_compile.COMPILE_VARIABLE, "1")
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    return tmp_path / "compiled"
+
+
+def predict(network, image: np.ndarray = IMAGE) -> Prediction:
+    return network.predict(image, VELOCITY, 10, torch.Generator().manual_seed(1))
+
+
+def eager_prediction(network, monkeypatch, image: np.ndarray = IMAGE) -> Prediction:
+    with monkeypatch.context() as patch:
+        patch.setenv(cpu_compile.COMPILE_VARIABLE, "0")
+        return predict(network, image)
+
+
+def assert_close(got: Prediction, expected: Prediction, tolerance: float) -> None:
+    for name in ("mean", "std", "samples", "features"):
+        np.testing.assert_allclose(
+            getattr(got, name), getattr(expected, name), atol=tolerance, err_msg=name
+        )
+
+
+def networks() -> dict[str, torch.nn.Module]:
+    torch.manual_seed(0)
+    members = [DrivingNetwork(state_config(dropout=0.0, log_variance=True)) for _ in range(2)]
+    return {
+        "control, MC dropout": DrivingNetwork(control_config()).eval(),
+        "deep ensemble": StateEnsemble([member.eval() for member in members]),
+    }
+
+
+@pytest.mark.parametrize("name", list(networks()))
+def test_a_compiled_prediction_equals_the_eager_one_and_its_package_is_reused(
+    name, compiling, monkeypatch
+):
+    network = networks()[name]
+    expected = eager_prediction(network, monkeypatch)
+    assert_close(predict(network), expected, 1e-5)
+    (package,) = compiling.glob("*.pt2")
+    eager_calls = []
+    with monkeypatch.context() as patch:  # a compiled step never runs the network eagerly
+        patch.setattr(network, "predict_tensors", lambda *inputs: eager_calls.append(1) or ())
+        assert_close(predict(network), expected, 1e-5)
+    assert not eager_calls
+
+    def no_compiling(*args, **kwargs):
+        raise AssertionError("the same weights compiled twice")
+
+    monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", no_compiling)
+    twin = copy.deepcopy(network)  # the same weights: the package on disk is loaded
+    assert_close(predict(twin), expected, 1e-5)
+    assert list(compiling.glob("*.pt2")) == [package]
+
+
+class FakeLoads:
+    """Stands in for exporting and compiling: counts the loads, runs the step eagerly."""
+
+    def __init__(self) -> None:
+        self.keys: list[object] = []
+
+    def __call__(self, step: cpu_compile.CompiledStep, inputs, signature):
+        self.keys.append((signature, step._key(signature)))
+        method = getattr(step.owner, step.method)
+        return lambda *tensors: list(method(*tensors))
+
+
+@pytest.fixture
+def fake_loads(compiling, monkeypatch) -> FakeLoads:
+    loads = FakeLoads()
+    monkeypatch.setattr(
+        cpu_compile.CompiledStep,
+        "_load_or_compile",
+        lambda step, inputs, signature: loads(step, inputs, signature),
+    )
+    return loads
+
+
+def test_changed_weights_are_compiled_again(fake_loads):
+    network = networks()["control, MC dropout"]
+    predict(network)
+    predict(network)
+    assert len(fake_loads.keys) == 1
+    with torch.no_grad():
+        network.output_layer.bias.add_(1.0)  # an in-place edit, as an optimiser's step
+    predict(network)
+    assert len(fake_loads.keys) == 2
+    assert fake_loads.keys[0][1] != fake_loads.keys[1][1]  # another package
+
+
+def test_each_thread_count_has_its_own_package(fake_loads):
+    network = networks()["control, MC dropout"]
+    threads = torch.get_num_threads()
+    predict(network)
+    torch.set_num_threads(1 if threads > 1 else 2)
+    try:
+        predict(network)
+    finally:
+        torch.set_num_threads(threads)
+    assert len(fake_loads.keys) == 2
+
+
+def test_a_batch_of_frames_and_the_switched_off_step_run_eagerly(fake_loads, monkeypatch):
+    network = networks()["control, MC dropout"]
+    network.predict(np.stack([IMAGE, IMAGE]), np.stack([VELOCITY, VELOCITY]), 10)
+    monkeypatch.setenv(cpu_compile.COMPILE_VARIABLE, "0")
+    predict(network)
+    assert fake_loads.keys == []
+
+
+def test_a_failed_compile_warns_once_and_runs_eagerly(compiling, monkeypatch, caplog):
+    network = networks()["control, MC dropout"]
+    expected = eager_prediction(network, monkeypatch)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no C++ compiler")
+
+    monkeypatch.setattr(torch.export, "export", broken)
+    with caplog.at_level(logging.WARNING, logger=cpu_compile.__name__):
+        first, second = predict(network), predict(network)
+    assert [record.getMessage() for record in caplog.records] == [
+        "compiling DrivingNetwork.predict_tensors failed (no C++ compiler); it runs eagerly"
+    ]
+    assert_close(first, expected, 0.0)
+    assert_close(second, expected, 0.0)
+    assert not list(compiling.glob("*"))
+
+
+def test_the_cache_keeps_the_most_recently_used_packages_within_its_limit(tmp_path):
+    for age, name in enumerate(["newest", "middle", "oldest"]):
+        (tmp_path / f"{name}.pt2").write_bytes(b"x" * 100)
+        os.utime(tmp_path / f"{name}.pt2", (1e9 - age, 1e9 - age))
+    (tmp_path / "other.123.partial.pt2").write_bytes(b"x" * 100)  # another process's, unfinished
+    cpu_compile.prune_packages(tmp_path, 250)
+    left = sorted(path.name for path in tmp_path.iterdir())
+    assert left == ["middle.pt2", "newest.pt2", "other.123.partial.pt2"]
