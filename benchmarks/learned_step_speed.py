@@ -13,12 +13,15 @@ CUDA GPU, 250 with either 5-member ensemble. ``--device auto`` (the default) mea
 CPU and, where PyTorch sees one, the GPU side by side (the env and the filter stay on the
 CPU; on CUDA the networks replay CUDA graphs, :mod:`saferace.learning.cuda_graphs`).
 
-On the CPU the next tables time the control network's inference alone, from the naive way
-(the whole network once per MC sample, NCHW, autograd on) adding one lever at a time: one
-backbone pass with the head sampled in one batch, inference mode, channels-last; and the
-same on one thread. The last table times the deep ensemble's backbones one after another,
-under bfloat16 autocast, and two members at a time on one thread each (faster, but threads
-left OpenMP throttling the rest of the process, so ``predict`` does not).
+On the CPU the networks run compiled (:mod:`saferace.learning.cpu_compile`; each step's
+first prediction compiles them: the medians leave that out). The next tables time the
+control network's inference alone, from the naive way (the whole network once per MC
+sample, NCHW, autograd on) adding one lever at a time: one backbone pass with the head
+sampled in one batch, inference mode, channels-last, compiled with frozen weights; and the
+same on one thread. The last table times the deep ensemble's backbones one after another
+eagerly, under bfloat16 autocast, and two members at a time on one thread each (faster,
+but threads left OpenMP throttling the rest of the process, so ``predict`` does not), then
+its whole prediction compiled.
 
     python benchmarks/learned_step_speed.py [--steps N] [--track NAME] [--device auto|cpu|cuda]
 """
