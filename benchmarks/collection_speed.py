@@ -1,8 +1,9 @@
 """Collection's frames per second: N episodes one after another, beside N at once.
 
 What ``saferace collect`` does for N seeds, timed whole (building the envs included): with
-the N episodes driven together (``--num-envs N``: each env and the expert that labels it in
-its own process, the drivers asked in one batched forward pass where they are learned),
+the N episodes driven together (``--num-envs N``: a learned driver's in lockstep, the envs
+and the experts that label them in as many workers as cores, the drivers asked in one
+batched forward pass; the expert's and scripted drivers' each driven through in a worker),
 then serially (``--num-envs 1``; second, since a process that has rendered cannot fork
 its workers and they would start from a server). The frames of the two must be the same
 bit for bit (with a learned driver: to float rounding, the batched features differ from

@@ -11,7 +11,9 @@ import torch
 
 from saferace.agents.pid import PIDSpeedController
 from saferace.errors import SafeRaceError
-from saferace.eval.vector_runner import VectorSlot, encoded
+from saferace.eval import vector_runner
+from saferace.eval.vector_runner import VectorSlot, encoded, worker_shares
+from saferace.learning import collect
 from saferace.learning.agent import LearnedAgent
 from saferace.learning.collect import collect_episode, collect_episodes_together, collect_round
 from saferace.learning.configs import CollectionConfig, EpisodeSettings, Perturbation
@@ -34,7 +36,12 @@ def short_config(**overrides) -> CollectionConfig:
     return CollectionConfig(**{**values, **overrides})
 
 
-def test_episodes_driven_together_give_the_serial_frames_bit_for_bit():
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_episodes_driven_together_give_the_serial_frames_bit_for_bit(lockstep, monkeypatch):
+    # A scripted driver drives its episodes through in workers; in lockstep (what learned
+    # drivers get), 3 envs on 2 workers, one of them stepping 2 envs one after the other.
+    monkeypatch.setattr(collect, "drive_in_lockstep", lambda labellers: lockstep)
+    monkeypatch.setattr(vector_runner, "available_cores", lambda: 2)
     config = short_config()  # a driver, the expert's mixing and steering noise all drawn
     serial = [collect_episode(config, episode, seed) for episode, seed in enumerate(config.seeds)]
     together = collect_episodes_together(config, [0, 1, 2])
@@ -45,6 +52,16 @@ def test_episodes_driven_together_give_the_serial_frames_bit_for_bit():
         assert alone.summary == batched.summary
     assert not np.array_equal(serial[0].frames["image"], serial[1].frames["image"][:1])
     assert len({tuple(episode.frames["driver_action"][:, 0][:5]) for episode in serial}) == 3
+
+
+def test_envs_are_dealt_to_the_workers_in_even_contiguous_runs():
+    def sizes(count: int, workers: int) -> list[tuple[int, int]]:
+        return [(share.start, len(share)) for share in worker_shares(count, workers)]
+
+    assert sizes(8, 2) == [(0, 4), (4, 4)]
+    assert sizes(5, 2) == [(0, 3), (3, 2)]
+    assert sizes(3, 8) == [(0, 1), (1, 1), (2, 1)]
+    assert sizes(1, 2) == [(0, 1)]
 
 
 def test_a_round_collected_in_groups_is_the_serial_round(tmp_path):
@@ -98,16 +115,17 @@ def test_collect_takes_num_envs(tmp_path):
     assert load_rounds([tmp_path / "data"])["episode"].max() == 1
 
 
-def test_eval_rows_of_episodes_driven_together_are_the_serial_rows(tmp_path):
+def test_eval_rows_of_episodes_driven_together_are_the_serial_rows(tmp_path, monkeypatch):
     from saferace.eval.filters import FilterConfig
     from saferace.eval.runner import evaluate
 
+    monkeypatch.setattr(vector_runner, "available_cores", lambda: 2)  # 3 envs on 2 workers
     kwargs = dict(laps=1, progress=False, env_kwargs={"max_steps": 30, "randomize": "mild"})
     safety = FilterConfig(kind="cbf", state_noise=(0.05, 0.05))  # seeded by each seed
     threads = torch.get_num_threads()
     serial = evaluate("weave", "CenterLine", "lab", [0, 1, 2], safety=safety, **kwargs)
     together = evaluate(
-        "weave", "CenterLine", "lab", [0, 1, 2], safety=safety, num_envs=2, **kwargs
+        "weave", "CenterLine", "lab", [0, 1, 2], safety=safety, num_envs=3, **kwargs
     )
     assert torch.get_num_threads() == threads  # the workers' limit stays theirs
     for alone, grouped in zip(serial, together, strict=True):

@@ -250,9 +250,11 @@ def add_num_envs_argument(parser: argparse.ArgumentParser) -> None:
         type=values.count,
         default=1,
         metavar="N",
-        help="episodes driven at once, each env in its own process, a learned driver's "
-        "network asked once per step for all of them (the frames of one by one: bit for bit "
-        "with the expert and scripted drivers, to float rounding with a learned one)",
+        help="episodes driven at once in worker processes (as many as cores): a learned "
+        "driver's in lockstep, its network asked once per step for all of them; in a "
+        "collection, the expert's and scripted drivers' each driven through in a worker (the "
+        "frames of one by one: bit for bit with the expert and scripted drivers, to float "
+        "rounding with a learned one)",
     )
 
 
