@@ -20,6 +20,7 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -53,6 +54,8 @@ def main() -> None:
         episode=EpisodeSettings(laps=args.laps, max_seconds=args.seconds),
     )
     episodes = list(range(args.num_envs))
+    if learned:  # its network compiles for this CPU at its first frame (once): not timed
+        collect_episode(replace(config, episode=replace(config.episode, max_seconds=0.1)), 0, 0)
     started = time.perf_counter()
     together = collect_episodes_together(config, episodes)
     together_s = time.perf_counter() - started
