@@ -129,8 +129,8 @@ class CompiledStep:
         self, inputs: tuple[torch.Tensor, ...], signature: Signature
     ) -> Callable[..., list[torch.Tensor]]:
         """The package for these weights and ``signature``: from the cache, or exported,
-        compiled and cached (written under a temporary name, then renamed: an interrupted
-        compile leaves nothing half-written)."""
+        compiled and cached (written under a temporary name, then renamed: a failed or
+        interrupted compile leaves no package half-written)."""
         path = packages_folder() / f"{self._key(signature)}.pt2"
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -142,10 +142,13 @@ class CompiledStep:
                 examples = tuple(tensor.clone() for tensor in inputs)  # not inference tensors
                 program = torch.export.export(_Step(self.owner, self.method), examples)
                 partial = path.with_name(f"{path.stem}.{os.getpid()}.partial.pt2")
-                torch._inductor.aoti_compile_and_package(
-                    program, package_path=str(partial), inductor_configs={"freezing": True}
-                )
-                partial.replace(path)
+                try:
+                    torch._inductor.aoti_compile_and_package(
+                        program, package_path=str(partial), inductor_configs={"freezing": True}
+                    )
+                    partial.replace(path)
+                finally:
+                    partial.unlink(missing_ok=True)
                 bar.done(self._name(), f"kept in {path.parent} (SAFERACE_COMPILE=0: eager)")
             prune_packages(path.parent, CACHE_LIMIT_BYTES)
         path.touch()  # recently used
