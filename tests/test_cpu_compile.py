@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -158,3 +159,15 @@ def test_the_cache_keeps_the_most_recently_used_packages_within_its_limit(tmp_pa
     cpu_compile.prune_packages(tmp_path, 250)
     left = sorted(path.name for path in tmp_path.iterdir())
     assert left == ["middle.pt2", "newest.pt2", "other.123.partial.pt2"]
+
+
+def test_a_compile_that_fails_half_way_leaves_no_package(compiling, monkeypatch):
+    network = networks()["control, MC dropout"]
+
+    def half_written(program, package_path, inductor_configs):
+        Path(package_path).write_bytes(b"half a package")
+        raise RuntimeError("out of disk")
+
+    monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", half_written)
+    predict(network)  # runs eagerly, with a warning
+    assert list(compiling.glob("*")) == []
