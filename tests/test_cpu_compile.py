@@ -12,8 +12,11 @@ import numpy as np
 import pytest
 import torch
 
+from saferace.agents.pid import PIDSpeedController
 from saferace.cache import CACHE_VARIABLE
+from saferace.errors import SafeRaceError
 from saferace.learning import cpu_compile
+from saferace.learning.agent import LearnedAgent
 from saferace.learning.ensemble import StateEnsemble
 from saferace.learning.networks import DrivingNetwork, Prediction, control_config, state_config
 
@@ -87,7 +90,13 @@ class FakeLoads:
     def __call__(self, step: cpu_compile.CompiledStep, inputs, signature):
         self.keys.append((signature, step._key(signature)))
         method = getattr(step.owner, step.method)
-        return lambda *tensors: list(method(*tensors))
+
+        def runner(*tensors: torch.Tensor) -> list[torch.Tensor]:
+            # a package reads its inputs with the strides it was compiled for
+            assert all(tensor.is_contiguous() for tensor in tensors)
+            return list(method(*tensors))
+
+        return runner
 
 
 @pytest.fixture
@@ -111,6 +120,44 @@ def test_changed_weights_are_compiled_again(fake_loads):
     predict(network)
     assert len(fake_loads.keys) == 2
     assert fake_loads.keys[0][1] != fake_loads.keys[1][1]  # another package
+
+
+def test_weights_loaded_as_new_tensors_are_compiled_again(fake_loads):
+    network = networks()["control, MC dropout"]
+    for _ in range(2):  # new tensors, each with version 0: only their storage tells
+        state = {name: tensor.clone() for name, tensor in network.state_dict().items()}
+        network.load_state_dict(state, assign=True)
+        predict(network)
+    assert len(fake_loads.keys) == 2
+
+
+def test_a_frame_that_is_a_strided_view_runs_from_contiguous_inputs(fake_loads, monkeypatch):
+    network = networks()["control, MC dropout"]
+    view = torch.from_numpy(IMAGE).permute(1, 0, 2)  # (64, 64, 3), not contiguous
+    expected = eager_prediction(network, monkeypatch, view.numpy())
+    assert_close(predict(network, view), expected, 1e-5)
+    assert len(fake_loads.keys) == 1
+
+
+def test_batches_in_eager_calls_stay_eager_when_they_shrink_to_one_frame(fake_loads):
+    torch.manual_seed(0)
+    network = DrivingNetwork(control_config()).eval()
+    agents = [LearnedAgent(network, PIDSpeedController(0.05), 10, seed) for seed in range(2)]
+    observation = {"image": IMAGE, "velocity": VELOCITY}
+    LearnedAgent.act_together(agents, [observation, observation])
+    LearnedAgent.act_together(agents[:1], [observation])  # the last episode still running
+    with cpu_compile.eager_calls():
+        predict(network)
+    assert fake_loads.keys == []
+    predict(network)  # outside, a driving step compiles
+    assert len(fake_loads.keys) == 1
+
+
+def test_a_bad_frame_raises_as_it_would_eagerly_and_compiling_stays_on(compiling):
+    network = networks()["control, MC dropout"]
+    with pytest.raises(SafeRaceError, match="expected images"):
+        predict(network, np.zeros((64, 64, 4), np.uint8))
+    assert not network._compiled._failed
 
 
 def test_each_thread_count_has_its_own_package(fake_loads):
@@ -156,6 +203,8 @@ def test_the_cache_keeps_the_most_recently_used_packages_within_its_limit(tmp_pa
         (tmp_path / f"{name}.pt2").write_bytes(b"x" * 100)
         os.utime(tmp_path / f"{name}.pt2", (1e9 - age, 1e9 - age))
     (tmp_path / "other.123.partial.pt2").write_bytes(b"x" * 100)  # another process's, unfinished
+    (tmp_path / "killed.45.partial.pt2").write_bytes(b"x" * 100)  # a compile killed long ago
+    os.utime(tmp_path / "killed.45.partial.pt2", (1e9, 1e9))
     cpu_compile.prune_packages(tmp_path, 250)
     left = sorted(path.name for path in tmp_path.iterdir())
     assert left == ["middle.pt2", "newest.pt2", "other.123.partial.pt2"]

@@ -177,3 +177,37 @@ def test_a_slot_hands_its_env_the_action_as_a_serial_run_would(action, filtered)
         assert not isinstance(given, NominalAction)
         np.testing.assert_array_equal(given, mean)
     assert slot.step(encoded(action, filtered))[2] and slot.env.action is given  # held
+
+
+class Counting(gym.Env):
+    """Observes its step count; ends after as many steps as its seed."""
+
+    observation_space = gym.spaces.Box(0.0, 100.0, (1,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+
+    def reset(self, *, seed=None, options=None):
+        self.steps, self.length = 0, seed
+        return np.zeros(1, np.float32), {"steps": 0}
+
+    def step(self, action):
+        self.steps += 1
+        observation = np.full(1, self.steps, np.float32)
+        return observation, 0.0, self.steps == self.length, False, {"steps": self.steps}
+
+
+def test_a_group_keeps_an_ended_episode_still_until_all_have_ended():
+    group = vector_runner.VectorGroup(
+        [Counting, Counting], [1, 3], Counting.observation_space, 3, 5
+    )
+    observations, infos = group.reset()
+    assert [box.info["steps"] for box in infos[vector_runner.INFO_KEY]] == [0, 0]
+    seen = []
+    for _ in range(3):
+        observations, _, ended, _, infos = group.step(np.zeros((3, 5)))  # a padded row
+        boxes = infos[vector_runner.INFO_KEY]
+        seen.append(([float(o[0]) for o in observations], [b.terminated for b in boxes], ended))
+    assert seen == [
+        ([1.0, 1.0], [True, False], False),
+        ([1.0, 2.0], [True, False], False),  # the first answers with its last step
+        ([1.0, 3.0], [True, True], True),
+    ]

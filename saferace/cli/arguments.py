@@ -244,7 +244,8 @@ def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_num_envs_argument(parser: argparse.ArgumentParser) -> None:
-    """``--num-envs``: episodes driven at once in lockstep (gymnasium's vector API)."""
+    """``--num-envs``: episodes driven at once (gymnasium's vector API in lockstep for
+    learned drivers)."""
     parser.add_argument(
         "--num-envs",
         type=values.count,

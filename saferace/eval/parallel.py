@@ -24,13 +24,16 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from typing import Any
 
+from saferace.cache import CACHE_VARIABLE
 from saferace.errors import SafeRaceError
 from saferace.extras import require
-from saferace.names import DEVICE_VARIABLE
+from saferace.names import COMPILE_VARIABLE, DEVICE_VARIABLE
 
 RAY_RETRIES = 2
 #: Of a GPU, what each Ray task asks for when the networks run on CUDA: four tasks share one.
 RAY_GPU_SHARE = 0.25
+#: The command's choices that Ray tasks get as they are: the device, compiling, the cache.
+FORWARDED = (DEVICE_VARIABLE, COMPILE_VARIABLE, CACHE_VARIABLE)
 #: What BLAS, OpenMP and PyTorch builds read for their thread counts when they load.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
@@ -122,7 +125,7 @@ def _run_on_ray(
                 "env_vars": {
                     "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
                     **{name: "1" for name in THREAD_VARIABLES},  # a task has one CPU
-                    **{name: os.environ[name] for name in (DEVICE_VARIABLE,) if name in os.environ},
+                    **{name: os.environ[name] for name in FORWARDED if name in os.environ},
                 }
             },
         )

@@ -27,7 +27,6 @@ cores).
 from __future__ import annotations
 
 import multiprocessing
-import os
 import sys
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -40,7 +39,7 @@ from gymnasium.vector import AutoresetMode
 from saferace.envs.gl_backend import has_rendered
 from saferace.envs.unwrap import racing_env
 from saferace.eval.agents import act
-from saferace.eval.parallel import limit_threads
+from saferace.eval.parallel import available_cores, limit_threads
 from saferace.eval.runner import EpisodeRecorder, EpisodeResult, episode_words
 from saferace.progress import Progress
 from saferace.safety.decision import NominalAction, nominal_parts
@@ -173,10 +172,6 @@ def worker_shares(count: int, workers: int) -> list[range]:
     sizes = [count // workers + (w < count % workers) for w in range(workers)]
     starts = np.cumsum([0, *sizes])
     return [range(start, start + size) for start, size in zip(starts, sizes, strict=False)]
-
-
-def available_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 ActAll = Callable[[Sequence[Any], Sequence[dict], Sequence[dict]], list]

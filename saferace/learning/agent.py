@@ -22,7 +22,7 @@ import torch
 from saferace.agents.pid import PIDGains, PIDSpeedController
 from saferace.errors import SafeRaceError
 from saferace.learning.checkpoint import CONFORMAL_KEY, LearnedCheckpoint, load_checkpoint
-from saferace.learning.cpu_compile import compile_enabled
+from saferace.learning.cpu_compile import compile_enabled, eager_calls
 from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import DrivingNetwork, Prediction
 from saferace.safety.decision import NominalAction
@@ -103,7 +103,8 @@ class LearnedAgent:
         images = np.stack([observation["image"] for observation in observations])
         velocities = np.stack([observation["velocity"] for observation in observations])
         generators = [agent._generator for agent in agents]
-        prediction = network.predict(images, velocities, agents[0].mc_samples, generators)
+        with eager_calls():  # a batch, even of the one episode still running
+            prediction = network.predict(images, velocities, agents[0].mc_samples, generators)
         return [
             agent._action(prediction.mean[k], prediction.std[k], velocities[k])
             for k, agent in enumerate(agents)

@@ -31,7 +31,7 @@ from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import Agent, act, make_agent
 from saferace.eval.metrics import span_metrics, thinned_trajectory
-from saferace.eval.parallel import limit_threads, run_jobs
+from saferace.eval.parallel import available_cores, limit_threads, run_jobs
 from saferace.eval.runner import (
     EpisodeResult,
     git_revision,
@@ -42,7 +42,6 @@ from saferace.eval.runner import (
 )
 from saferace.eval.vector_runner import (
     act_all_agents,
-    available_cores,
     run_together,
     share_networks,
     worker_context,
@@ -198,8 +197,9 @@ def collect_round(
     ``train_fraction`` (``held_out``, when it is below 1) and a downsampled trajectory.
     The episodes are independent: ``workers`` processes or Ray tasks (``ray_address``,
     see :func:`~saferace.eval.parallel.run_jobs`) drive them at once, or ``num_envs`` > 1
-    of them at a time run in lockstep (:func:`collect_episodes_together`); the round is
-    the same as a serial one.
+    of them at a time run together (:func:`collect_episodes_together`: in lockstep for
+    learned drivers, else each driven through in a worker); the round is the same as a
+    serial one.
     """
     if num_envs > 1 and (workers > 1 or ray_address is not None):
         raise SafeRaceError("choose --num-envs or --workers/--ray: both drive episodes at once")

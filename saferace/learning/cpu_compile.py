@@ -33,7 +33,9 @@ import hashlib
 import logging
 import os
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import torch
@@ -53,11 +55,27 @@ CACHE_LIMIT_BYTES = 2 * 1024**3
 #: The inputs' shapes and dtypes, and the number of PyTorch threads.
 Signature = tuple[tuple[tuple[tuple[int, ...], torch.dtype], ...], int]
 _COMPILING = threading.Lock()  # one export and compile at a time in a process
+_EAGER = threading.local()  # set inside :func:`eager_calls`, per thread
+#: Finished packages' partial files older than this (s) are an interrupted compile's.
+STALE_PARTIAL_S = 3600.0
 
 
 def compile_enabled(device: torch.device) -> bool:
     """Whether networks on ``device`` run compiled (the CPU, unless switched off)."""
     return device.type == "cpu" and os.environ.get(COMPILE_VARIABLE, "1") != "0"
+
+
+@contextmanager
+def eager_calls() -> Iterator[None]:
+    """Run this thread's predictions eagerly inside: for work on batches that may shrink to
+    one frame (the last episode of a lockstep group, the last frame of a data set), which
+    would compile a network for a few calls."""
+    before = getattr(_EAGER, "on", False)
+    _EAGER.on = True
+    try:
+        yield
+    finally:
+        _EAGER.on = before
 
 
 def packages_folder() -> Path:
@@ -84,13 +102,15 @@ class CompiledStep:
         self.owner = owner
         self.method = method
         self._runners: dict[Signature, Callable[..., list[torch.Tensor]]] = {}
-        self._versions: tuple[int, ...] = ()
+        self._versions: tuple[tuple[int, int], ...] = ()
         self._failed = False
 
     def __call__(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         eager = getattr(self.owner, self.method)
-        if self._failed or inputs[0].shape[0] != 1 or not compile_enabled(inputs[0].device):
+        single = inputs[0].shape[0] == 1 and not getattr(_EAGER, "on", False)
+        if self._failed or not single or not compile_enabled(inputs[0].device):
             return eager(*inputs)
+        inputs = tuple(tensor.contiguous() for tensor in inputs)  # the strides compiled for
         versions = self._weight_versions()
         if versions != self._versions:  # new weights: the frozen ones are stale
             self._runners.clear()
@@ -102,10 +122,11 @@ class CompiledStep:
             try:
                 with _COMPILING:
                     runner = self._load_or_compile(inputs, signature)
-            except Exception as exc:
+            except Exception as exc:  # the toolchain's, any kind: run eagerly from now on
+                result = eager(*inputs)  # a bad input raises here, as it would eagerly
                 LOG.warning("compiling %s failed (%s); it runs eagerly", self._name(), exc)
                 self._failed = True
-                return eager(*inputs)
+                return result
             self._runners[signature] = runner
         return tuple(runner(*inputs))
 
@@ -117,10 +138,12 @@ class CompiledStep:
         """A copy loads its own packages."""
         return {**self.__dict__, "_runners": {}, "_versions": ()}
 
-    def _weight_versions(self) -> tuple[int, ...]:
-        """Every weight's and buffer's version counter: any in-place change bumps one."""
+    def _weight_versions(self) -> tuple[tuple[int, int], ...]:
+        """Every weight's and buffer's storage and version counter: an in-place change
+        through the tensor bumps its counter, a new tensor moves its storage. (A change
+        through ``.data`` bumps neither: call :meth:`clear` after one.)"""
         tensors = [*self.owner.parameters(), *self.owner.buffers()]
-        return tuple(tensor._version for tensor in tensors)
+        return tuple((tensor.data_ptr(), tensor._version) for tensor in tensors)
 
     def _name(self) -> str:
         return f"{type(self.owner).__name__}.{self.method}"
@@ -132,27 +155,36 @@ class CompiledStep:
         compiled and cached (written under a temporary name, then renamed: a failed or
         interrupted compile leaves no package half-written)."""
         path = packages_folder() / f"{self._key(signature)}.pt2"
-        if not path.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with (
-                Progress(1, "compile for this CPU", "network") as bar,
-                torch.inference_mode(False),
-                torch.no_grad(),
-            ):
-                examples = tuple(tensor.clone() for tensor in inputs)  # not inference tensors
-                program = torch.export.export(_Step(self.owner, self.method), examples)
-                partial = path.with_name(f"{path.stem}.{os.getpid()}.partial.pt2")
-                try:
-                    torch._inductor.aoti_compile_and_package(
-                        program, package_path=str(partial), inductor_configs={"freezing": True}
-                    )
-                    partial.replace(path)
-                finally:
-                    partial.unlink(missing_ok=True)
-                bar.done(self._name(), f"kept in {path.parent} (SAFERACE_COMPILE=0: eager)")
+        if path.exists():
+            try:
+                runner = torch._inductor.aoti_load_package(str(path))
+            except Exception:  # a damaged package: compile it again
+                path.unlink(missing_ok=True)
+            else:
+                with suppress(OSError):  # pruned meanwhile by another process
+                    os.utime(path)  # recently used
+                return runner
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with (
+            Progress(1, "compile for this CPU", "network") as bar,
+            torch.inference_mode(False),
+            torch.no_grad(),
+        ):
+            examples = tuple(tensor.clone() for tensor in inputs)  # not inference tensors
+            program = torch.export.export(_Step(self.owner, self.method), examples)
+            partial = path.with_name(f"{path.stem}.{os.getpid()}.partial.pt2")
+            try:
+                torch._inductor.aoti_compile_and_package(
+                    program, package_path=str(partial), inductor_configs={"freezing": True}
+                )
+                partial.replace(path)
+            finally:
+                partial.unlink(missing_ok=True)
+            bar.done(self._name(), f"kept in {path.parent} (SAFERACE_COMPILE=0: eager)")
+        runner = torch._inductor.aoti_load_package(str(path))
+        with suppress(OSError):  # another process pruning at once
             prune_packages(path.parent, CACHE_LIMIT_BYTES)
-        path.touch()  # recently used
-        return torch._inductor.aoti_load_package(str(path))
+        return runner
 
     def _key(self, signature: Signature) -> str:
         """A hash of everything the package depends on: the weights and buffers, the
@@ -171,11 +203,17 @@ class CompiledStep:
 
 def prune_packages(folder: Path, limit_bytes: int) -> None:
     """Delete the least recently used packages of ``folder`` until the rest fit ``limit_bytes``
-    (a DAgger run compiles new networks every iteration)."""
-    finished = [path for path in folder.glob("*.pt2") if ".partial" not in path.suffixes]
-    packages = sorted(finished, key=lambda path: path.stat().st_mtime, reverse=True)
+    (a DAgger run compiles new networks every iteration), and the partial files of compiles
+    interrupted more than :data:`STALE_PARTIAL_S` ago."""
+    packages = []
+    for path in folder.glob("*.pt2"):
+        modified = path.stat().st_mtime
+        if ".partial" not in path.suffixes:
+            packages.append((modified, path))
+        elif time.time() - modified > STALE_PARTIAL_S:
+            path.unlink(missing_ok=True)
     total = 0
-    for path in packages:
+    for _, path in sorted(packages, reverse=True):
         total += path.stat().st_size
         if total > limit_bytes:
             path.unlink(missing_ok=True)

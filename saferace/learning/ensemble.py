@@ -58,8 +58,8 @@ class StateEnsemble(nn.Module):
         self._streams: list[torch.cuda.Stream] | None = None
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
-        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs and the
-        members' streams stale."""
+        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs, compiled
+        packages and the members' streams stale."""
         self._graphs.clear()
         self._compiled.clear()
         self._streams = None

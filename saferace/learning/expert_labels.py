@@ -1,7 +1,8 @@
 """The expert's labels computed where the env runs, for episodes driven together.
 
-Collecting N episodes at once (:func:`~saferace.learning.collect.collect_round` with
-``num_envs``), each env runs in its own process; the expert MPC that labels every frame is
+Collecting N episodes of a learned driver at once in lockstep
+(:func:`~saferace.learning.collect.collect_round` with ``num_envs``), the envs run in
+worker processes; the expert MPC that labels every frame is
 the costliest part of a step after rendering, so it runs there too: :class:`ExpertLabels`
 wraps the env and puts the expert's action and planned speed for each new observation into
 ``info``, and :class:`LabelsFromInfo` hands them to the

@@ -16,7 +16,8 @@ deviation are the prediction and its spread.
 
 A prediction moves its inputs to the device in one copy and its results back in one
 (:mod:`saferace.learning.transfer`); on CUDA the work between is one replayed graph
-(:mod:`saferace.learning.cuda_graphs`).
+(:mod:`saferace.learning.cuda_graphs`), on the CPU a package compiled for the machine with
+the weights frozen in (:mod:`saferace.learning.cpu_compile`).
 """
 
 from __future__ import annotations
@@ -227,7 +228,8 @@ class DrivingNetwork(nn.Module):
         self._graphs = GraphCache(self._compiled)
 
     def _apply(self, fn, recurse=True):  # type: ignore[no-untyped-def]  # nn.Module's
-        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs stale."""
+        """Moving the weights (``to``, ``cuda``, ``half``) leaves captured graphs and
+        compiled packages stale."""
         self._graphs.clear()
         self._compiled.clear()
         return super()._apply(fn, recurse)

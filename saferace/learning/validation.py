@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from saferace.eval.tables import markdown_table
+from saferace.learning.cpu_compile import eager_calls
 from saferace.learning.ensemble import StateNetwork
 from saferace.learning.networks import Prediction
 from saferace.learning.rounds import FrameSet
@@ -42,13 +43,15 @@ def predict_frames(
     batch_size: int = 64,
     seed: int = 0,
 ) -> Prediction:
-    """MC-dropout predictions for every frame of ``data``, in batches."""
+    """MC-dropout predictions for every frame of ``data``, in batches (eagerly, the last
+    too when it holds one frame)."""
     generator = torch.Generator().manual_seed(seed)
     parts = []
-    for start in range(0, len(data), batch_size):
-        stop = min(start + batch_size, len(data))
-        velocity = None if data.velocity is None else data.velocity[start:stop]
-        parts.append(network.predict(data.images[start:stop], velocity, n_samples, generator))
+    with eager_calls():
+        for start in range(0, len(data), batch_size):
+            stop = min(start + batch_size, len(data))
+            velocity = None if data.velocity is None else data.velocity[start:stop]
+            parts.append(network.predict(data.images[start:stop], velocity, n_samples, generator))
     return Prediction(
         *(
             np.concatenate([getattr(p, name) for p in parts])
