@@ -265,6 +265,10 @@ REFUSALS = {
         lambda d: d["replay"].update(files_sha256={"agent.pt": 5}),
         "replay or versions has fields of the wrong type",
     ),
+    "compiling named in words": (
+        lambda d: d["replay"].update(compiled="false"),
+        "replay or versions has fields of the wrong type",
+    ),
     "a replay of another agent": (
         lambda d: d["replay"].update(agent="expert"),
         "agent 'pure-pursuit' but replay agent 'expert'",
@@ -642,3 +646,4 @@ def test_runs_replay_compiled_only_where_the_submissions_networks_ran_compiled(m
     monkeypatch.setenv(COMPILE_VARIABLE, "0")
     assert replay_record(f"learned:{Path(__file__)}", 10)["compiled"] is False
     assert not replay_compiled({"files_sha256": {"agent.pt": "0" * 64}})  # made before
+    assert not replay_compiled({**made, "compiled": False})

@@ -185,6 +185,7 @@ def _check_replay(data: dict, source: str) -> None:
         or not isinstance(files, dict)
         or not all(isinstance(k, str) and isinstance(v, str) for k, v in files.items())
         or not isinstance(replay.get("device") or "", str)
+        or not isinstance(replay.get("compiled", False), bool | None)
         or not isinstance(data["versions"], dict)
     ):
         raise SafeRaceError(f"{source}: replay or versions has fields of the wrong type")
