@@ -6,6 +6,8 @@ from __future__ import annotations
 import copy
 import logging
 import os
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -195,7 +197,7 @@ def test_a_failed_compile_warns_once_and_runs_eagerly(compiling, monkeypatch, ca
     ]
     assert_close(first, expected, 0.0)
     assert_close(second, expected, 0.0)
-    assert not list(compiling.glob("*"))
+    assert not list(compiling.glob("*.pt2"))
 
 
 def test_the_cache_keeps_the_most_recently_used_packages_within_its_limit(tmp_path):
@@ -205,9 +207,12 @@ def test_the_cache_keeps_the_most_recently_used_packages_within_its_limit(tmp_pa
     (tmp_path / "other.123.partial.pt2").write_bytes(b"x" * 100)  # another process's, unfinished
     (tmp_path / "killed.45.partial.pt2").write_bytes(b"x" * 100)  # a compile killed long ago
     os.utime(tmp_path / "killed.45.partial.pt2", (1e9, 1e9))
+    for name in ("newest", "gone"):  # the locks of a package and of one deleted long ago
+        (tmp_path / f"{name}.lock").touch()
+        os.utime(tmp_path / f"{name}.lock", (1e9, 1e9))
     cpu_compile.prune_packages(tmp_path, 250)
     left = sorted(path.name for path in tmp_path.iterdir())
-    assert left == ["middle.pt2", "newest.pt2", "other.123.partial.pt2"]
+    assert left == ["middle.pt2", "newest.lock", "newest.pt2", "other.123.partial.pt2"]
 
 
 def test_a_compile_that_fails_half_way_leaves_no_package(compiling, monkeypatch):
@@ -219,4 +224,21 @@ def test_a_compile_that_fails_half_way_leaves_no_package(compiling, monkeypatch)
 
     monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", half_written)
     predict(network)  # runs eagerly, with a warning
-    assert list(compiling.glob("*")) == []
+    assert list(compiling.glob("*.pt2")) == []  # nor a partial one
+
+
+def test_a_package_lock_is_held_by_one_at_a_time(tmp_path):
+    order = []
+    lock = tmp_path / "key.lock"
+
+    def second() -> None:
+        with cpu_compile._locked(lock):
+            order.append("second")
+
+    with cpu_compile._locked(lock):
+        waiting = threading.Thread(target=second)
+        waiting.start()
+        time.sleep(0.2)  # the second has tried by now, and waits
+        order.append("first")
+    waiting.join()
+    assert order == ["first", "second"]

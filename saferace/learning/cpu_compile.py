@@ -29,6 +29,7 @@ reproduce an eager run exactly set ``SAFERACE_COMPILE=0``.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import logging
 import os
@@ -155,6 +156,14 @@ class CompiledStep:
         compiled and cached (written under a temporary name, then renamed: a failed or
         interrupted compile leaves no package half-written)."""
         path = packages_folder() / f"{self._key(signature)}.pt2"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with _locked(path.with_suffix(".lock")):  # another process compiling it: wait, load
+            return self._load_or_compile_unlocked(inputs, path)
+
+    def _load_or_compile_unlocked(
+        self, inputs: tuple[torch.Tensor, ...], path: Path
+    ) -> Callable[..., list[torch.Tensor]]:
+        """:meth:`_load_or_compile` once it holds the package's lock."""
         if path.exists():
             try:
                 runner = torch._inductor.aoti_load_package(str(path))
@@ -164,7 +173,6 @@ class CompiledStep:
                 with suppress(OSError):  # pruned meanwhile by another process
                     os.utime(path)  # recently used
                 return runner
-        path.parent.mkdir(parents=True, exist_ok=True)
         with (
             Progress(1, "compile for this CPU", "network") as bar,
             torch.inference_mode(False),
@@ -201,10 +209,22 @@ class CompiledStep:
         return digest.hexdigest()
 
 
+@contextmanager
+def _locked(lock_path: Path) -> Iterator[None]:
+    """Hold ``lock_path`` exclusively (across processes: workers that start together
+    compile a network once, the others load it)."""
+    with open(lock_path, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def prune_packages(folder: Path, limit_bytes: int) -> None:
     """Delete the least recently used packages of ``folder`` until the rest fit ``limit_bytes``
     (a DAgger run compiles new networks every iteration), and the partial files of compiles
-    interrupted more than :data:`STALE_PARTIAL_S` ago."""
+    interrupted, and the locks of packages deleted, more than :data:`STALE_PARTIAL_S` ago."""
     packages = []
     for path in folder.glob("*.pt2"):
         modified = path.stat().st_mtime
@@ -212,6 +232,10 @@ def prune_packages(folder: Path, limit_bytes: int) -> None:
             packages.append((modified, path))
         elif time.time() - modified > STALE_PARTIAL_S:
             path.unlink(missing_ok=True)
+    for lock in folder.glob("*.lock"):  # of packages gone long ago
+        old = time.time() - lock.stat().st_mtime > STALE_PARTIAL_S
+        if old and not lock.with_suffix(".pt2").exists():
+            lock.unlink(missing_ok=True)
     total = 0
     for _, path in sorted(packages, reverse=True):
         total += path.stat().st_size
