@@ -142,7 +142,7 @@ class CompiledStep:
     def _weight_versions(self) -> tuple[tuple[int, int], ...]:
         """Every weight's and buffer's storage and version counter: an in-place change
         through the tensor bumps its counter, a new tensor moves its storage. (A change
-        through ``.data`` bumps neither: call :meth:`clear` after one.)"""
+        through ``.data`` bumps neither: :meth:`clear` after one.)"""
         tensors = [*self.owner.parameters(), *self.owner.buffers()]
         return tuple((tensor.data_ptr(), tensor._version) for tensor in tensors)
 
