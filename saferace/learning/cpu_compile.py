@@ -188,7 +188,7 @@ class CompiledStep:
                 partial.replace(path)
             finally:
                 partial.unlink(missing_ok=True)
-            bar.done(self._name(), f"kept in {path.parent} (SAFERACE_COMPILE=0: eager)")
+            bar.done(self._name(), f"kept in {path.parent} (SAFERACE_COMPILE=0 skips compiling)")
         runner = torch._inductor.aoti_load_package(str(path))
         with suppress(OSError):  # another process pruning at once
             prune_packages(path.parent, CACHE_LIMIT_BYTES)
