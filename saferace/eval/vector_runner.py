@@ -85,9 +85,9 @@ class VectorSlot(gym.Wrapper):
     def step(self, action: np.ndarray) -> tuple:
         if self._last is not None:
             return self._last
-        has_std, (mean, std) = action[0] > 0.0, np.split(np.asarray(action[1:], dtype=float), 2)
-        decoded = NominalAction(mean, std) if has_std else mean
-        observation, reward, terminated, truncated, info = self.env.step(decoded)
+        mean, std = decoded(action)
+        given = mean if std is None else NominalAction(mean, std)
+        observation, reward, terminated, truncated, info = self.env.step(given)
         if terminated or truncated:
             describe = getattr(getattr(self.env, "state_source", None), "describe", None)
             info = {**info, SOURCE_KEY: None if describe is None else describe()}
@@ -112,6 +112,12 @@ def encoded(action: Any, filtered: bool) -> np.ndarray:
     mean, std = nominal_parts(action)
     has_std = filtered and std is not None
     return np.concatenate([[float(has_std)], mean, std if has_std else np.zeros_like(mean)])
+
+
+def decoded(row: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`encoded`'s mean and spread (None where it has none)."""
+    mean, std = np.split(np.asarray(row[1:], dtype=float), 2)
+    return mean, std if row[0] > 0.0 else None
 
 
 def worker_context(preload: Sequence[str] = ()) -> str:
@@ -227,6 +233,7 @@ def run_together(
     vector = None
     shares = worker_shares(count, available_cores())
     width = max(len(share) for share in shares)
+    rows = [(w, j) for w, share in enumerate(shares) for j in range(len(share))]  # env k's
     try:
         vector = gym.vector.AsyncVectorEnv(
             [
@@ -259,20 +266,17 @@ def run_together(
                     [observations[k] for k in active],
                     [step_infos[k] for k in active],
                 )
-                actions = np.zeros((count, encoded_size(like)))
+                actions = np.zeros((len(shares), width, encoded_size(like)))
                 for k, action in zip(active, chosen, strict=True):
-                    actions[k] = encoded(action, filtered)
-                grouped = np.zeros((len(shares), width, actions.shape[1]))
-                for w, share in enumerate(shares):
-                    grouped[w, : len(share)] = actions[share.start : share.stop]
-                batched, _, _, _, infos = vector.step(grouped)
+                    actions[rows[k]] = encoded(action, filtered)
+                batched, _, _, _, infos = vector.step(actions)
                 observations = [observation for group in batched for observation in group]
                 boxes = [box for group_boxes in infos[INFO_KEY] for box in group_boxes]
                 for k in active:
                     info = step_infos[k] = boxes[k].info
                     recorders[k].record(info)
                     if on_steps is not None:
-                        mean = actions[k][1 : 1 + (len(actions[k]) - 1) // 2]
+                        mean = decoded(actions[rows[k]])[0]
                         applied = info["safety"]["filtered_action"] if filtered else mean
                         on_steps[k](observations[k], info, np.asarray(applied, dtype=float))
                     if boxes[k].terminated or boxes[k].truncated:

@@ -104,6 +104,7 @@ class CompiledStep:
         self.method = method
         self._runners: dict[Signature, Callable[..., list[torch.Tensor]]] = {}
         self._versions: tuple[tuple[int, int], ...] = ()
+        self._modules: list[nn.Module] | None = None  # the owner's, walked once
         self._failed = False
 
     def __call__(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -134,17 +135,27 @@ class CompiledStep:
     def clear(self) -> None:
         """Forget the loaded packages (after the weights moved to another device)."""
         self._runners.clear()
+        self._modules = None
 
     def __getstate__(self) -> dict:
         """A copy loads its own packages."""
-        return {**self.__dict__, "_runners": {}, "_versions": ()}
+        return {**self.__dict__, "_runners": {}, "_versions": (), "_modules": None}
 
     def _weight_versions(self) -> tuple[tuple[int, int], ...]:
         """Every weight's and buffer's storage and version counter: an in-place change
         through the tensor bumps its counter, a new tensor moves its storage. (A change
-        through ``.data`` bumps neither: :meth:`clear` after one.)"""
-        tensors = [*self.owner.parameters(), *self.owner.buffers()]
-        return tuple((tensor.data_ptr(), tensor._version) for tensor in tensors)
+        through ``.data`` bumps neither: :meth:`clear` after one.) Read from each module's
+        own tables, walked once: ``parameters()`` and ``buffers()`` took 5x as long, 0.7 ms
+        a step for a 5-member ensemble."""
+        if self._modules is None:
+            self._modules = list(self.owner.modules())
+        return tuple(
+            (tensor.data_ptr(), tensor._version)
+            for module in self._modules
+            for table in (module._parameters, module._buffers)
+            for tensor in table.values()
+            if tensor is not None
+        )
 
     def _name(self) -> str:
         return f"{type(self.owner).__name__}.{self.method}"
