@@ -4,7 +4,8 @@ The expert and the weaving agent drive one lap of each built-in track behind the
 filter (``--filter mpsf``) and behind the CBF (the baseline, measured in the same run). The
 table gives the median per step of the plan (linearisation, QP and any re-solve) and of
 the whole step (state, plan and decision), and the ratio of the predictive filter's step to
-the CBF's. Goal (issue 30): the predictive filter's whole step at most 1 ms.
+the CBF's. Goal (issue 54): the predictive filter's whole step at most 1.5x the CBF's in
+the same run, on every pair (issue 30's, before it: at most 1 ms).
 
     python benchmarks/predictive_filter_speed.py [--tracks lab oval ...]
 """
@@ -18,7 +19,7 @@ from saferace.eval.runner import evaluate
 from saferace.eval.tables import markdown_table
 from saferace.track.track import builtin_track_names
 
-GOAL_MS = 1.0
+GOAL_RATIO = 1.5
 DRIVES = (("expert", "RacingLine"), ("weave", "CenterLine"))
 
 
@@ -40,7 +41,7 @@ def main() -> None:
             plan_ms, step_ms = step_times_ms(agent, task, track, "mpsf")
             cbf_solve_ms, cbf_step_ms = step_times_ms(agent, task, track, "cbf")
             rows.append([track, agent, plan_ms, step_ms, cbf_solve_ms, cbf_step_ms,
-                         f"{step_ms / cbf_step_ms:.1f}x", f"{step_ms / GOAL_MS:.2f}x"])  # fmt: skip
+                         f"{step_ms / cbf_step_ms:.2f}x"])  # fmt: skip
     print(
         markdown_table(
             [
@@ -51,12 +52,13 @@ def main() -> None:
                 "cbf QP median [ms]",
                 "cbf step median [ms]",
                 "mpsf / cbf step",
-                "mpsf step / goal",
             ],
             rows,
         )
     )
-    print(f"goal: the predictive filter's whole step at most {GOAL_MS} ms")
+    worst = max(float(row[-1].rstrip("x")) for row in rows)
+    verdict = "meets" if worst <= GOAL_RATIO else "misses"
+    print(f"worst pair: {worst:.2f}x the CBF's step; {verdict} the goal of at most {GOAL_RATIO}x")
 
 
 if __name__ == "__main__":

@@ -35,13 +35,12 @@ import osqp
 import scipy.sparse as sp
 
 from saferace.envs.drivetrain import DrivetrainParams
+from saferace.safety.frenet_stages import stages_along_map
 from saferace.safety.models import MIN_SPEED_MPS, FrenetModel
+from saferace.safety.stage_qp import StageQP
 from saferace.safety.vehicle_params import VehicleParams, load_params
-from saferace.track import Track, VehicleEnvelope, wrap_angle
+from saferace.track import Track, VehicleEnvelope
 from saferace.track.raceline import ReferenceLine
-
-#: Below this stretch per stage the curvature is sampled at its start (_stages_along_map).
-_MIN_STAGE_LENGTH_M = 1e-3
 
 
 @dataclass(frozen=True)
@@ -229,7 +228,7 @@ class FrenetMPC:
 
     def _solve(self, x0: np.ndarray, s0: float) -> np.ndarray:
         st, L, model = self.settings, self._layout, self.model
-        n, m, N, dt = L.n, L.m, L.N, st.dt_s
+        n, N, dt = L.n, L.N, st.dt_s
         plan_x, plan_u = self._linearisation_trajectory(x0, s0)
         # The models raise a lower speed to MIN_SPEED_MPS inside: linearised at a standstill
         # they moved the car at that speed whatever its own, a stopped plan turned the car in
@@ -247,70 +246,49 @@ class FrenetMPC:
         reference[:, 0] = self._offset_reference(s_ref)
         reference[:, 1] = self.reference.heading_offset_at(s_ref)
         reference[:, model.speed_index] = st.speed_scale * self.reference.speed_at(s_ref)
-
-        q = np.zeros(L.size)
-        q[: N * n] = -2.0 * (reference * self._q_state).ravel()
-        q[L.u(0) : L.u(0) + m] -= 2.0 * self._rate_weights * self._rate_anchor()
-        q[L.u(0) : L.u(0) + m] -= 2.0 * self._first_input_pull()
-        q[L.eps(0) :] = self._slack_costs
-        lo = np.empty(self._n_rows)
-        hi = np.empty(self._n_rows)
-        dynamics_rhs = c_stages.copy()
-        dynamics_rhs[0] += A_stages[0] @ x0
-        lo[: N * n] = hi[: N * n] = dynamics_rhs.ravel()
         p = self.drivetrain
         u_min, u_max = self._input_bounds(plan_x)
-        lo[self._input_rows : self._rate_rows], hi[self._input_rows : self._rate_rows] = (
-            u_min.ravel(),
-            u_max.ravel(),
-        )
         step = p.max_steer_rate_radps * dt
-        rate_lo, rate_hi = np.full(N, -step), np.full(N, step)
-        rate_lo[0] += self._previous_u[0]
-        rate_hi[0] += self._previous_u[0]
-        lo[self._rate_rows : self._lane_rows], hi[self._rate_rows : self._lane_rows] = (
-            rate_lo,
-            rate_hi,
+        rate_lower, rate_upper = np.full(N, -step), np.full(N, step)
+        rate_lower[0] += self._previous_u[0]
+        rate_upper[0] += self._previous_u[0]
+        stage_qp = StageQP(
+            x0=x0,
+            A=A_stages,
+            B=B_stages,
+            c=c_stages,
+            reference=reference,
+            first_input_linear=-2.0
+            * (self._rate_weights * self._rate_anchor() + self._first_input_pull()),
+            input_lower=u_min,
+            input_upper=u_max,
+            rate_lower=rate_lower,
+            rate_upper=rate_upper,
+            lane_lower=lower,
+            lane_upper=upper,
+            speed_caps=self._speed_caps_mps(s_ref, plan_x[1:]) if self.speed_rows else None,
+            heading_bound=self.terminal_heading_rad,
         )
-        lane_lo = np.column_stack([np.full(N, -np.inf), lower]).ravel()
-        lane_hi = np.column_stack([upper, np.full(N, np.inf)]).ravel()
-        lo[self._lane_rows : self._slack_rows], hi[self._lane_rows : self._slack_rows] = (
-            lane_lo,
-            lane_hi,
-        )
-        lo[self._slack_rows : self._speed_rows] = 0.0
-        hi[self._slack_rows : self._speed_rows] = np.inf
-        if self.speed_rows:
-            lo[self._speed_rows : self._heading_rows] = 0.0  # the models drive forward only
-            hi[self._speed_rows : self._heading_rows] = self._speed_caps_mps(
-                s_stage[1:], plan_x[1:]
-            )
-        if self.terminal_heading_rad is not None:
-            bound = self.terminal_heading_rad
-            lo[self._heading_rows :] = [-np.inf, -bound]
-            hi[self._heading_rows :] = [bound, np.inf]
-        a_values = self._constraint_values(A_stages, B_stages)
-
         start = time.perf_counter()
-        z = self._solve_qp(q, lo, hi, a_values)
+        solution = self._solve_qp(stage_qp)
         self.stats.solve_times_s.append(time.perf_counter() - start)
-        if z is None:
+        if solution is None:
             self.stats.failures += 1
             u = plan_u[0]
             self._plan_x = self._plan_slack = None
             return np.clip(
                 u, [-p.max_steer_rad, -p.max_brake_mps2], [p.max_steer_rad, p.max_accel_mps2]
             )
-        self._plan_x = np.vstack([x0, z[: N * n].reshape(N, n)])
-        self._plan_u = z[L.u(0) : L.u(0) + N * m].reshape(N, m)
-        self._plan_slack = z[L.eps(0) :]
+        states, self._plan_u, self._plan_slack = solution
+        self._plan_x = np.vstack([x0, states])
         return self._plan_u[0].copy()
 
-    def _solve_qp(
-        self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, a_values: np.ndarray
-    ) -> np.ndarray | None:
-        """The QP's solution with this step's vectors and constraint values (None if OSQP
-        failed), warm-started from the last."""
+    def _solve_qp(self, qp: StageQP) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The plan's states ``x_1 .. x_N``, inputs and slacks (None if OSQP failed): the
+        sparse QP over all three, warm-started from the last."""
+        L = self._layout
+        N, n, m = L.N, L.n, L.m
+        q, lo, hi, a_values = self.sparse_vectors(qp)
         if self._solver is None:
             A = self._A_template.copy()
             A.data = a_values
@@ -332,7 +310,40 @@ class FrenetMPC:
             self._solver.update(q=q, l=lo, u=hi, Ax=a_values)
         result = self._solver.solve(raise_error=False)
         solved = (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE)
-        return result.x if result.info.status_val in solved else None
+        if result.info.status_val not in solved:
+            return None
+        z = result.x
+        return z[: N * n].reshape(N, n), z[L.u(0) : L.eps(0)].reshape(N, m), z[L.eps(0) :]
+
+    def sparse_vectors(self, qp: StageQP) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The sparse QP's linear cost, row bounds (lower, upper) and the values of its
+        constraint matrix (in the CSC order of ``_A_template``) for ``qp``: its variables
+        are ``x_1 .. x_N``, ``u_0 .. u_{N-1}``, then the slacks."""
+        L = self._layout
+        N, n, m = L.N, L.n, L.m
+        q = np.zeros(L.size)
+        q[: N * n] = -2.0 * (qp.reference * self._q_state).ravel()
+        q[L.u(0) : L.u(0) + m] = qp.first_input_linear
+        q[L.eps(0) :] = self._slack_costs
+        lo = np.empty(self._n_rows)
+        hi = np.empty(self._n_rows)
+        lo[: N * n] = hi[: N * n] = qp.dynamics_offsets.ravel()
+        inputs = slice(self._input_rows, self._rate_rows)
+        lo[inputs], hi[inputs] = qp.input_lower.ravel(), qp.input_upper.ravel()
+        rates = slice(self._rate_rows, self._lane_rows)
+        lo[rates], hi[rates] = qp.rate_lower, qp.rate_upper
+        lane = slice(self._lane_rows, self._slack_rows)
+        lo[lane] = np.column_stack([np.full(N, -np.inf), qp.lane_lower]).ravel()
+        hi[lane] = np.column_stack([qp.lane_upper, np.full(N, np.inf)]).ravel()
+        lo[self._slack_rows : self._speed_rows] = 0.0
+        hi[self._slack_rows : self._speed_rows] = np.inf
+        if qp.speed_caps is not None:
+            lo[self._speed_rows : self._heading_rows] = 0.0  # the models drive forward only
+            hi[self._speed_rows : self._heading_rows] = qp.speed_caps
+        if qp.heading_bound is not None:
+            lo[self._heading_rows :] = [-np.inf, -qp.heading_bound]
+            hi[self._heading_rows :] = [qp.heading_bound, np.inf]
+        return q, lo, hi, self._constraint_values(qp.A, qp.B)
 
     # ------------------------------------------------ what a planner on this QP changes
     #: Whether the QP caps each stage's speed (rows ``v_k - eps_k <= cap_k``).
@@ -405,18 +416,14 @@ class FrenetMPC:
         ``s_dot`` at the mean curvature.
         """
         centerline = self.track.centerline
-        travels_m = (self.model.along_track_speeds_mps(states) * dt_s).tolist()
-        s_stage = np.empty(len(states) + 1)
-        kappas = np.empty(len(states))
-        s_m = s_stage[0] = s0_m
-        for k, (travel_m, e_y) in enumerate(zip(travels_m, states[:, 0].tolist(), strict=True)):
-            kappa, heading = centerline.curvature_and_heading_scalar(s_m)
-            length = travel_m / (1.0 - kappa * e_y)
-            if length >= _MIN_STAGE_LENGTH_M:
-                kappa = wrap_angle(centerline.heading_scalar(s_m + length) - heading) / length
-            kappas[k] = kappa
-            s_m = s_stage[k + 1] = s_m + travel_m / (1.0 - kappa * e_y)
-        return s_stage, kappas
+        return stages_along_map(
+            self.model.along_track_speeds_mps(states) * dt_s,
+            np.ascontiguousarray(states[:, 0]),
+            float(s0_m),
+            centerline.piece_array,
+            centerline.knot_spacing_m,
+            centerline.length_m,
+        )
 
     def _linearisation_trajectory(self, x0: np.ndarray, s0: float) -> tuple[np.ndarray, np.ndarray]:
         """States and inputs to linearise about: the last plan shifted by one step.

@@ -31,8 +31,10 @@ from functools import cache
 
 import numpy as np
 import sympy as sp
+from numba import njit
 
-from saferace.safety.matrix_exponential import expm_batch
+from saferace.safety.matrix_exponential import expm_batch, expm_stacked
+from saferace.safety.model_code import stage_linearisation
 from saferace.safety.vehicle_params import VehicleParams
 
 MIN_SPEED_MPS = 0.5
@@ -164,6 +166,7 @@ class FrenetModel:
         self.speed_index = self.symbolic.speed_index
         self._param_values = param_values(params)
         self._f, self._s_dot, self._linearised = _lambdified(name)
+        self._param_array = np.array(self._param_values)
 
     def state_from(
         self, e_y: float, e_psi: float, v_x: float, v_y: float = 0.0, r: float = 0.0
@@ -252,29 +255,63 @@ class FrenetModel:
         follows the commanded angle ``u[0]`` as a first-order lag,
         ``delta' = (u[0] - delta) / tau``; the model sees ``[delta, u[1]]``. At racing speed
         the servo's lag (about one control step) is what a controller that ignores it
-        turns into a weave. The stages' matrix exponentials are one batched call.
+        turns into a weave. The stages' linearisation is one call of the model's compiled
+        code (:mod:`~saferace.safety.model_code`), their matrix exponentials one batched
+        call.
         """
-        n, m = self.n_state, self.n_control
+        n = self.n_state
         xs, us = np.asarray(xs, dtype=float), np.asarray(us, dtype=float)
-        stages = len(xs)
         rate = 1.0 / steer_time_constant_s
         states = xs[:, :n].copy()
         states[:, self.speed_index] = np.maximum(states[:, self.speed_index], MIN_SPEED_MPS)
-        values = self._linearised(
-            *states.T, xs[:, n], us[:, 1], np.asarray(kappas, dtype=float), *self._param_values
-        )  # per stage: f, then df/dx and df/du row by row (constants as scalars)
-        flat = np.empty((stages, len(values)))
-        for column, value in enumerate(values):
-            flat[:, column] = value
+        flat = _stage_linearisation(self.name)(
+            states, xs[:, n].copy(), us[:, 1].copy(), np.asarray(kappas, dtype=float),
+            self._param_array,
+        )  # fmt: skip
         f, a, b = self._split(flat)
-        size = n + 1  # the lagged system's state
-        block = np.zeros((stages, size + m + 1, size + m + 1))  # [[A, B, c], [0, 0, 0]]
-        block[:, :n, :n], block[:, :n, n], block[:, :n, size + 1] = a, b[:, :, 0], b[:, :, 1]
-        block[:, n, n], block[:, n, size] = -rate, rate
-        x_dot = np.column_stack([f, rate * (us[:, 0] - xs[:, n])])
-        linear = np.einsum("kij,kj->ki", block[:, :size, : size + m], np.hstack([xs, us]))
-        block[:, :size, -1] = x_dot - linear
-        return _zero_order_hold(block, size, dt_s)
+        return _lagged_zero_order_hold(
+            f, a, b, np.ascontiguousarray(xs), np.ascontiguousarray(us), dt_s, rate
+        )
+
+
+@njit(cache=True)
+def _lagged_zero_order_hold(
+    f: np.ndarray,
+    jac_x: np.ndarray,
+    jac_u: np.ndarray,
+    xs: np.ndarray,
+    us: np.ndarray,
+    dt_s: float,
+    rate: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each stage's ``(A_d, B_d, c_d)`` of the model linearised at ``(xs[k], us[k])`` (its
+    ``f``, ``df/dx``, ``df/du``) with the servo's lag in front: the state gains the wheels'
+    angle (``xs[k, -1]``), ``delta' = rate (u[0] - delta)``, which the model sees as its
+    first input; one matrix exponential of ``[[A, B, c], [0, 0, 0]] dt_s`` per stage."""
+    stages, n = f.shape
+    m = jac_u.shape[2]
+    size = n + 1  # the lagged system's state
+    width = size + m + 1
+    block = np.zeros((width, width, stages))  # stacked along the last axis (expm_stacked)
+    for k in range(stages):
+        block[:n, :n, k] = jac_x[k]
+        block[:n, n, k] = jac_u[k, :, 0]
+        block[:n, size + 1 : size + m, k] = jac_u[k, :, 1:]
+        block[n, n, k], block[n, size, k] = -rate, rate
+        for i in range(size):  # c = x_dot - [A B] [x u] at the stage's point
+            total = f[k, i] if i < n else rate * (us[k, 0] - xs[k, n])
+            for j in range(size):
+                total -= block[i, j, k] * xs[k, j]
+            for j in range(m):
+                total -= block[i, size + j, k] * us[k, j]
+            block[i, -1, k] = total
+    exp = expm_stacked(block * dt_s)
+    A = np.empty((stages, size, size))
+    B = np.empty((stages, size, m))
+    c = np.empty((stages, size))
+    for k in range(stages):
+        A[k], B[k], c[k] = exp[:size, :size, k], exp[:size, size:-1, k], exp[:size, -1, k]
+    return A, B, c
 
 
 def _zero_order_hold(
@@ -306,6 +343,17 @@ def lane_model_states(model: SymbolicModel, lane: np.ndarray, velocity: np.ndarr
 def symbolic_model(name: str) -> SymbolicModel:
     """The sympy form of a model (built once per process)."""
     return SYMBOLIC_MODELS[name]()
+
+
+@cache
+def _stage_linearisation(name: str) -> Callable:
+    """Model ``name``'s ``f`` with both Jacobians at many stages, compiled
+    (:func:`~saferace.safety.model_code.stage_linearisation`)."""
+    model = symbolic_model(name)
+    state, control = sp.Matrix(model.state), sp.Matrix(model.control)
+    jac_x, jac_u = model.x_dot.jacobian(state), model.x_dot.jacobian(control)
+    outputs = [*model.x_dot, *jac_x, *jac_u]
+    return stage_linearisation(name, model.state, model.control, model.kappa, model.params, outputs)
 
 
 @cache

@@ -45,22 +45,13 @@ class ClosedPath:
         self.knot_spacing_m = self.length_m / knot_count
         self.piece_count = knot_count
         self.knot_xy = knot_xy[:-1]
-        # Per-piece cubic coefficients as Python floats for fast scalar evaluation:
-        # (ax, bx, cx, dx, ay, by, cy, dy) with x = ((ax t + bx) t + cx) t + dx.
-        c = self._spline.c
-        self.pieces = [
-            (
-                c[0, k, 0],
-                c[1, k, 0],
-                c[2, k, 0],
-                c[3, k, 0],
-                c[0, k, 1],
-                c[1, k, 1],
-                c[2, k, 1],
-                c[3, k, 1],
-            )
-            for k in range(knot_count)
-        ]
+        # Per-piece cubic coefficients (ax, bx, cx, dx, ay, by, cy, dy) with
+        # x = ((ax t + bx) t + cx) t + dx: an array for compiled code, Python floats for
+        # fast scalar evaluation.
+        self.piece_array = np.ascontiguousarray(
+            np.concatenate([self._spline.c[:, :, 0].T, self._spline.c[:, :, 1].T], axis=1)
+        )
+        self.pieces = [tuple(float(value) for value in piece) for piece in self.piece_array]
 
     # ---------------------------------------------------------------- vectorised
     def wrap(self, s: np.ndarray | float) -> np.ndarray | float:

@@ -27,11 +27,13 @@ QP always has a solution, and it is *certified* where no slack is needed.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from saferace.envs.drivetrain import DrivetrainParams
-from saferace.safety.cbf.interval_qp import IntervalQP
 from saferace.safety.cbf.speed_limit import LaneSpeedLimit
 from saferace.safety.ltv_mpc import FrenetMPC, MPCSettings
+from saferace.safety.predictive.condensed_qp import CondensedPlanQP, SoftPrices
+from saferace.safety.stage_qp import StageQP
 from saferace.safety.vehicle_params import VehicleParams
 from saferace.track import Track
 from saferace.track.raceline import ReferenceLine
@@ -129,16 +131,10 @@ class PredictivePlanner(FrenetMPC):
         super().__init__(
             track, reference, model=model, params=params, settings=settings, drivetrain=drivetrain
         )
-        first = [self._layout.u(0) + j for j in range(self.model.n_control)]
-        P = self._P
-        self._first_diagonal = np.array(
-            [P.indptr[i] + int(np.flatnonzero(P.indices[P.indptr[i] : P.indptr[i + 1]] == i)[0])
-             for i in first]
-        )  # fmt: skip
-        self._p_values = P.data.copy()
 
     def reset(self) -> None:
         super().reset()
+        self._qp.reset()
         self._stage_limits: tuple[np.ndarray, np.ndarray] | None = None  # this solve's
         self._held_limits: tuple[np.ndarray, np.ndarray] | None = None  # the last step's
 
@@ -228,14 +224,48 @@ class PredictivePlanner(FrenetMPC):
     def _build(self) -> None:
         self._built_weight = self.target_weight.copy()
         super()._build()
-        self._qp = IntervalQP(self._A_template, self._P)
+        L, s = self._layout, self.settings
+        P = self._P
+        columns = np.repeat(np.arange(P.shape[1]), np.diff(P.indptr))
+        if np.any((P.indices < L.N * L.n) & (columns != P.indices)):
+            raise ValueError("the condensed plan needs a diagonal state cost")
+        inputs = slice(L.u(0), L.eps(0))
+        self._input_hessian = (P + sp.triu(P, 1).T).toarray()[inputs, inputs]
+        prices = SoftPrices(
+            lane=(s.slack_linear, s.slack_quadratic),
+            other=(s.slack_linear * self.other_slack_weight,
+                   s.slack_quadratic * self.other_slack_weight),
+        )  # fmt: skip
+        self._qp = CondensedPlanQP(
+            L.N,
+            L.m,
+            2.0 * self._q_state,
+            self.model.speed_index,
+            self.terminal_heading_per_mps,
+            prices,
+        )
 
-    def _solve_qp(
-        self, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, a_values: np.ndarray
-    ) -> np.ndarray | None:
-        p_values = self._p_values.copy()
-        p_values[self._first_diagonal] += 2.0 * (self.target_weight - self._built_weight)
-        return self._qp.solve(p_values, q, a_values, lo, hi)
+    def _solve_qp(self, qp: StageQP) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The plan from the QP condensed to its inputs (:mod:`.condensed_qp`), the first
+        input weighed by the target's weight."""
+        input_hessian = self._input_hessian.copy()
+        first = np.arange(self.model.n_control)
+        input_hessian[first, first] += 2.0 * (self.target_weight - self._built_weight)
+        return self._qp.solve(qp, input_hessian)
+
+    def sparse_problem(
+        self, qp: StageQP
+    ) -> tuple[sp.csc_matrix, np.ndarray, sp.csc_matrix, np.ndarray, np.ndarray]:
+        """``qp`` as the sparse QP the condensed form stands for, to check it against
+        another solver: ``min 1/2 z^T P z + q^T z`` s.t. ``lo <= A z <= hi`` over the
+        states, inputs and slacks (``P``'s upper triangle, with the target's weight)."""
+        q, lo, hi, a_values = self.sparse_vectors(qp)
+        A = self._A_template.copy()
+        A.data = a_values
+        first = self._layout.u(0) + np.arange(self.model.n_control)
+        change = 2.0 * (self.target_weight - self._built_weight)
+        P = (self._P + sp.csc_matrix((change, (first, first)), shape=self._P.shape)).tocsc()
+        return P, q, A, lo, hi
 
     def _lane_bounds(
         self, s_stage: np.ndarray, plan_x: np.ndarray

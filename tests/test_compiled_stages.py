@@ -1,0 +1,80 @@
+"""The plans' compiled per-stage work: the stages laid along the map match the loop over
+the path's own scalar evaluations, and the models' generated code is compiled once and
+loaded from the cache by the next process."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from saferace.safety.frenet_stages import MIN_STAGE_LENGTH_M, stages_along_map
+from saferace.track import Track, wrap_angle
+
+
+def python_stages(path, travels_m, offsets_m, s0_m):
+    """The stages' arc lengths and mean curvatures, with the path's scalar evaluations."""
+    s_stage, kappas = [s0_m], []
+    for travel_m, e_y in zip(travels_m, offsets_m, strict=True):
+        s_m = s_stage[-1]
+        kappa, heading = path.curvature_and_heading_scalar(s_m)
+        length = travel_m / (1.0 - kappa * e_y)
+        if length >= MIN_STAGE_LENGTH_M:
+            kappa = wrap_angle(path.heading_scalar(s_m + length) - heading) / length
+        kappas.append(kappa)
+        s_stage.append(s_m + travel_m / (1.0 - kappa * e_y))
+    return np.array(s_stage), np.array(kappas)
+
+
+def test_the_stages_along_the_map_are_the_paths_own_across_the_lap_line_and_pi():
+    """From 3 m before the lap line on ``technical``, and from 1 m before its heading
+    wraps from pi to -pi; offsets either side, and a stage too short to average over (its
+    curvature is the start's)."""
+    path = Track.load("technical").centerline
+    rng = np.random.default_rng(0)
+    travels = rng.uniform(0.1, 0.4, 20)
+    travels[7] = 0.5 * MIN_STAGE_LENGTH_M
+    offsets = rng.uniform(-0.4, 0.4, 20)
+    samples = np.arange(0.0, path.length_m, 0.05)
+    headings = np.array([path.heading_scalar(s) for s in samples])
+    wraps = samples[np.flatnonzero(np.abs(np.diff(headings)) > math.pi)[0]]
+    for s0 in (path.length_m - 3.0, wraps - 1.0):
+        s_stage, kappas = stages_along_map(
+            travels, offsets, s0, path.piece_array, path.knot_spacing_m, path.length_m
+        )
+        expected_s, expected_kappas = python_stages(path, travels, offsets, s0)
+        np.testing.assert_allclose(s_stage, expected_s, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(kappas, expected_kappas, rtol=0, atol=1e-12)
+        assert kappas[7] == path.curvature_scalar(s_stage[7])
+        assert not math.isclose(kappas[8], path.curvature_scalar(s_stage[8]))
+        assert s_stage[0] < (path.length_m if s0 > wraps else wraps) < s_stage[-1]
+
+
+LOAD = """
+from saferace.safety.models import FrenetModel, _stage_linearisation
+from saferace.safety.vehicle_params import load_params
+import numpy as np
+model = FrenetModel("kinematic", load_params())
+xs = np.ones((3, model.n_state + 1))
+model.discretize_stages_with_steering_lag(xs, np.zeros((3, 2)), np.zeros(3), 0.05, 0.04)
+stats = _stage_linearisation("kinematic").stats
+print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
+"""
+
+
+def test_a_models_code_is_compiled_once_and_loaded_by_the_next_process(tmp_path: Path):
+    environment = os.environ | {"SAFERACE_CACHE": str(tmp_path)}
+    command = [sys.executable, "-c", LOAD]
+    runs = [
+        subprocess.run(
+            command, env=environment, capture_output=True, text=True, check=True
+        ).stdout.split()
+        for _ in range(2)
+    ]
+    assert runs == [["0", "1"], ["1", "0"]]  # compiled (a miss), then loaded (a hit)
+    (module,) = (tmp_path / "model_code").glob("kinematic_*.py")
+    assert "def linearised(" in module.read_text()

@@ -1,0 +1,114 @@
+"""The predictive filter's plan, condensed to its inputs and solved by DAQP, against the
+sparse QP it stands for solved to high accuracy by Clarabel: the same plan where the
+lane's, the speed caps' and the terminal heading's soft rows bind, where uncertainty
+tightens the lane past itself, and with the first input weighed as the agent's spread
+says."""
+
+from __future__ import annotations
+
+import cvxpy as cp
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.safety.predictive.filter import PredictiveSafetyFilter
+from saferace.safety.stage_qp import StageQP
+
+
+def reference_solution(planner, qp: StageQP) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """States, inputs and slacks of the sparse form of ``qp``, by Clarabel."""
+    P, q, A, lo, hi = planner.sparse_problem(qp)
+    upper = P.toarray()
+    full = upper + np.triu(upper, 1).T
+    z = cp.Variable(len(q))
+    rows = A.toarray()
+    above, below = np.isfinite(lo), np.isfinite(hi)
+    problem = cp.Problem(
+        cp.Minimize(0.5 * cp.quad_form(z, cp.psd_wrap(full)) + q @ z),
+        [rows[above] @ z >= lo[above], rows[below] @ z <= hi[below]],
+    )
+    problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    assert problem.status == cp.OPTIMAL
+    N, n, m = qp.B.shape
+    value = np.asarray(z.value)
+    states, inputs = value[: N * n].reshape(N, n), value[N * n : N * (n + m)].reshape(N, m)
+    return states, inputs, value[N * (n + m) :]
+
+
+def planned(env: PredictiveSafetyFilter, *plan_args) -> tuple[StageQP, tuple[np.ndarray, ...]]:
+    """The last QP a plan solved, and the condensed solution the planner kept."""
+    planner = env.planner
+    solved: list[StageQP] = []
+    original = planner._solve_qp
+
+    def capture(qp: StageQP):
+        solved.append(qp)
+        return original(qp)
+
+    planner._solve_qp = capture
+    planner.plan(*plan_args)
+    assert planner.plan_states is not None and planner.plan_slacks is not None
+    slacks = np.concatenate([planner.plan_slacks["lane"], planner.plan_slacks["speed"],
+                             [planner.plan_slacks["heading"]]])  # fmt: skip
+    return solved[-1], (planner.plan_states[1:], planner.plan_inputs, slacks)
+
+
+@pytest.fixture()
+def env():
+    env = PredictiveSafetyFilter(gym.make("saferace/CenterLine-v0", track="lab", max_laps=1))
+    env.reset(seed=0, options={"start_s_m": 2.0, "start_speed_mps": 5.0})
+    yield env
+    env.close()
+
+
+def state(env, e_y_m: float, e_psi_rad: float, speed_mps: float) -> np.ndarray:
+    return np.append(env.planner.model.state_from(e_y_m, e_psi_rad, speed_mps), 0.0)
+
+
+CASES = {
+    # heading for the left edge at 5 m/s, target full left and speeding up: lane and speed
+    # rows bind, and the terminal heading's
+    "lane and speed bind": dict(x=(0.3, 0.6, 5.0), target=(0.4, 3.0), margin=(0.0, 0.0)),
+    # 0.7 m either side of a lane about 1 m wide: the lane's bounds cross
+    "lane tightened past itself": dict(x=(0.1, 0.0, 3.0), target=(0.0, 0.0), margin=(0.7, 0.0)),
+    # braking hard at 0.1 m/s: the plan stops, and no stage's speed goes below zero
+    "braking to a stop": dict(x=(0.0, 0.0, 0.1), target=(0.0, -4.0), margin=(0.0, 0.0)),
+    # nothing binds: the plan takes the target
+    "free": dict(x=(0.0, 0.0, 2.0), target=(0.05, 0.5), margin=(0.0, 0.0)),
+}
+
+
+@pytest.mark.parametrize("case", CASES, ids=list(CASES))
+@pytest.mark.parametrize("weight", [(1.0, 1.0), (2500.0, 25.0)], ids=["weight one", "spread"])
+def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
+    setup = CASES[case]
+    bounds = (np.array([-0.5, -6.0]), np.array([0.5, 6.0]))
+    qp, (states, inputs, slacks) = planned(
+        env, state(env, *setup["x"]), 2.0, 0.0, np.array(setup["target"]), np.array(weight),
+        bounds, *setup["margin"],
+    )  # fmt: skip
+    ref_states, ref_inputs, ref_slacks = reference_solution(env.planner, qp)
+    np.testing.assert_allclose(inputs, ref_inputs, atol=1e-4)
+    np.testing.assert_allclose(states, ref_states, atol=1e-4)
+    np.testing.assert_allclose(slacks, ref_slacks, atol=1e-5)
+    if case == "lane and speed bind":
+        assert ref_slacks.max() > 0.05  # the case is what it says
+    if case == "lane tightened past itself":
+        assert np.all(qp.lane_lower > qp.lane_upper) and ref_slacks[:20].min() > 0.1
+    if case == "braking to a stop":
+        assert ref_states[:, env.planner.model.speed_index].min() == pytest.approx(0.0, abs=1e-6)
+    if case == "free":
+        assert ref_slacks.max() < 1e-6
+
+
+def test_a_new_episode_forgets_the_last_active_set(env):
+    """Warm starts come from the last plan of the episode; after a reset the first plan
+    starts cold, and the same plan gives the same result either way."""
+    args = (state(env, 0.3, 0.6, 5.0), 2.0, 0.0, np.array([0.4, 3.0]), np.ones(2),
+            (np.array([-0.5, -6.0]), np.array([0.5, 6.0])), 0.0, 0.0)  # fmt: skip
+    env.planner.plan(*args)
+    first = env.planner.plan_inputs.copy()
+    env.planner.reset()
+    env.planner.plan(*args)
+    np.testing.assert_allclose(env.planner.plan_inputs, first, atol=1e-9)
