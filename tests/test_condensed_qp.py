@@ -100,15 +100,3 @@ def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
         assert ref_states[:, env.planner.model.speed_index].min() == pytest.approx(0.0, abs=1e-6)
     if case == "free":
         assert ref_slacks.max() < 1e-6
-
-
-def test_a_new_episode_forgets_the_last_active_set(env):
-    """Warm starts come from the last plan of the episode; after a reset the first plan
-    starts cold, and the same plan gives the same result either way."""
-    args = (state(env, 0.3, 0.6, 5.0), 2.0, 0.0, np.array([0.4, 3.0]), np.ones(2),
-            (np.array([-0.5, -6.0]), np.array([0.5, 6.0])), 0.0, 0.0)  # fmt: skip
-    env.planner.plan(*args)
-    first = env.planner.plan_inputs.copy()
-    env.planner.reset()
-    env.planner.plan(*args)
-    np.testing.assert_allclose(env.planner.plan_inputs, first, atol=1e-9)

@@ -242,10 +242,12 @@ class FrenetMPC:
         )
         s_ref = s_stage[1:]
         upper, lower = self._lane_bounds(s_stage, plan_x)
-        reference = np.zeros((N, n))
+        reference = np.zeros((N, n))  # looked up where a state is weighed
         reference[:, 0] = self._offset_reference(s_ref)
-        reference[:, 1] = self.reference.heading_offset_at(s_ref)
-        reference[:, model.speed_index] = st.speed_scale * self.reference.speed_at(s_ref)
+        if st.weight_e_psi:
+            reference[:, 1] = self.reference.heading_offset_at(s_ref)
+        if st.weight_speed:
+            reference[:, model.speed_index] = st.speed_scale * self.reference.speed_at(s_ref)
         p = self.drivetrain
         u_min, u_max = self._input_bounds(plan_x)
         step = p.max_steer_rate_radps * dt

@@ -23,9 +23,8 @@ from saferace.safety.stage_qp import StageQP
 
 #: DAQP's infinity: bounds beyond it are none.
 DAQP_INFINITY = 1e30
-#: DAQP's ``sense`` flags: a row active (at its upper bound unless also ``_LOWER``), at
-#: its lower bound, soft (violated at a price).
-_ACTIVE, _LOWER, _SOFT = 1, 2, 8
+#: DAQP's ``sense`` flag of a soft row (violated at a price).
+_SOFT = 8
 #: DAQP's exit flags of a solution: optimal, and optimal with soft rows violated.
 _SOLVED = (1, 2)
 
@@ -79,11 +78,11 @@ class CondensedPlanQP:
         self._linear_price = linear
         self._inverse_price = 1.0 / (2.0 * squared)  # DAQP's rho: violation^2 / (2 rho)
         self._cold = np.where(self._soft, _SOFT, 0).astype(np.int32)
-        self._sense = self._cold.copy()
+        self._model: daqp.Model | None = None
 
     def reset(self) -> None:
         """Forget the last active set (a new episode's first plan starts cold)."""
-        self._sense = self._cold.copy()
+        self._model = None
 
     def solve(
         self, qp: StageQP, input_hessian: np.ndarray
@@ -136,27 +135,27 @@ class CondensedPlanQP:
         lower: np.ndarray,
         linear_price: np.ndarray,
     ) -> np.ndarray | None:
-        """DAQP's minimiser, warm-started from the last solve's active set (and started
-        cold again where that fails), with the soft rows' linear prices ``linear_price``."""
-        for sense in (self._sense, self._cold):
-            model = daqp.Model()
-            exitflag, _ = model.setup(hessian, linear, rows, upper, lower, sense)
-            if exitflag < 0:
-                continue
-            model.soft_weights(
-                rho_l=self._inverse_price,
-                rho_u=self._inverse_price,
-                w_l=linear_price,
-                w_u=linear_price,
-            )
-            x, _, exitflag, info = model.solve()
-            if exitflag in _SOLVED:
-                multipliers = np.asarray(info["lam"])
-                active = np.where(multipliers > 0, _ACTIVE, 0)
-                active |= np.where(multipliers < 0, _ACTIVE | _LOWER, 0)
-                self._sense = (active | self._cold).astype(np.int32)
-                return np.asarray(x)
-        return None
+        """DAQP's minimiser, with the soft rows' linear prices ``linear_price``: the last
+        solve's workspace updated in place, which starts from its active set, and where
+        that fails a new one started cold."""
+        model = self._model
+        if model is not None and model.update(hessian, linear, rows, upper, lower) >= 0:
+            solution = self._solved(model, linear_price)
+            if solution is not None:
+                return solution
+        self._model = daqp.Model()
+        exitflag, _ = self._model.setup(hessian, linear, rows, upper, lower, self._cold)
+        if exitflag < 0:
+            self._model = None
+            return None
+        return self._solved(self._model, linear_price)
+
+    def _solved(self, model: daqp.Model, linear_price: np.ndarray) -> np.ndarray | None:
+        model.soft_weights(
+            rho_l=self._inverse_price, rho_u=self._inverse_price, w_l=linear_price, w_u=linear_price
+        )
+        x, _, exitflag, _ = model.solve()
+        return np.asarray(x) if exitflag in _SOLVED else None
 
 
 @njit(cache=True)
