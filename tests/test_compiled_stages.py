@@ -78,3 +78,12 @@ def test_a_models_code_is_compiled_once_and_loaded_by_the_next_process(tmp_path:
     assert runs == [["0", "1"], ["1", "0"]]  # compiled (a miss), then loaded (a hit)
     (module,) = (tmp_path / "model_code").glob("kinematic_*.py")
     assert "def linearised(" in module.read_text()
+
+
+def test_without_a_cache_to_write_to_the_code_compiles_in_a_folder_of_its_own(tmp_path: Path):
+    blocked = tmp_path / "a file"
+    blocked.write_text("")
+    environment = os.environ | {"SAFERACE_CACHE": str(blocked / "cache")}
+    command = [sys.executable, "-c", LOAD]
+    run = subprocess.run(command, env=environment, capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["0", "1"]

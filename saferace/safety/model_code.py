@@ -72,7 +72,11 @@ def stage_linearisation(
     )
     digest = hashlib.sha256(source.encode()).hexdigest()[:16]
     stem = f"{name.replace('-', '_')}_{digest}"
-    path = _written(cache_root() / MODEL_CODE_FOLDER / f"{stem}.py", source)
+    try:
+        path = _written(cache_root() / MODEL_CODE_FOLDER / f"{stem}.py", source)
+    except OSError:  # no cache to write to: this process's own folder, compiled afresh
+        folder = Path(tempfile.mkdtemp(prefix="saferace-model-code-"))
+        path = _written(folder / f"{stem}.py", source)
     spec = importlib.util.spec_from_file_location(f"saferace_model_code_{path.stem}", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
