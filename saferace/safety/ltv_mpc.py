@@ -11,9 +11,12 @@ discretises every stage exactly (zero-order hold), and solves one sparse QP:
          lower_k - eps_k <= e_y,k <= upper_k + eps_k,  eps_k >= 0   (soft lane: never infeasible)
 
 References (lateral offset, heading and speed of the task's reference line) and lane
-bounds are looked up at the arc length the plan predicts for each stage. The QP is built
-once; every step only its vectors and the values of the dynamics blocks change, with
-the sparsity pattern fixed (OSQP cannot take new non-zeros), and it is warm-started.
+bounds are looked up at the arc length the plan predicts for each stage. Each step's QP is
+first a :class:`~saferace.safety.stage_qp.StageQP`; the expert solves it as the sparse QP
+above, built once: every step only its vectors and the values of the dynamics blocks
+change, with the sparsity pattern fixed (OSQP cannot take new non-zeros), and it is
+warm-started. The predictive filter's planner condenses it to its inputs instead
+(:mod:`saferace.safety.predictive.condensed_qp`).
 The steering servo's lag (identified
 time constant, about one control step) is part of the model: the state gains the wheels'
 angle (``info["steer_angle_rad"]``), which follows the commanded angle as a first-order lag

@@ -6,7 +6,8 @@ input to the agent's action whose predicted states stay inside the lane at every
 arc length and whose last state lies in a safe terminal set. The QP is the expert MPC's
 (:class:`~saferace.safety.ltv_mpc.FrenetMPC`: the Frenet model with the steering servo's lag,
 linearised along the previous plan, stages discretised exactly, lane bounds looked up at
-the arc length each stage reaches, OSQP warm-started on a fixed sparsity pattern) with:
+the arc length each stage reaches), condensed to its inputs and solved by DAQP
+(:mod:`~saferace.safety.predictive.condensed_qp`), with:
 
 - the cost ``(u_0 - u_agent)^T diag(w) (u_0 - u_agent)``, plus a faint pull of the plan's
   lateral offsets towards the task's reference line (so the plan's tail, the fallback,
