@@ -13,6 +13,8 @@ import math
 import numpy as np
 from numba import njit
 
+from saferace.track.path import piece_values
+
 #: Below this stretch per stage the curvature is sampled at its start.
 MIN_STAGE_LENGTH_M = 1e-3
 
@@ -23,12 +25,7 @@ def _heading_and_curvature(
 ) -> tuple[float, float]:
     """The centre line's heading and signed curvature at ``s_m`` (its cubic ``pieces``, one
     per ``spacing_m``, as :attr:`~saferace.track.path.ClosedPath.piece_array`)."""
-    s_m = s_m % length_m
-    k = min(int(s_m / spacing_m), len(pieces) - 1)
-    t = s_m - k * spacing_m
-    ax, bx, cx, _, ay, by, cy, _ = pieces[k]
-    dx, dy = (3.0 * ax * t + 2.0 * bx) * t + cx, (3.0 * ay * t + 2.0 * by) * t + cy
-    ddx, ddy = 6.0 * ax * t + 2.0 * bx, 6.0 * ay * t + 2.0 * by
+    _, _, dx, dy, ddx, ddy = piece_values(pieces, spacing_m, length_m, s_m)
     return math.atan2(dy, dx), (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5
 
 

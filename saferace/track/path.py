@@ -4,9 +4,10 @@ A :class:`ClosedPath` fits a periodic cubic spline through the given points,
 re-samples it densely at equal arc-length steps and fits a second periodic
 spline against arc length, so that the parameter *is* the arc length ``s``
 (to about 1e-6 relative). Vectorised evaluation goes through scipy; the scalar
-methods used on the per-step hot path (Frenet projection) evaluate the cubic
-pieces directly from Python floats, which is an order of magnitude faster than
-calling scipy for a single point.
+methods used on the per-step hot path evaluate the cubic pieces directly
+(:func:`piece_values`, compiled by numba, which compiled code such as a plan's
+stages calls too), an order of magnitude faster than calling scipy for a single
+point.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 from scipy.interpolate import CubicSpline
 
 #: Knot spacing of the arc-length spline. Fine enough that re-sampling changes
@@ -47,7 +49,7 @@ class ClosedPath:
         self.knot_xy = knot_xy[:-1]
         # Per-piece cubic coefficients (ax, bx, cx, dx, ay, by, cy, dy) with
         # x = ((ax t + bx) t + cx) t + dx: an array for compiled code, Python floats for
-        # fast scalar evaluation.
+        # the Frenet projection's inline Newton steps.
         self.piece_array = np.ascontiguousarray(
             np.concatenate([self._spline.c[:, :, 0].T, self._spline.c[:, :, 1].T], axis=1)
         )
@@ -103,18 +105,7 @@ class ClosedPath:
     # ---------------------------------------------------------------- scalar, fast
     def eval_scalar(self, s: float) -> tuple[float, float, float, float, float, float]:
         """``(x, y, dx, dy, ddx, ddy)`` at arc length ``s`` (derivatives with respect to s)."""
-        s = s % self.length_m
-        k = min(int(s / self.knot_spacing_m), self.piece_count - 1)
-        t = s - k * self.knot_spacing_m
-        ax, bx, cx, dx, ay, by, cy, dy = self.pieces[k]
-        return (
-            ((ax * t + bx) * t + cx) * t + dx,
-            ((ay * t + by) * t + cy) * t + dy,
-            (3.0 * ax * t + 2.0 * bx) * t + cx,
-            (3.0 * ay * t + 2.0 * by) * t + cy,
-            6.0 * ax * t + 2.0 * bx,
-            6.0 * ay * t + 2.0 * by,
-        )
+        return piece_values(self.piece_array, self.knot_spacing_m, self.length_m, float(s))
 
     def curvature_scalar(self, s: float) -> float:
         """Signed curvature at one arc length, without numpy overhead (per-step use)."""
@@ -129,6 +120,26 @@ class ClosedPath:
         """Signed curvature and heading at one arc length from one evaluation."""
         _, _, dx, dy, ddx, ddy = self.eval_scalar(s)
         return (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5, math.atan2(dy, dx)
+
+
+@njit(cache=True)
+def piece_values(
+    pieces: np.ndarray, spacing_m: float, length_m: float, s_m: float
+) -> tuple[float, float, float, float, float, float]:
+    """``(x, y, dx, dy, ddx, ddy)`` at arc length ``s_m`` of a closed path's cubic ``pieces``
+    (:attr:`ClosedPath.piece_array`, one per ``spacing_m``), derivatives with respect to s."""
+    s_m = s_m % length_m
+    k = min(int(s_m / spacing_m), len(pieces) - 1)
+    t = s_m - k * spacing_m
+    ax, bx, cx, dx, ay, by, cy, dy = pieces[k]
+    return (
+        ((ax * t + bx) * t + cx) * t + dx,
+        ((ay * t + by) * t + cy) * t + dy,
+        (3.0 * ax * t + 2.0 * bx) * t + cx,
+        (3.0 * ay * t + 2.0 * by) * t + cy,
+        6.0 * ax * t + 2.0 * bx,
+        6.0 * ay * t + 2.0 * by,
+    )
 
 
 def _chord_spline(points: np.ndarray) -> tuple[CubicSpline, np.ndarray]:

@@ -95,15 +95,15 @@ class CondensedPlanQP:
             raise ValueError("the condensed plan needs speed caps and a terminal heading bound")
         N, n, m = qp.B.shape
         gain, offset, hessian, linear, rows, upper, lower, crossed = condensed_problem(
-            np.ascontiguousarray(qp.A),
-            np.ascontiguousarray(qp.B),
+            qp.A,
+            qp.B,
             qp.dynamics_offsets,
             self.state_hessian,
-            np.ascontiguousarray(qp.reference),
+            qp.reference,
             input_hessian,
             qp.first_input_linear,
-            np.ascontiguousarray(qp.input_lower),
-            np.ascontiguousarray(qp.input_upper),
+            qp.input_lower,
+            qp.input_upper,
             qp.rate_lower,
             qp.rate_upper,
             qp.lane_lower,
