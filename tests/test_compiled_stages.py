@@ -54,6 +54,19 @@ def test_the_stages_along_the_map_are_the_paths_own_across_the_lap_line_and_pi()
         assert s_stage[0] < (path.length_m if s0 > wraps else wraps) < s_stage[-1]
 
 
+def test_the_compiled_piece_evaluation_is_the_splines_own():
+    """A path's scalar position, heading and curvature (the compiled cubic pieces) match
+    scipy's spline, also before the start and past the lap line."""
+    path = Track.load("technical").centerline
+    s = np.random.default_rng(1).uniform(-path.length_m, 2.0 * path.length_m, 500)
+    scalar = np.array([path.eval_scalar(value) for value in s])
+    np.testing.assert_allclose(scalar[:, :2], path.position(s), rtol=0, atol=1e-9)
+    curvature = [path.curvature_scalar(value) for value in s]
+    np.testing.assert_allclose(curvature, path.curvature(s), rtol=1e-7, atol=1e-9)
+    turn = np.array([path.heading_scalar(value) for value in s]) - path.heading(s)
+    np.testing.assert_allclose(np.angle(np.exp(1j * turn)), 0.0, atol=1e-9)
+
+
 LOAD = """
 from saferace.safety.models import FrenetModel, _stage_linearisation
 from saferace.safety.vehicle_params import load_params
