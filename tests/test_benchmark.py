@@ -87,6 +87,8 @@ def test_rows_scores_and_workers(tmp_path: Path):
         assert 0.5 < row["lap_time_ratio"] < 2.0
         expected = row["completion"] * row["speed_ratio"] * math.exp(-row["time_outside_lane_s"])
         assert row["score"] == pytest.approx(expected)
+        assert row["longest_standstill_s"] == 0.0  # reported beside the score, not in it
+        assert benchmark.run_words(row).endswith(", longest standstill 0.00 s")
     assert serial["score"] == pytest.approx(100.0 * plain["score"])  # the filter cannot lift it
     assert serial["score_with_filter"] == pytest.approx(100.0 * filtered["score"])
     assert 0.0 <= serial["intervention_rate"] <= 1.0

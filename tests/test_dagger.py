@@ -87,8 +87,12 @@ def test_iterations_rounds_and_metrics(unfiltered: DaggerRun):
     for iteration in (1, 2):
         checkpoint = load_checkpoint(unfiltered.layout.checkpoint(iteration))
         assert checkpoint.metadata["frames"]["train"] == sum(r["frames"] for r in rows[:iteration])
+    for row in rows:  # a standstill while the driver asks to move is a stop
+        assert 0.0 <= row["longest_standstill_s"] <= row["longest_stop_s"]
+    assert rows[0]["longest_standstill_s"] == 0.0  # the expert never stands still
     csv_lines = (unfiltered.out_dir / "metrics.csv").read_text().splitlines()
     assert len(csv_lines) == 4 and csv_lines[0].startswith("iteration,driver,filtered")
+    assert ",longest_stop_s,longest_standstill_s," in csv_lines[0]
 
 
 def test_the_train_split_keeps_no_frame_past_it(unfiltered: DaggerRun):

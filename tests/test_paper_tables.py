@@ -21,7 +21,13 @@ from saferace.experiments.paper.presets import (
     dagger_config,
     run_config,
 )
-from saferace.experiments.paper.report import CELL_NAMES
+from saferace.experiments.paper.report import (
+    CELL_NAMES,
+    VERDICT_COLUMNS,
+    claims,
+    table_lines,
+    verdicts,
+)
 from saferace.experiments.paper.runs import from_1_name, run_dir
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
 from saferace.learning.run_layout import RunLayout
@@ -121,7 +127,7 @@ def test_the_claims_are_judged_for_both_perception_modes(tables):
     lines = [line for line in verdicts.splitlines() if line.startswith("| ")][1:]
     assert len(lines) == len(TASKS) * len(PERCEPTION_MODES)
     for line in lines:
-        task, _, mode, filtered, with_filter, without, inside, sooner = (
+        task, _, mode, filtered, with_filter, without, inside, standstill, sooner = (
             cell.strip() for cell in line.strip("|").split("|")
         )
         kind = next(kind for kind in PERCEPTION_MODES if RUN_LABELS[kind] == mode)
@@ -129,12 +135,63 @@ def test_the_claims_are_judged_for_both_perception_modes(tables):
         assert filtered == "1, 2 (k = 1)"
         exits = [str(row["iteration"]) for row in (first, run[2]) if row["time_outside_lane_s"]]
         assert inside == ("holds" if not exits else "fails: iteration " + ", ".join(exits))
+        longest = max(row["longest_standstill_s"] for row in (first, run[2]))
+        assert float(standstill) == pytest.approx(longest, rel=1e-2, abs=1e-9)
         lapped = [row["iteration"] for row in (first, *run[1:]) if row["completed"]]
         assert with_filter == (str(min(lapped)) if lapped else "-")
         unfiltered = [r["iteration"] for r in metrics(out, task, "none")[1:] if r["completed"]]
         assert without == (str(min(unfiltered)) if unfiltered else "-")
         if not lapped and not unfiltered:
             assert sooner == "neither lapped"
+
+
+def metric_row(iteration: int, filtered: bool, completed: bool, standstill_s: float | None):
+    """A DAgger metrics row as the tables read it (``standstill_s`` None: written before
+    the longest standstill was recorded); never outside the lane."""
+    row = {
+        "iteration": iteration, "filtered": filtered, "completed": completed,
+        "lap_time_s": 9.0 if completed else None, "duration_s": 9.0 if completed else 30.0,
+        "mean_abs_deviation_m": 0.05, "time_outside_lane_s": 0.0,
+        "intervention_rate": 0.3 if filtered else None, "held_out_mean_abs_deviation_m": None,
+        "held_out_time_outside_lane_s": None,
+    }  # fmt: skip
+    return row if standstill_s is None else {**row, "longest_standstill_s": standstill_s}
+
+
+def test_a_filtered_run_held_still_inside_the_lane_shows_in_the_tables_and_claims():
+    """Never leaving the lane by standing still while the driver asks to go is no success:
+    the table, the verdicts and the claims show the standstill beside the lane verdict."""
+    setting = replace(SETTING, filter_from={"CenterLine": 1, "RacingLine": 1})
+    shared = [metric_row(0, False, True, 0.0), metric_row(1, False, False, 0.5)]
+    rows = {
+        ("CenterLine", 0, "none"): [*shared, metric_row(2, False, True, 0.0)],
+        ("CenterLine", 0, "cbf"): [*shared, metric_row(2, True, False, 30.0)],
+    }
+    from_1 = {("CenterLine", 0, "cbf"): metric_row(1, True, False, 12.0)}
+    lines = table_lines(setting, rows, [0])
+    assert [line[:2] for line in lines] == [[0, "none"], [1, "none"], [2, "none"], [2, "perceived"]]
+    cell = 2 + CELL_NAMES.index("longest standstill [s]")  # CenterLine's group
+    assert [line[cell] for line in lines] == ["0", "0.5", "0", "30"]
+    (verdict,) = verdicts(setting, rows, from_1)
+    verdict = dict(zip(VERDICT_COLUMNS, verdict, strict=True))
+    assert verdict["never leaves the lane"] == "holds"
+    assert verdict["longest standstill, filtered [s]"] == "30"  # of iterations 1 and 2
+    said = claims(setting, rows, from_1)
+    assert "longest standstill in filtered iterations: 30.00 s" in said[1]
+    assert said[2].endswith("did not lap, 0.00 s outside the lane, longest standstill 0.50 s")
+    assert (
+        "behind the filter fed the perceived state (a fork with k = 0): did not lap, 0.00 s "
+        "outside the lane, longest standstill 12.00 s;" in said[2]
+    )
+    older = {key: [{k: v for k, v in row.items() if k != "longest_standstill_s"} for row in runs]
+             for key, runs in rows.items()}  # fmt: skip
+    assert table_lines(setting, older, [0])[3][cell] == "-"
+    (verdict,) = verdicts(setting, older, from_1)
+    assert verdict[VERDICT_COLUMNS.index("longest standstill, filtered [s]")] == "-"
+    assert (
+        "longest standstill in filtered iterations: not recorded"
+        in claims(setting, older, from_1)[1]
+    )
 
 
 def test_the_forks_share_the_unfiltered_iterations(tables):

@@ -33,6 +33,7 @@ def test_runs_are_kept_and_not_driven_again(tmp_path: Path, monkeypatch):
     runs = run_robustness(config, tmp_path, progress=False)
     assert [(run["look"], run["seed"]) for run in runs] == [("none", 0), ("strong", 0)]
     assert all(0.0 < run["completion"] < 1.0 for run in runs)  # 2 s of a 24 m lap
+    assert all(run["longest_standstill_s"] == 0.0 for run in runs)  # it never stops
 
     def must_not_drive(*args, **kwargs):
         raise AssertionError("a finished run was driven again")
@@ -61,6 +62,37 @@ def test_the_state_network_is_scored_beside_and_behind_the_filter(tmp_path: Path
         plot_robustness(runs, config.presets, tmp_path / f"{name}.png")
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000
     assert runs[0]["intervention_rate"] is not None  # the filtered runs
+
+
+def test_the_tables_show_the_longest_standstill_beside_completion_and_time_outside():
+    """A run held still while its driver asks to go (no time outside, no progress) shows
+    in its look's and its track's lines; a look with a run from before the measurement
+    shows none rather than the longest of the others."""
+
+    def measured(track: str, look: str, completion: float, standstill_s: float | None) -> dict:
+        run = {"track": track, "look": look, "seed": 0, "completion": completion,
+               "laps_completed": int(completion == 1.0), "lap_time_s": None,
+               "time_outside_lane_s": 0.0, "min_lane_barrier_m": 0.2, "scored_steps": 10,
+               "covered_steps": 10, "alarm_rate": 0.0}  # fmt: skip
+        return run if standstill_s is None else {**run, "longest_standstill_s": standstill_s}
+
+    runs = [
+        measured("lab", "none", 1.0, 0.0),
+        measured("oval", "none", 0.1, 37.5),
+        measured("lab", "strong", 1.0, 0.5),
+        measured("oval", "strong", 1.0, None),
+    ]
+    looks = {row[0]: dict(zip(TABLE_COLUMNS, row, strict=True))
+             for row in robustness_rows(runs, ("none", "strong"))}  # fmt: skip
+    assert looks["none"]["longest standstill [s]"] == 37.5
+    assert looks["none"]["completion [%]"] == pytest.approx(55.0)
+    assert looks["none"]["time outside lane [s]"] == 0.0
+    assert looks["strong"]["longest standstill [s]"] == "-"
+    tracks = {(row[0], row[1]): dict(zip(TRACK_COLUMNS, row, strict=True))
+              for row in track_rows(runs, ("none", "strong"))}  # fmt: skip
+    assert tracks[("oval", "none")]["longest standstill [s]"] == 37.5
+    assert tracks[("lab", "none")]["longest standstill [s]"] == 0.0
+    assert tracks[("lab", "strong")]["longest standstill [s]"] == 0.5
 
 
 def test_a_second_state_network_beside_the_filters_is_refused():

@@ -12,7 +12,9 @@ from cli_helpers import run_cli
 
 from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.eval import runner
-from saferace.eval.metrics import lap_metrics, summarize, thinned_trajectory
+from saferace.eval.filters import FilterConfig
+from saferace.eval.leaderboard import COLUMNS, leaderboard_rows
+from saferace.eval.metrics import lap_metrics, safety_step_record, summarize, thinned_trajectory
 from saferace.eval.track_plots import plot_path, plt
 
 DT = 1.0 / DEFAULT_CONTROL_HZ  # the tasks' control step
@@ -26,6 +28,7 @@ def hand_made_steps() -> dict[str, np.ndarray]:
         "cost": np.array([0, 0, 0, 1, 0, 1, 1, 0, 0, 0], dtype=float),
         "steer_rad": np.array([0.0, 0.1, 0.1, 0.0, 0.0, 0.0, 0.05, 0.05, 0.05, 0.05]),
         "v_x_mps": np.array([0.0, 0.05, 1.0, 0.05, 0.0, 0.09, 0.05, 2.0, 2.0, 0.0]),
+        "accel_mps2": np.full(10, 0.5),
     }
 
 
@@ -50,6 +53,100 @@ def test_lap_metrics_by_hand():
     assert summary["longest_stop_s"] == pytest.approx(3 * DT)
     assert summary["laps_completed"] == 1 and summary["best_lap_time_s"] == 0.27
     assert summary["time_outside_lane_s"] == pytest.approx(3 * DT)
+
+
+#: 14 steps over two laps (lap 0: steps 0-8, lap 1: steps 9-13) with three stops: steps
+#: 1-2 and 10-12, where the driver asks to move, and the longer 4-7.
+STANDSTILL_SPEEDS_MPS = [1.0, 0.0, 0.05, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.09, 1.0]
+STANDSTILL_LAPS = [0] * 8 + [1] * 6
+
+
+def standstill_steps(accel_mps2: list[float]) -> dict[str, np.ndarray]:
+    count = len(STANDSTILL_SPEEDS_MPS)
+    return {
+        "lap": np.array(STANDSTILL_LAPS),
+        "deviation_m": np.zeros(count),
+        "cost": np.zeros(count),
+        "steer_rad": np.zeros(count),
+        "v_x_mps": np.array(STANDSTILL_SPEEDS_MPS),
+        "accel_mps2": np.array(accel_mps2),
+    }
+
+
+def test_a_standstill_counts_only_while_the_driver_asks_to_move():
+    # Without a filter the driver's command is the applied one: it asks to move in the
+    # stop of steps 1-2 (2 steps) and 10-12 (3 steps, lap 1); in the longer stop of steps
+    # 4-7 it asks 0 and then brakes: a stop, but no standstill (counting a zero command
+    # would make steps 4-6 one of 3 steps).
+    plain = standstill_steps(
+        [0.5, 0.5, 0.5, 0.5, 0.0, 0.0, 0.0, -1.0, 1.0, 1.0, 0.2, 0.2, 0.2, 0.0]
+    )
+    first, second = lap_metrics(plain, [0.45], DT)
+    assert first.longest_stop_s == pytest.approx(4 * DT)
+    assert first.longest_standstill_s == pytest.approx(2 * DT)
+    assert second.longest_standstill_s == pytest.approx(3 * DT)
+    assert summarize([first, second])["longest_standstill_s"] == pytest.approx(3 * DT)
+    # Behind a filter the driver's command is the nominal one, recorded per step: in steps
+    # 4-7 it asks 0.8 m/s^2 while the filter brakes (applied < 0), which counts; in steps
+    # 1-2 the filter pushes (applied 0.5) while the driver asks nothing, which does not.
+    nominal = [0.5, 0.0, 0.0, 0.5, 0.8, 0.8, 0.8, 0.8, 1.0, 1.0, 0.2, 0.2, 0.2, 0.0]
+    applied = [0.5, 0.5, 0.5, 0.5, -1.0, -0.5, -2.0, -0.2, 1.0, 1.0, 0.2, 0.2, 0.2, 0.0]
+    records = [
+        safety_step_record(
+            {
+                "nominal_action": [0.0, asked],
+                "filtered_action": [0.0, given],
+                "intervened": asked != given,
+                "slacks": {"lane": 0.0},
+                "fallback": "",
+                "alarm": False,
+                "covered": True,
+                "solve_time_s": 1e-4,
+                "filter_time_s": 2e-4,
+            }
+        )
+        for asked, given in zip(nominal, applied, strict=True)
+    ]
+    filtered = {
+        **standstill_steps(applied),
+        **{name: np.array([record[name] for record in records]) for name in records[0]},
+    }
+    assert filtered["nominal_accel_mps2"].tolist() == nominal
+    first, second = lap_metrics(filtered, [0.45], DT)
+    assert first.longest_stop_s == pytest.approx(4 * DT)
+    assert first.longest_standstill_s == pytest.approx(4 * DT)
+    assert second.longest_standstill_s == pytest.approx(3 * DT)
+    assert summarize([first, second])["longest_standstill_s"] == pytest.approx(4 * DT)
+
+
+def test_a_filtered_episode_records_the_drivers_own_acceleration():
+    env = runner.make_task_env("CenterLine", "lab", 1, FilterConfig(kind="cbf"), 0, max_steps=5)
+    try:
+        result = runner.run_episode(env, lambda observation, info: np.array([0.0, 1.5]), seed=0)
+    finally:
+        env.close()
+    assert result.steps["nominal_accel_mps2"].tolist() == [1.5] * 5
+    assert result.summary["longest_standstill_s"] == 0.0  # it drove off at once
+
+
+def test_the_progress_line_and_the_leaderboard_show_the_longest_standstill():
+    summary = {"laps_completed": 0, "mean_lap_time_s": None, "time_outside_lane_s": 0.0}
+    held = {**summary, "longest_standstill_s": 12.5}
+    assert runner.episode_words(held) == "0 laps, 0.00 s outside, longest standstill 12.50 s"
+    assert runner.episode_words(summary).endswith("longest standstill -")  # an old row
+    rows = [
+        {"agent": "a", "task": "CenterLine", "track": "lab", "summary": {**summary, **values}}
+        for values in (
+            {"longest_standstill_s": 12.5, "best_lap_time_s": None, "max_abs_deviation_m": 0.1},
+            {"longest_standstill_s": 0.5, "best_lap_time_s": None, "max_abs_deviation_m": 0.1},
+        )
+    ]
+    (line,) = leaderboard_rows(rows)
+    assert line[COLUMNS.index("longest standstill [s]")] == 12.5  # the longest seed's
+    assert line[COLUMNS.index("laps completed")] == 0
+    old_summary = {k: v for k, v in rows[1]["summary"].items() if k != "longest_standstill_s"}
+    (line,) = leaderboard_rows([rows[0], {**rows[1], "summary": old_summary}])
+    assert line[COLUMNS.index("longest standstill [s]")] is None  # not a longest of some
 
 
 def test_a_thinned_path_keeps_a_one_step_exit_and_the_plot_marks_it():
@@ -136,6 +233,7 @@ def test_eval_rows_and_leaderboard(tmp_path: Path):
     for row in rows:
         assert row["summary"]["laps_completed"] == 1
         assert row["summary"]["time_outside_lane_s"] == 0.0
+        assert row["summary"]["longest_standstill_s"] == 0.0  # starts rolling, never stops
         assert {
             "saferace_version",
             "git_revision",
@@ -157,6 +255,7 @@ def test_eval_rows_and_leaderboard(tmp_path: Path):
         ("expert", "RacingLine", "lab"),
         ("pure-pursuit", "CenterLine", "lab"),
     ]  # one line per (agent, task, track)
+    assert all(cells[header.index("longest standstill [s]")] == "0.000" for cells in body)
     assert plot.stat().st_size > 20_000 and table.read_text().count("\n") == 3
 
 

@@ -10,13 +10,18 @@ from cli_helpers import run_cli
 from saferace.errors import ConfigError
 from saferace.eval.leaderboard import row_filter
 from saferace.eval.runner import read_jsonl
-from saferace.experiments.filter_comparison import comparison_rows, failed
+from saferace.experiments.filter_comparison import COMPARISON_COLUMNS, comparison_rows, failed
 from saferace.experiments.safety_table import (
+    EXPERT_COLUMNS,
     RANDOM_TRACK_RADIUS_M,
     RECKLESS_TASKS,
+    TABLE_COLUMNS,
+    expert_cost_rows,
     filter_label,
     planned_runs,
+    row_words,
     run_table,
+    table_rows,
 )
 from saferace.learning.checkpoint import is_calibrated
 from saferace.safety.cbf.filter import GAIN_PRESETS
@@ -141,14 +146,22 @@ def test_filters_side_by_side_on_the_same_runs(tmp_path: Path):
             and row_filter(r).kind == "none"}  # fmt: skip
     behind = [r for r in rows if r["agent"] == "expert" and row_filter(r).kind == "mpsf"]
     cost = sum(100 * (r["summary"]["mean_lap_time_s"] / free[r["task"]] - 1) for r in behind) / 2
-    assert by_key[("mpsf", "expert", "true state")][8] == pytest.approx(cost)
-    assert by_key[("mpsf", "expert", "true state")][3:5] == [2, 2]  # runs, completed
+    expert_line = dict(zip(COMPARISON_COLUMNS, by_key[("mpsf", "expert", "true state")],
+                           strict=True))  # fmt: skip
+    assert expert_line["lap-time cost to the expert [%]"] == pytest.approx(cost)
+    assert [expert_line["runs"], expert_line["completed"]] == [2, 2]
     stops = [r["summary"]["longest_stop_s"] for r in behind]
-    assert by_key[("mpsf", "expert", "true state")][7] == max(stops) < 1.0  # never held still
+    assert expert_line["longest stop [s]"] == max(stops) < 1.0  # never held still
+    standstills = [r["summary"]["longest_standstill_s"] for r in behind]
+    assert expert_line["longest standstill [s]"] == max(standstills) <= max(stops)
     older = [{**rows[0], "summary": {k: v for k, v in rows[0]["summary"].items()
                                      if k != "longest_stop_s"}}, *rows[1:]]  # fmt: skip
     assert comparison_rows(older, laps=1)[0][:3] == ["none", "drift", "none"]
     assert comparison_rows(older, laps=1)[0][7] == "-"  # not a maximum over some runs
+    older = [{**rows[0], "summary": {k: v for k, v in rows[0]["summary"].items()
+                                     if k != "longest_standstill_s"}}, *rows[1:]]  # fmt: skip
+    standstill = COMPARISON_COLUMNS.index("longest standstill [s]")
+    assert comparison_rows(older, laps=1)[0][standstill] == "-"
     assert by_key[("none", "drift", "none")][5] == 1  # the unfiltered drift leaves the lane
     text = (out / "filter_comparison.md").read_text()
     assert "mpsf, probabilistic" in text and "cbf, on the mean" in text
@@ -156,6 +169,61 @@ def test_filters_side_by_side_on_the_same_runs(tmp_path: Path):
     assert (out / "failures" / "lab.png").exists() == bool(failures)
     with pytest.raises(ConfigError, match="filters"):
         run_table(["lab"], out, filters=("mpc",), progress=False)
+
+
+def summary_row(agent: str, task: str, kind: str, **summary) -> dict:
+    """A result row of the table as far as its tables read it: ``summary`` over a lap."""
+    return {
+        "track": "lab",
+        "agent": agent,
+        "task": task,
+        "filter": {"kind": kind},
+        "summary": {
+            "laps_completed": 1,
+            "time_outside_lane_s": 0.0,
+            "min_lane_barrier_m": 0.1,
+            "mean_lap_time_s": 10.0,
+            "intervention_rate": None if kind == "none" else 0.2,
+            **summary,
+        },
+    }
+
+
+def test_the_tables_show_completion_and_the_longest_standstill_beside_the_time_outside():
+    """A filter that keeps the car inside by holding it still while its driver asks to go
+    must show: laps 0, no time outside, and its standstill."""
+    rows = [
+        summary_row("drift", "CenterLine", "none", time_outside_lane_s=2.5,
+                    longest_standstill_s=0.0),
+        summary_row("drift", "CenterLine", "cbf", laps_completed=0, mean_lap_time_s=None,
+                    longest_standstill_s=41.25),
+        summary_row("expert", "CenterLine", "none", longest_standstill_s=0.0),
+        summary_row("expert", "CenterLine", "cbf", mean_lap_time_s=10.5,
+                    longest_standstill_s=0.35),
+        summary_row("expert", "RacingLine", "none"),  # a row from before the measurement
+        summary_row("expert", "RacingLine", "cbf"),
+    ]  # fmt: skip
+    lines = [dict(zip(TABLE_COLUMNS, line, strict=True)) for line in table_rows(rows)]
+    held = lines[1]
+    assert (held["agent"], held["filter"]) == ("drift", "cbf")
+    assert held["laps"] == 0 and held["outside lane [s]"] == 0.0
+    assert held["longest standstill [s]"] == 41.25
+    assert lines[0]["longest standstill [s]"] == 0.0 and lines[0]["outside lane [s]"] == 2.5
+    assert lines[5]["longest standstill [s]"] == "-"
+    assert "longest standstill 41.25 s" in row_words(rows[1])
+    costs = [dict(zip(EXPERT_COLUMNS, line, strict=True)) for line in expert_cost_rows(rows)]
+    assert [(c["task"], c["laps"], c["longest standstill [s]"]) for c in costs] == [
+        ("CenterLine", 1, 0.35),
+        ("RacingLine", 1, "-"),
+    ]
+    compared = {
+        (line[0], line[1]): dict(zip(COMPARISON_COLUMNS, line, strict=True))
+        for line in comparison_rows(rows, laps=1)
+    }
+    assert compared[("cbf", "drift")]["completed"] == 0
+    assert compared[("cbf", "drift")]["longest standstill [s]"] == 41.25
+    assert compared[("cbf", "expert")]["longest standstill [s]"] == "-"  # one row lacks it
+    assert compared[("none", "drift")]["longest standstill [s]"] == 0.0
 
 
 def test_table_command_refuses_bad_arguments(tmp_path: Path):

@@ -59,7 +59,11 @@ def test_the_sweep_tabulates_and_plots_each_method_by_severity(tmp_path: Path, c
     )
     confident = write_runs(
         tmp_path / "confident",
-        [run("severity-5", 20, 0.4), run("severity-0", 60, 0.0), run("severity-5", 10, 0.2)],
+        [
+            run("severity-5", 20, 0.4, longest_standstill_s=3.5),
+            run("severity-0", 60, 0.0, longest_standstill_s=0.0),
+            run("severity-5", 10, 0.2, longest_standstill_s=1.0),
+        ],
     )
     out = tmp_path / "sweep"
     assert (
@@ -79,6 +83,8 @@ def test_the_sweep_tabulates_and_plots_each_method_by_severity(tmp_path: Path, c
     assert shifted["coverage [%] (95% band)"].startswith("15.0 (")
     assert shifted["time outside lane [s]"] == pytest.approx(0.6) and shifted["runs outside"] == 2
     assert rows[("honest", "severity-5")]["runs outside"] == 0
+    assert shifted["longest standstill [s]"] == 3.5  # the longer of its two runs'
+    assert rows[("honest", "severity-5")]["longest standstill [s]"] == "-"  # not recorded
     with pytest.raises(SystemExit, match="2"):
         main(["shift-sweep", str(honest), "--out", str(out)])
     assert "LABEL=FOLDER" in capsys.readouterr().err

@@ -173,6 +173,11 @@ REFUSALS = {
     "a lap time without a lap": (set_row(laps_completed=0), "without a completed lap"),
     "time outside hidden": (flag_an_exit, "disagrees with the trajectory, outside at 1"),
     "more time outside than driven": (set_row(time_outside_lane_s=99.0), "is not within the"),
+    "a standstill longer than the drive": (
+        set_row(longest_standstill_s=99.0),
+        "longest_standstill_s 99.0 is not within the",
+    ),
+    "a standstill below zero": (set_row(longest_standstill_s=-0.05), "longest_standstill_s -0.05"),
     "a drive longer than the suite's": (set_row(driven_s=61.0), "driven_s 61.0 is not 1 to 60 s"),
     "a drive between control steps": (set_row(driven_s=7.81), "driven_s 7.81 is not 1 to 60 s"),
     "a drive of no time": (set_row(driven_s=0.0), "driven_s 0.0 is not 1 to 60 s"),
@@ -393,6 +398,34 @@ def test_a_submission_of_the_old_version_is_scored_under_its_own(honest: dict):
         check_submission(mixed, SOURCE)
 
 
+def test_the_page_shows_the_longest_standstill_and_old_rows_without_it_pass(honest: dict):
+    """Each run records its longest standstill while the driver asked to move; the page
+    shows the longest without and with the filter beside completion and the time outside,
+    and it scores nothing: a submission whose rows predate it passes unchanged, shown
+    without it."""
+    rows = honest["rows"]
+    assert all(row["longest_standstill_s"] >= 0.0 for row in rows)
+    held = next(row for row in rows if row["filter"] != "none")
+    held["longest_standstill_s"] = held["driven_s"]  # stood the whole drive, scored as before
+    current = check_submission(json.loads(json.dumps(honest)), SOURCE)
+    assert current == honest
+    (line,) = leaderboard_rows([current])
+    plain = [row["longest_standstill_s"] for row in rows if row["filter"] == "none"]
+    assert line[COLUMNS.index("longest standstill [s]")] == max(plain)
+    assert line[COLUMNS.index("longest standstill with filter [s]")] == held["driven_s"]
+    assert line[COLUMNS.index("completion [%]")] == pytest.approx(100 * honest["completion"])
+    old = json.loads(json.dumps(honest))
+    for row in old["rows"]:
+        del row["longest_standstill_s"]
+    assert check_submission(json.loads(json.dumps(old)), SOURCE) == old
+    (line,) = leaderboard_rows([old])
+    assert line[COLUMNS.index("longest standstill [s]")] is None
+    assert line[COLUMNS.index("longest standstill with filter [s]")] is None
+    assert line[COLUMNS.index("score")] == current["score"]
+    page = leaderboard_html([old], load_suite())
+    assert "<th>longest standstill [s]</th>" in page
+
+
 def test_the_page_escapes_every_string_of_a_submission(honest: dict):
     honest["agent"] = "<script>alert(1)</script>"
     honest["replay"]["agent_sha256"] = "<b>bold</b>" + "0" * 52
@@ -573,6 +606,12 @@ def test_first_difference_holds_each_measurement_to_its_tolerance(honest: dict):
     assert replayed_with(lambda row: row.__setitem__("lap_time_s", None)) == (
         f"lap_time_s was {lap!r}, replayed None"
     )
+    held = stored["longest_standstill_s"]
+    assert replayed_with(lambda row: row.__setitem__("longest_standstill_s", held + 0.05)) == (
+        f"longest_standstill_s was {held!r}, replayed {held + 0.05!r}"
+    )
+    older = {k: v for k, v in stored.items() if k != "longest_standstill_s"}
+    assert first_difference(older, deepcopy(stored)) is None  # a row from before it verifies
 
 
 def test_runs_are_drawn_all_in_order_or_a_seeded_sample_and_a_full_record_counts():

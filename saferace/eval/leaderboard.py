@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from saferace.eval.filter_config import FilterConfig
+from saferace.eval.metrics import longest_standstill
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.names import DEFAULT_FILTER_MODELS, DEFAULT_GAINS, NOISY_SAMPLES
 
@@ -31,6 +32,7 @@ COLUMNS = (
     "mean abs dev [m]",
     "max abs dev [m]",
     "outside lane [s]",
+    "longest standstill [s]",
     "interventions [%]",
     "steer rate RMS [rad/s]",
     "opponents",
@@ -131,8 +133,10 @@ def row_label(row: dict) -> str:
 def leaderboard_rows(rows: list[dict]) -> list[list]:
     """One line per (agent, task, track, filter, state source, opponents), averaged over
     seeds, sorted by mean lap time. The whole filter configuration keys a group: runs behind
-    different filters, or among other opponents, are never merged. In traffic, the
-    collisions the agent caused and its overtakes are summed over the seeds."""
+    different filters, or among other opponents, are never merged. Beside the time outside
+    the lane (summed) stand the laps completed (summed) and the longest standstill while
+    the driver asked to move (the longest of the seeds'; None where a row predates it). In
+    traffic, the collisions the agent caused and its overtakes are summed over the seeds."""
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for row in rows:
         config = row_filter(row)
@@ -166,6 +170,7 @@ def leaderboard_rows(rows: list[dict]) -> list[list]:
                 _mean(summaries, "mean_abs_deviation_m"),
                 max(worst) if worst else None,
                 sum(s["time_outside_lane_s"] for s in summaries),
+                longest_standstill(summaries),
                 None if rate is None else 100.0 * rate,
                 _mean(summaries, "steering_rate_rms_radps"),
                 opponents or None,

@@ -34,6 +34,7 @@ TRAFFIC_FIELDS = (
 #: Per-step records of a safety filter (``info["safety"]``), see :func:`safety_step_record`.
 SAFETY_FIELDS = (
     "intervened",
+    "nominal_accel_mps2",
     "steer_correction_rad",
     "accel_correction_mps2",
     "max_slack",
@@ -52,7 +53,10 @@ class LapMetrics:
 
     ``longest_stop_s`` is the longest stretch of consecutive steps of the lap the car's
     forward speed spent below :data:`STOP_SPEED_MPS` (a filter that deadlocks holds the car
-    still for seconds).
+    still for seconds). ``longest_standstill_s`` counts only the steps of such a stretch in
+    which the driver asked to move (its own acceleration command, before any filter, was
+    positive): a car that never leaves the lane because it is held still shows here, a
+    driver that stops on purpose does not.
     ``min_lane_barrier_m`` is the true lane barrier ``min(w_left - e_y, w_right + e_y) -
     half car width`` at its lowest (negative: part of the car was outside). The filter's
     fields are None for episodes driven without one: how many steps it changed the
@@ -71,6 +75,7 @@ class LapMetrics:
     steering_rate_rms_radps: float
     steps: int = 0
     longest_stop_s: float = 0.0
+    longest_standstill_s: float = 0.0
     min_lane_barrier_m: float | None = None
     interventions: int | None = None
     intervention_rate: float | None = None
@@ -92,7 +97,8 @@ def lap_metrics(
     """Metrics for each lap; a step belongs to the lap that was running when it began.
 
     ``steps`` may hold ``lane_barrier_m`` and the :data:`SAFETY_FIELDS`; their metrics are
-    None without them.
+    None without them. The driver's own acceleration command is ``nominal_accel_mps2``
+    where a filter ran, else the applied ``accel_mps2``.
 
     ``steps[field]`` are arrays over the episode's steps (after each ``env.step``),
     ``steps["lap"]`` the laps completed after that step, ``lap_times_s`` the times of the
@@ -118,7 +124,8 @@ def lap_metrics(
     return metrics
 
 
-#: Below this speed the car counts as standing still (:attr:`LapMetrics.longest_stop_s`).
+#: Below this speed the car counts as standing still (:attr:`LapMetrics.longest_stop_s`,
+#: :attr:`LapMetrics.longest_standstill_s`).
 STOP_SPEED_MPS = 0.1
 #: About how many points of a drive's path a result row keeps (enough to draw it).
 TRAJECTORY_POINTS = 500
@@ -155,6 +162,8 @@ def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: f
     deviation = np.abs(np.asarray(steps["deviation_m"])[mask])
     barrier = steps.get("lane_barrier_m")
     stopped = np.asarray(steps["v_x_mps"]) < STOP_SPEED_MPS
+    asked = steps["nominal_accel_mps2"] if "nominal_accel_mps2" in steps else steps["accel_mps2"]
+    held = stopped & (np.asarray(asked, dtype=float) > 0.0)
     safety = _safety_metrics(steps, mask) if "intervened" in steps else {}
     return {
         "mean_abs_deviation_m": float(deviation.mean()),
@@ -163,6 +172,7 @@ def span_metrics(steps: dict[str, np.ndarray], mask: np.ndarray, control_dt_s: f
         "steering_rate_rms_radps": float(np.sqrt(np.mean(steer_rate[mask] ** 2))),
         "steps": int(mask.sum()),
         "longest_stop_s": longest_run(stopped & mask) * control_dt_s,
+        "longest_standstill_s": longest_run(held & mask) * control_dt_s,
         "min_lane_barrier_m": None if barrier is None else float(np.min(barrier[mask])),
         **safety,
     }
@@ -195,6 +205,7 @@ def safety_step_record(safety: dict) -> dict:
     nominal, filtered = safety["nominal_action"], safety["filtered_action"]
     return {
         "intervened": safety["intervened"],
+        "nominal_accel_mps2": nominal[1],
         "steer_correction_rad": abs(filtered[0] - nominal[0]),
         "accel_correction_mps2": abs(filtered[1] - nominal[1]),
         "max_slack": max(safety["slacks"].values()),
@@ -208,7 +219,8 @@ def safety_step_record(safety: dict) -> dict:
 
 
 def summarize(laps: list[LapMetrics]) -> dict:
-    """Episode summary over its laps: completed laps, best and mean lap time, worst deviations."""
+    """Episode summary over its laps: completed laps, best and mean lap time, worst
+    deviations, longest stop and standstill."""
     completed = [lap for lap in laps if lap.completed]
     times = [lap.lap_time_s for lap in completed if lap.lap_time_s is not None]  # all of them
     return {
@@ -224,9 +236,19 @@ def summarize(laps: list[LapMetrics]) -> dict:
         if laps
         else None,
         "longest_stop_s": max((lap.longest_stop_s for lap in laps), default=None),
+        "longest_standstill_s": max((lap.longest_standstill_s for lap in laps), default=None),
         "min_lane_barrier_m": _extreme(min, [lap.min_lane_barrier_m for lap in laps]),
         **_summarize_safety(laps),
     }
+
+
+def longest_standstill(records: list[dict]) -> float | None:
+    """The longest ``longest_standstill_s`` of ``records`` (result rows' summaries, or runs);
+    None where any lacks it (written before it was recorded): a maximum over some of them
+    would understate it."""
+    values = [record.get("longest_standstill_s") for record in records]
+    present = [float(value) for value in values if value is not None]
+    return max(present) if values and len(present) == len(values) else None
 
 
 def _extreme(function, values: list) -> float | None:

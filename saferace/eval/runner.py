@@ -171,13 +171,21 @@ class EpisodeRecorder:
 
 
 def episode_words(summary: dict) -> str:
-    """An episode's key numbers, as its progress line says them."""
+    """An episode's key numbers, as its progress line says them: laps completed, time
+    outside the lane and beside it the longest standstill (:func:`standstill_words`)."""
     lap = summary.get("mean_lap_time_s")
     return (
         f"{summary['laps_completed']} laps"
         + (f" of {lap:.2f} s" if lap is not None else "")
-        + f", {summary['time_outside_lane_s']:.2f} s outside"
+        + f", {summary['time_outside_lane_s']:.2f} s outside, "
+        + standstill_words(summary.get("longest_standstill_s"))
     )
+
+
+def standstill_words(seconds: float | None) -> str:
+    """The longest standstill while the driver asked to move, in words (``-`` where it was
+    not recorded): what keeps a car that never left the lane by standing still visible."""
+    return "longest standstill " + ("-" if seconds is None else f"{seconds:.2f} s")
 
 
 def _has_safety_filter(env: gym.Env) -> bool:

@@ -24,6 +24,11 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> 
     return "\n".join(lines)
 
 
+def or_dash(value: float | None) -> float | str:
+    """A table cell: ``value``, or ``-`` where it was not measured."""
+    return "-" if value is None else value
+
+
 def _escaped(text: str) -> str:
     return text.replace("|", "\\|")
 

@@ -10,8 +10,10 @@ car with localisation would have it). 48 runs per agent.
 
 Per run: completion (share of the lap driven), lap time and its ratio to the expert MPC's
 on the same track, task and start (measured once and stored in the suite), mean deviation
-from the reference, time outside the lane, and with the filter its interventions and
-correction sizes. The run's score (0 to 1, more is better):
+from the reference, time outside the lane, the longest standstill while the driver asked
+to move (``longest_standstill_s``, reported beside the score, not part of it), and with
+the filter its interventions and correction sizes. The run's score (0 to 1, more is
+better):
 
     score = completion * speed_ratio * exp(-time_outside_lane_s / 1 s)
 
@@ -63,6 +65,7 @@ from saferace.eval.runner import (
     package_versions,
     read_jsonl,
     run_episode,
+    standstill_words,
 )
 from saferace.progress import Progress
 from saferace.track import Track
@@ -270,6 +273,7 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
         "driven_s": len(result.steps["time_s"]) * racing_env(env).control_dt_s,
         "mean_abs_deviation_m": summary["mean_abs_deviation_m"],
         "time_outside_lane_s": summary["time_outside_lane_s"],
+        "longest_standstill_s": summary["longest_standstill_s"],
         "terminated": result.terminated,
         "intervention_rate": summary.get("intervention_rate"),
         "mean_steer_correction_rad": summary.get("mean_steer_correction_rad"),
@@ -292,7 +296,8 @@ def run_words(row: dict) -> str:
     of 100)."""
     words = (
         f"score {100.0 * row['score']:.1f}, completion {100.0 * row['completion']:.0f}%, "
-        f"{row['time_outside_lane_s']:.2f} s outside"
+        f"{row['time_outside_lane_s']:.2f} s outside, "
+        + standstill_words(row.get("longest_standstill_s"))
     )
     if row.get("at_fault_collisions") is not None:
         words += f", {row['at_fault_collisions']} at-fault collisions"

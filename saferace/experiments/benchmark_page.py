@@ -15,6 +15,7 @@ import io
 
 import numpy as np
 
+from saferace.eval.metrics import longest_standstill
 from saferace.experiments.benchmark import Suite
 
 COLUMNS = (
@@ -33,6 +34,8 @@ COLUMNS = (
     "completion [%]",
     "lap time / expert",
     "outside lane [s]",
+    "longest standstill [s]",
+    "longest standstill with filter [s]",
     "runs",
 )
 
@@ -43,7 +46,10 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
     unfiltered score; see the protocol): ranks count within a version, whose scores alone
     compare. A submission's ``"verification"``, when :mod:`~saferace.experiments.verify`
     left a record for it, says how many of its runs were replayed; the traffic columns are
-    empty for a suite without traffic runs."""
+    empty for a suite without traffic runs. Beside completion and the time outside the
+    lane, the longest any run stood still while the driver asked to move, without and with
+    the filter: read from the rows, scoring nothing, and empty (``-``) for a submission
+    whose rows predate it."""
     ordered = sorted(
         submissions,
         key=lambda s: (-s["suite_version"], -(s["score"] if s["score"] is not None else -1)),
@@ -54,6 +60,7 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
         rank = 1 if entry["suite_version"] != version else rank + 1
         version = entry["suite_version"]
         plain = [row for row in entry["rows"] if row["filter"] == "none"]
+        filtered = [row for row in entry["rows"] if row["filter"] != "none"]
         ratios = [row["lap_time_ratio"] for row in plain if row.get("lap_time_ratio") is not None]
         rate = entry["intervention_rate"]
         record = entry.get("verification")
@@ -74,6 +81,8 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
                 None if entry["completion"] is None else 100.0 * entry["completion"],
                 float(np.mean(ratios)) if ratios else None,
                 entry["time_outside_lane_s"],
+                longest_standstill(plain),
+                longest_standstill(filtered),
                 len(entry["rows"]),
             ]
         )
@@ -172,7 +181,7 @@ def leaderboard_html(submissions: list[dict], suite: Suite) -> str:
 body {{ font-family: sans-serif; margin: 2em; }}
 .scroll {{ overflow-x: auto; }}
 table {{ border-collapse: collapse; font-size: 0.9em; }}
-th, td {{ border: 1px solid #999; padding: 4px 6px; text-align: right; }}
+th, td {{ border: 1px solid #999; padding: 4px; text-align: right; }}
 th {{ cursor: pointer; background: #eee; max-width: 7em; vertical-align: bottom; }}
 figure {{ display: inline-block; margin: 0.5em; }}
 </style></head><body>
@@ -181,8 +190,10 @@ figure {{ display: inline-block; margin: 0.5em; }}
 {len(suite.seeds)} starts{_traffic_words(suite)}, without and with the shared safety
 filter. Score: 100 times the mean over the unfiltered runs of completion x speed against
 the expert x exp(-seconds outside the lane){_penalty_words(suite)}, recomputed from every
-run's measurements. Overtakes: opponents an agent passed and stayed ahead of. Submissions of an
-older suite rank among their own version only. Verified runs: how many of an entry's
+run's measurements. Longest standstill: the longest any run stood still while its driver
+asked to move (not scored; it shows a car kept in its lane by being held still), without
+and with the filter. Overtakes: opponents an agent passed and stayed ahead of. Submissions
+of an older suite rank among their own version only. Verified runs: how many of an entry's
 runs <code>saferace verify</code> drove again and found as submitted. Click a column to
 sort.</p>
 <div class="scroll"><table id="leaderboard"><thead><tr>{header}</tr></thead>

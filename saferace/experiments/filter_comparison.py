@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from saferace.eval.leaderboard import filter_phrase, filter_words, row_filter, state_source_words
-from saferace.eval.metrics import STOP_SPEED_MPS
-from saferace.eval.tables import markdown_table, write_csv
+from saferace.eval.metrics import STOP_SPEED_MPS, longest_standstill
+from saferace.eval.tables import markdown_table, or_dash, write_csv
 
 COMPARISON_COLUMNS = [
     "filter",
@@ -27,6 +27,7 @@ COMPARISON_COLUMNS = [
     "runs outside lane",
     "outside lane [s]",
     "longest stop [s]",
+    "longest standstill [s]",
     "lap-time cost to the expert [%]",
     "interventions [%]",
     "solve median [ms]",
@@ -44,7 +45,8 @@ def comparison_rows(rows: list[dict], laps: int) -> list[list]:
     """One line per filter, agent and state source over every track: runs, runs that
     finished their ``laps``, runs that left the lane and their time outside, the longest the
     car stood still within a lap of any of them (a deadlocked filter holds it for seconds;
-    "-" where a row predates the metric), the expert's mean lap-time cost to its unfiltered
+    "-" where a row predates the metric) and the longest it stood still while the driver
+    asked to move (likewise), the expert's mean lap-time cost to its unfiltered
     run on the same track and task, the filter's interventions and its median solve and
     whole-step times (the median of the runs')."""
     free = {
@@ -89,6 +91,7 @@ def comparison_rows(rows: list[dict], laps: int) -> list[list]:
                 sum(s["time_outside_lane_s"] > 0.0 for s in summaries),
                 sum(s["time_outside_lane_s"] for s in summaries),
                 max(stops) if len(stops) == len(summaries) else "-",  # rows predating it
+                or_dash(longest_standstill(summaries)),
                 float(np.mean(costs)) if costs else "-",
                 100.0 * float(np.mean(rates)) if rates else "-",
                 float(np.median(solves)) if solves else "-",
@@ -105,8 +108,11 @@ def write_comparison(rows: list[dict], out_dir: Path, laps: int) -> None:
     (out_dir / "filter_comparison.md").write_text(
         f"# Filters compared on {len(tracks)} tracks ({', '.join(tracks)}), {laps} lap(s)\n\n"
         "Completed: runs that finished their laps. Longest stop: the longest the car stood "
-        f"still (forward speed below {STOP_SPEED_MPS} m/s) within a lap of any run. Lap-time "
-        "cost: the expert's mean over the tracks and tasks, against its unfiltered lap.\n\n"
+        f"still (forward speed below {STOP_SPEED_MPS} m/s) within a lap of any run. Longest "
+        "standstill: the same, counting only the steps in which the driver asked to move "
+        "(its own acceleration command, before the filter, was positive): a filter that "
+        "keeps a car in its lane by holding it still shows here. Lap-time cost: the expert's "
+        "mean over the tracks and tasks, against its unfiltered lap.\n\n"
         + markdown_table(COMPARISON_COLUMNS, lines)
         + "\n"
     )

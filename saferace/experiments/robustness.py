@@ -2,7 +2,8 @@
 
 :func:`run_robustness` drives an agent once per domain-randomisation preset and seed (the
 seed draws the look, see :mod:`saferace.envs.randomization`), optionally behind the safety
-filter, and records per run: completion, lap time, time outside the lane, the filter's
+filter, and records per run: completion, lap time, time outside the lane, the longest
+standstill while the driver asked to move, the filter's
 interventions and, when a state network is in play (the filter's ``learned:CKPT`` state
 source, or ``monitor_state_source`` beside an unfiltered run), its error against the true
 lane state and the spread of its MC-dropout samples. Runs are appended to ``runs.jsonl``
@@ -22,6 +23,7 @@ from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import load_entry_point, make_agent
 from saferace.eval.filters import STATE_SOURCE_FACTORIES
+from saferace.eval.metrics import longest_standstill
 from saferace.eval.runner import (
     append_jsonl,
     make_task_env,
@@ -29,7 +31,7 @@ from saferace.eval.runner import (
     read_jsonl,
     run_episode,
 )
-from saferace.eval.tables import markdown_table, write_csv
+from saferace.eval.tables import markdown_table, or_dash, write_csv
 from saferace.experiments.robustness_config import RobustnessConfig
 from saferace.safety.uncertainty.conformal import MIN_SIGMA, clopper_pearson
 from saferace.safety.uncertainty.intervals import state_interval
@@ -42,6 +44,7 @@ TABLE_COLUMNS = (
     "laps completed",
     "lap time [s]",
     "time outside lane [s]",
+    "longest standstill [s]",
     "interventions [%]",
     "e_y error [m]",
     "e_y spread [m]",
@@ -65,6 +68,7 @@ TRACK_COLUMNS = (
     "alarms [%]",
     "completion [%]",
     "time outside lane [s]",
+    "longest standstill [s]",
 )
 
 
@@ -146,6 +150,7 @@ def drive_once(
         "laps_completed": summary["laps_completed"],
         "lap_time_s": summary["mean_lap_time_s"],
         "time_outside_lane_s": summary["time_outside_lane_s"],
+        "longest_standstill_s": summary["longest_standstill_s"],
         "intervention_rate": None if intervened is None else float(np.mean(intervened)),
         "min_lane_barrier_m": summary["min_lane_barrier_m"],
         "alarm_rate": summary.get("alarm_rate"),
@@ -232,7 +237,8 @@ def _state_monitor(config: RobustnessConfig, env, seed: int) -> _StateErrors:
 
 def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -> list[list]:
     """One row of :data:`TABLE_COLUMNS` per look: means over its tracks and seeds (``laps``
-    each), the pooled coverage, the lowest barrier; ``-`` where nothing was measured."""
+    each), the pooled coverage, the lowest barrier, the longest standstill of any run;
+    ``-`` where nothing was measured."""
     rows = []
     for preset in presets:
         mine = [run for run in runs if run["look"] == preset]
@@ -247,6 +253,7 @@ def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -
                 f"{sum(run['laps_completed'] for run in mine)} of {laps * len(mine)}",
                 mean_of(mine, "lap_time_s"),
                 mean_of(mine, "time_outside_lane_s"),
+                longest_of(mine),
                 mean_of(mine, "intervention_rate", 100.0),
                 mean_of(mine, "e_y_error_m"),
                 mean_of(mine, "e_y_spread_m"),
@@ -265,8 +272,8 @@ def robustness_rows(runs: list[dict], presets: tuple[str, ...], laps: int = 1) -
 
 def track_rows(runs: list[dict], presets: tuple[str, ...]) -> list[list]:
     """One row of :data:`TRACK_COLUMNS` per track and look whose runs scored a state
-    source: the coverage of that track's steps with its band, the alarm rate, completion
-    and time outside the lane."""
+    source: the coverage of that track's steps with its band, the alarm rate, completion,
+    time outside the lane and the longest standstill."""
     rows = []
     for track in dict.fromkeys(run["track"] for run in runs):
         for preset in presets:
@@ -283,6 +290,7 @@ def track_rows(runs: list[dict], presets: tuple[str, ...]) -> list[list]:
                     mean_of(mine, "alarm_rate", 100.0),
                     mean_of(mine, "completion", 100.0),
                     mean_of(mine, "time_outside_lane_s"),
+                    longest_of(mine),
                 ]
             )
     return rows
@@ -298,6 +306,13 @@ def lowest_of(runs: list[dict], name: str) -> float | str:
     """The lowest ``name`` over the runs that measured it; ``-`` if none."""
     values = [run[name] for run in runs if run.get(name) is not None]
     return min(values) if values else "-"
+
+
+def longest_of(runs: list[dict]) -> float | str:
+    """The longest standstill while the driver asked to move of any of ``runs``; ``-``
+    where a run predates the measurement (see :func:`~saferace.eval.metrics.
+    longest_standstill`)."""
+    return or_dash(longest_standstill(runs))
 
 
 def pooled_coverage(runs: list[dict]) -> str:

@@ -24,8 +24,14 @@ from saferace.eval.leaderboard import (
     state_source_words,
 )
 from saferace.eval.parallel import run_jobs
-from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
-from saferace.eval.tables import markdown_table, write_csv
+from saferace.eval.runner import (
+    append_jsonl,
+    evaluate,
+    max_steps_for,
+    read_jsonl,
+    standstill_words,
+)
+from saferace.eval.tables import markdown_table, or_dash, write_csv
 from saferace.experiments.filter_comparison import plot_failures, write_comparison
 from saferace.learning.checkpoint import is_calibrated
 from saferace.names import AUTO, DEFAULT_GAINS, ROBUST_GAINS, SQUARED_SLACK, TASKS
@@ -195,7 +201,10 @@ def table_row(run: Run, seed: int, laps: int, env_kwargs: dict) -> dict:
 def row_words(row: dict) -> str:
     """A run's key numbers, as its progress line says them."""
     summary = row["summary"]
-    words = f"{summary['laps_completed']} laps, {summary['time_outside_lane_s']:.2f} s outside"
+    words = (
+        f"{summary['laps_completed']} laps, {summary['time_outside_lane_s']:.2f} s outside, "
+        + standstill_words(summary.get("longest_standstill_s"))
+    )
     rate = summary.get("intervention_rate")
     return words if rate is None else f"{words}, {100.0 * rate:.0f}% of steps corrected"
 
@@ -222,6 +231,7 @@ TABLE_COLUMNS = [
     "state source",
     "laps",
     "outside lane [s]",
+    "longest standstill [s]",
     "min barrier [m]",
     "interventions [%]",
     "failed solves",
@@ -232,7 +242,8 @@ TABLE_COLUMNS = [
 
 
 def table_rows(rows: list[dict]) -> list[list]:
-    """One table line per run."""
+    """One table line per run; its longest standstill while the driver asked to move is
+    ``-`` in a row written before it was recorded."""
     lines = []
     for row in rows:
         summary = row["summary"]
@@ -248,6 +259,7 @@ def table_rows(rows: list[dict]) -> list[list]:
                 state_source_words(config),
                 summary["laps_completed"],
                 summary["time_outside_lane_s"],
+                or_dash(summary.get("longest_standstill_s")),
                 summary["min_lane_barrier_m"],
                 "-" if rate is None else 100.0 * rate,
                 summary.get("failed_solves", "-"),
@@ -261,7 +273,8 @@ def table_rows(rows: list[dict]) -> list[list]:
 
 def expert_cost_rows(rows: list[dict]) -> list[list]:
     """Per track, task and filter: the expert's mean lap time without and with the filter
-    on the true state."""
+    on the true state, and the filtered run's laps, time outside the lane and longest
+    standstill while the expert asked to move (``-`` where not recorded)."""
     by_key = {(r["track"], r["task"], filter_label(r)): r for r in rows}
     lines = []
     for (track, task, _), row in by_key.items():
@@ -281,7 +294,9 @@ def expert_cost_rows(rows: list[dict]) -> list[list]:
                 "-" if filtered is None else filtered,
                 "-" if cost is None else cost,
                 100.0 * row["summary"]["intervention_rate"],
+                row["summary"]["laps_completed"],
                 row["summary"]["time_outside_lane_s"],
+                or_dash(row["summary"].get("longest_standstill_s")),
             ]
         )
     return lines
@@ -295,7 +310,9 @@ EXPERT_COLUMNS = [
     "lap, filter [s]",
     "lap-time cost [%]",
     "interventions [%]",
+    "laps",
     "outside lane [s]",
+    "longest standstill [s]",
 ]
 
 

@@ -6,8 +6,9 @@ dropout, MC dropout with variance scaling, an ensemble, an ensemble with a confo
 calibration, with or without its monitor). :func:`sweep_rows` tabulates per method and
 look the interval's coverage (pooled over steps, with its Clopper-Pearson band), its width,
 the Gaussian negative log-likelihood, the monitor's alarm rate, time outside the lane, the
-lowest barrier, completion and lap time; :func:`plot_sweep` draws coverage and time outside
-the lane against the severity, a line per method.
+lowest barrier, completion, the longest standstill while the driver asked to move and lap
+time; :func:`plot_sweep` draws coverage and time outside the lane against the severity, a
+line per method.
 """
 
 from __future__ import annotations
@@ -19,7 +20,13 @@ import numpy as np
 from saferace.errors import SafeRaceError
 from saferace.eval.runner import read_jsonl
 from saferace.eval.tables import markdown_table, write_csv
-from saferace.experiments.robustness import RUNS_FILE, lowest_of, mean_of, pooled_coverage
+from saferace.experiments.robustness import (
+    RUNS_FILE,
+    longest_of,
+    lowest_of,
+    mean_of,
+    pooled_coverage,
+)
 
 SWEEP_COLUMNS = (
     "method",
@@ -33,6 +40,7 @@ SWEEP_COLUMNS = (
     "runs outside",
     "lowest lane barrier [m]",
     "completion [%]",
+    "longest standstill [s]",
     "lap time [s]",
 )
 
@@ -81,6 +89,7 @@ def sweep_rows(methods: dict[str, list[dict]]) -> list[list]:
                     sum(run["time_outside_lane_s"] > 0 for run in mine),
                     lowest_of(mine, "min_lane_barrier_m"),
                     mean_of(mine, "completion", 100.0),
+                    longest_of(mine),
                     mean_of(mine, "lap_time_s"),
                 ]
             )

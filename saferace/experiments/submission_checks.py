@@ -14,7 +14,8 @@ benchmark.totals`). A submission is refused, in one line naming the run and the 
 - a measurement is physically impossible or contradicts another: completion outside
   [0, 1]; an episode longer than the suite allows or not a whole number of control steps;
   more time outside the lane than driven, or a different time than the trajectory's
-  outside flags allow; a finished lap without full completion or longer than the drive;
+  outside flags allow; a longest standstill (where the row has one) below zero or longer
+  than the drive; a finished lap without full completion or longer than the drive;
   a trajectory with the wrong number of points, faster than the car's top speed between
   two points, not starting at the run's start, or much shorter than the distance the
   completion claims; a filtered run without its intervention rate; a traffic run's
@@ -244,6 +245,12 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
     if not 0.0 <= outside_s <= driven_s:
         raise SafeRaceError(
             f"{where}: time_outside_lane_s {outside_s} is not within the {driven_s:g} s driven"
+        )
+    standstill_s = row.get("longest_standstill_s")  # None: a row from before it was recorded
+    if standstill_s is not None and not (_finite(standstill_s) and 0.0 <= standstill_s <= driven_s):
+        raise SafeRaceError(
+            f"{where}: longest_standstill_s {standstill_s!r} is not within the {driven_s:g} s "
+            "driven"
         )
     _check_lap(row, suite.laps_of(spec), where)
     _check_traffic(row, spec, suite, round(steps), where)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from saferace.eval.metrics import longest_standstill
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.experiments.paper.plots import plot_iterations
 from saferace.experiments.paper.presets import (
@@ -49,6 +50,7 @@ CELL_NAMES = (
     "lap [s]",
     "mean dev [m]",
     "outside [s]",
+    "longest standstill [s]",
     "interventions [%]",
     "held-out dev [m]",
     "held-out outside [s]",
@@ -57,7 +59,9 @@ CELL_NAMES = (
 
 def _cells(found: list[dict]) -> list[str]:
     """Cells of one (iteration, filter, line) over seeds: a star marks an unfinished lap
-    (its time is how long the car drove), ``a +- b`` the mean and spread over seeds."""
+    (its time is how long the car drove), ``a +- b`` the mean and spread over seeds; the
+    longest standstill while the driver asked to move is the longest of the seeds' (``-``
+    where a row predates it)."""
     completed = [row["completed"] for row in found]
     star = "" if all(completed) else "*"
     if len(found) > 1:
@@ -68,10 +72,18 @@ def _cells(found: list[dict]) -> list[str]:
         _spread(time_driven) + star,
         _spread([row["mean_abs_deviation_m"] for row in found]) + star,
         _spread([row["time_outside_lane_s"] for row in found]),
+        _standstill(found),
         _spread([100.0 * rate for rate in rates]) if rates else "-",
         _spread([row["held_out_mean_abs_deviation_m"] for row in found]),
         _spread([row["held_out_time_outside_lane_s"] for row in found]),
     ]
+
+
+def _standstill(rows: list[dict]) -> str:
+    """The longest standstill of ``rows`` while the driver asked to move, ``-`` where a row
+    predates it."""
+    longest = longest_standstill(rows)
+    return "-" if longest is None else f"{longest:.3g}"
 
 
 def _spread(values: list[float | None]) -> str:
@@ -91,7 +103,8 @@ def claims(
 ) -> list[str]:
     """The paper's claims, measured: first completed lap with and without the filter, laps
     completed in the filtered iterations against the unfiltered run's same iterations, lane
-    exits in filtered iterations, the final lap time against the expert's; and, from
+    exits and the longest standstill while the driver asked to move in filtered
+    iterations, the final lap time against the expert's; and, from
     ``from_1`` (:func:`filtered_from_1`), whether iteration 1 laps behind the filter."""
     lines = []
     order = [kind for kind, _, _ in RUN_KINDS]
@@ -114,6 +127,7 @@ def claims(
                 f"{len(unfiltered)}; lane exits in filtered iterations: "
             )
             text += ", ".join(map(str, exits)) if exits else "none"
+            text += f"; longest standstill in filtered iterations: {_seconds(own)}"
         final, expert = runs[-1], runs[0]
         if final["completed"] and expert["completed"]:
             ratio = final["lap_time_s"] / expert["lap_time_s"]
@@ -141,6 +155,7 @@ VERDICT_COLUMNS = (
     "first lap, filtered run",
     "first lap, unfiltered run",
     "never leaves the lane",
+    "longest standstill, filtered [s]",
     "first lap sooner",
 )
 
@@ -152,10 +167,12 @@ def verdicts(
 ) -> list[list]:
     """Whether the paper's two claims hold, per line, seed and perception mode (the paper's
     and the generic model's): the filtered iterations (those after k, and iteration 1 behind
-    the filter) never leave the lane, and the first completed lap comes at an earlier
-    iteration with the filter than without: in the filtered run (its iterations up to k
-    are the unfiltered run's, driven without the filter; iteration 1 counts where it lapped
-    behind the filter) than in the unfiltered run."""
+    the filter) never leave the lane (beside it, the longest they stood still while the
+    driver asked to move: staying inside by standing still is no success), and the first
+    completed lap comes at an earlier iteration with the filter than without: in the
+    filtered run (its iterations up to k are the unfiltered run's, driven without the
+    filter; iteration 1 counts where it lapped behind the filter) than in the unfiltered
+    run."""
     lines = []
     for (task, seed, kind), runs in sorted(rows.items()):
         if kind not in PERCEPTION_MODES:
@@ -187,6 +204,7 @@ def verdicts(
                 "-" if with_filter is None else with_filter,
                 "-" if without is None else without,
                 "holds" if not exits else "fails: iteration " + ", ".join(map(str, exits)),
+                _standstill(filtered),
                 sooner,
             ]
         )
@@ -194,9 +212,18 @@ def verdicts(
 
 
 def _drive(row: dict) -> str:
-    """One drive in words: lapped or not, time outside the lane."""
+    """One drive in words: lapped or not, time outside the lane, longest standstill."""
     done = f"lapped in {row['lap_time_s']:.2f} s" if row["completed"] else "did not lap"
-    return f"{done}, {row['time_outside_lane_s']:.2f} s outside the lane"
+    return (
+        f"{done}, {row['time_outside_lane_s']:.2f} s outside the lane, longest standstill "
+        + _seconds([row])
+    )
+
+
+def _seconds(rows: list[dict]) -> str:
+    """The longest standstill of ``rows`` in words: ``1.20 s``, or ``not recorded``."""
+    longest = longest_standstill(rows)
+    return "not recorded" if longest is None else f"{longest:.2f} s"
 
 
 UNSEEN_COLUMNS = (
@@ -209,6 +236,7 @@ UNSEEN_COLUMNS = (
     "laps",
     "lap [s]",
     "outside [s]",
+    "longest standstill [s]",
 )
 
 

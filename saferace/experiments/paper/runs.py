@@ -223,6 +223,7 @@ def unseen_track_rows(
                                 summary["laps_completed"],
                                 summary["mean_lap_time_s"] or "-",
                                 summary["time_outside_lane_s"],
+                                summary["longest_standstill_s"],
                             ]
                         )
     return lines
