@@ -185,3 +185,103 @@ def test_a_car_stopped_under_an_alarm_drives_on_once_its_frames_are_trusted(own_
     assert info["v_x_mps"] > 1.0 and info["safety"]["mode"] == "certified"
     assert not info["outside_lane"]
     env.close()
+
+
+class ConfidentlyWrongSource:
+    """The circuit failure: a network that misreads a wide lane, ``offset_m`` off the truth
+    with an interval of +-``half_width_m`` (0.3 m) that misses it, its monitor raising on a
+    seeded ``alarm_rate`` of the frames from the very first."""
+
+    def __init__(self, offset_m: float, alarm_rate: float, half_width_m: float = 0.3) -> None:
+        self.offset_m, self.alarm_rate = offset_m, alarm_rate
+        self.half = np.array([half_width_m, 0.1, 0.0])
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def samples(self, observation: dict, info: dict) -> np.ndarray:
+        return (true_lane_state(info) + np.array([self.offset_m, 0.0, 0.0]))[None]
+
+    def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return samples[0] - self.half, samples[0] + self.half
+
+    def monitor(self, samples: np.ndarray) -> tuple[float, bool]:
+        alarm = bool(self.rng.random() < self.alarm_rate)
+        return float(alarm), alarm
+
+
+@pytest.fixture(scope="module")
+def wide_lane(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """A 2.2 m lane (an F1TENTH circuit's) on a random track of bends (seed 8123)."""
+    folder = tmp_path_factory.mktemp("tracks")
+    return str(write_random_track(folder / "wide_8123.csv", 8123, 8.0, lane_width_m=2.2))
+
+
+@pytest.mark.parametrize(("driver", "offset_m"), [("drift", 0.5), ("weave", -0.5)])
+def test_alarms_from_the_first_frame_on_a_wide_lane_keep_the_car_inside(
+    wide_lane: str, driver: str, offset_m: float
+):
+    """The circuit failure replayed: alarms on 88% of the frames from the first, the other
+    frames' intervals 0.5 m off the truth, their +-0.3 m missing it. The set carried from
+    the start pose holds the car on every frame in doubt: a wrong interval either misses
+    the set (an alarm) or narrows it only as far as twice its width (narrowed by the bare
+    interval, the set lost the car within 2 s). A trusted frame is certified on its bare
+    interval in the set, which misses the truth here, and the car still stays inside."""
+    source = ConfidentlyWrongSource(offset_m, alarm_rate=0.88)
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track=wide_lane, image_size=(16, 16)),
+        state_source=source,
+        uncertainty="robust",
+        **GAIN_PRESETS["tuned"],
+    )
+    agent = make_agent(driver, env, seed=0)
+    observation, info = env.reset(seed=0)
+    decisions, outside = [], 0
+    for _ in range(400):  # 20 s
+        observation, _, terminated, _, info = env.step(act(agent, observation, info))
+        decisions.append(info["safety"])
+        outside += bool(info["outside_lane"])
+        assert not terminated
+    env.close()
+    assert outside == 0
+    carried = [decision for decision in decisions if decision["mode"] == "propagated"]
+    assert len(carried) > 200 and all(decision["covered"] for decision in carried)
+    assert info["s_m"] > 20.0  # and drove on
+
+
+def test_an_interval_that_misses_the_carried_set_is_in_doubt(own_lane: str):
+    """A frame trusted by its monitor whose interval lies 0.5 m off the set carried from
+    the start counts as an alarm: the car drives on the set; one that meets the set is
+    trusted, and certified on its own interval."""
+    source = ConfidentlyWrongSource(0.5, alarm_rate=0.0, half_width_m=0.1)
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track=own_lane, image_size=(16, 16)),
+        state_source=source,
+        uncertainty="robust",
+        **GAIN_PRESETS["tuned"],
+    )
+    env.reset(seed=0, options={"start_s_m": 2.0})
+    decision = env.step(np.array([0.0, 0.0]))[-1]["safety"]
+    assert decision["alarm"] and decision["mode"] == "propagated"
+    assert decision["state_upper"][0] - decision["state_lower"][0] < 0.1  # the start set
+    source.offset_m = 0.05  # now the interval (+-0.1 m) meets the set: trusted
+    decision = env.step(np.array([0.0, 0.0]))[-1]["safety"]
+    assert not decision["alarm"] and decision["mode"] == "certified"
+    assert decision["state_upper"][0] - decision["state_lower"][0] == pytest.approx(0.2)
+    env.close()
+
+
+def test_a_set_is_narrowed_by_the_interval_it_meets():
+    box = DeadReckoning.trusted([0.0, -0.1], [0.2, 0.1], [0.0, 0.0, 0.0], 1.0)
+    assert box.meets(np.array([0.15, 0.05, 0.3]), np.array([0.5, 0.2, 0.3]))
+    assert not box.meets(np.array([0.25, -0.05, 0.3]), np.array([0.5, 0.05, 0.3]))
+    assert not box.meets(np.array([0.05, 0.15, 0.3]), np.array([0.1, 0.2, 0.3]))
+    bare = box.narrowed(np.array([0.15, -0.5, 0.3]), np.array([0.5, 0.05, 0.3]), widths=1.0)
+    np.testing.assert_allclose(bare.lower, [0.15, -0.1])
+    np.testing.assert_allclose(bare.upper, [0.2, 0.05])
+    # widened twice about its centre first: e_y 0.15 .. 0.25 -> 0.1 .. 0.3, e_psi -0.02 ..
+    # 0.04 -> -0.05 .. 0.07
+    widened = box.narrowed(np.array([0.15, -0.02, 0.3]), np.array([0.25, 0.04, 0.3]))
+    np.testing.assert_allclose(widened.lower, [0.1, -0.05])
+    np.testing.assert_allclose(widened.upper, [0.2, 0.07])

@@ -239,6 +239,14 @@ class SafetyFilter(gym.Wrapper):
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         self._last_trusted.reset()
+        if self.robust:  # the task's start pose: on the reference line at the start line
+            base = cast("RacingEnv", self.env.unwrapped)
+            s_m = float(info["s_m"])
+            self._last_trusted.start(
+                float(base.reference.offset_at(s_m)),
+                float(base.reference.heading_offset_at(s_m)),
+                info,
+            )
         prefetch(self.state_source, observation)  # the agent's network runs beside it
         return observation, info
 
@@ -269,12 +277,17 @@ class SafetyFilter(gym.Wrapper):
         s_m = float(info["s_m"])
         curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
-        reckoned = self._last_trusted.carried(estimate.alarm, info) if self.robust else None
-        if reckoned is not None:  # in doubt: the last trusted interval, carried forward
+        carried = self._last_trusted.carried(info) if self.robust else None
+        consistent = self._last_trusted.consistent(carried, (estimate.lower, estimate.upper))
+        trusted = not estimate.alarm and consistent
+        if self.robust:
+            self._last_trusted.keep(trusted, (estimate.lower, estimate.upper), carried, info)
+        reckoned = None if trusted else carried  # in doubt: the set carried forward
+        if reckoned is not None:  # trusted: the frame's own interval
             lower, upper = reckoned.interval(float(estimate.lower[2]))  # the map's curvature
             estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
         samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper
-        score, alarm = estimate.monitor_score, estimate.alarm
+        score, alarm = estimate.monitor_score, not trusted
         doubt = alarm and reckoned is None  # nothing holds the state: stop
         bounded = estimate.bounded
         chance = not self.robust and self.probabilistic and len(samples) > 1
@@ -335,9 +348,6 @@ class SafetyFilter(gym.Wrapper):
         self.interventions += intervened
         self.failures += fallback == "solver"
         self.fallbacks += bool(fallback)
-        if self.robust:
-            interval = (estimate.lower, estimate.upper)
-            self._last_trusted.keep(estimate.alarm, interval, reckoned, info)
         reduce = np.min if self.robust else np.mean
         return SafetyDecision(
             nominal_action=nominal.tolist(),
