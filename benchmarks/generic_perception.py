@@ -1,22 +1,24 @@
-"""The generic perception model on tracks and looks nothing was tuned on.
+"""The default filter, fed the generic perception model, on tracks nothing was tuned on.
 
-Tracks: random tracks by seed (default 6001-6004, none of the model's training or
-calibration seeds) and a kidney-shaped track of our own (a limacon with a concave side,
-0.84-1.16 m lane), written to ``--out``. Three parts, each a ``saferace robustness``
-folder under ``--out`` (resumable):
+Tracks: the four built-in tracks, the F1TENTH circuits as given (``--circuits``: a folder of
+``*_centerline.csv``), and two of our own written to ``--out``: a trefoil with a 0.62-0.78 m
+lane and a stadium with a 2.4 m lane. None is a track the model trained or was calibrated
+on. Each part is a ``saferace robustness`` folder under ``--out`` (resumable), driven by
+``--workers`` processes, one (driver, state source) group each:
 
-- **coverage**: the expert drives a lap of every track at shift severity 0 behind the
-  default filter (robust, fed the generic model): per track the share of steps whose
-  truth lay in the interval, with its Clopper-Pearson band (target: at least 93% on every
-  track) and the share the monitor raised on (target: at most 5%);
-- **severities**: the drift, weave and speeding agents (and ``--learned CKPT@TRACK``: a
-  learned driver on its own track) behind the default filter at severities 0-5 on the
-  first random track and ours: completion and time outside (target: 0 s in every run;
-  stopping is allowed as the look moves away);
-- **against the truth**: at severity 0 the same agents behind the same filter fed the
-  true state: each generic lap within 10% of its true-state lap.
+- **severity 0**: drift, weave, speeding, the expert and a learned driver (``--learned
+  CKPT``) behind the default filter (robust, tuned gains, fed the generic model) at look
+  severity 0 on every track: time outside (target: 0 s in every run), completion and the
+  longest standstill while the driver asked to move. The reckless and learned drivers drive
+  ``--max-seconds`` (the issue's protocol: 40 s), the expert a whole lap;
+- **coverage**: the expert's runs: per track the share of steps whose truth lay inside the
+  filter's set (Clopper-Pearson band; target >= 93% on every track), the alarm rate (target
+  <= 5%), and its lap against the same filter fed the true state (target: within 10%);
+- **severities**: every driver at look severities 2 and 4 on three tracks (``--shifted``):
+  time outside (target 0 s) and completion.
 
-    python benchmarks/generic_perception.py [--out DIR] [--seeds 6001 ...] [--learned CKPT@TRACK]
+    python benchmarks/generic_perception.py --circuits ../shared/tracks/f1tenth \\
+        --learned CKPT [--out DIR] [--workers 2]
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from saferace.eval.filter_config import FilterConfig
+from saferace.eval.parallel import run_jobs
 from saferace.eval.tables import markdown_table
 from saferace.experiments.robustness import (
     TRACK_COLUMNS,
@@ -35,117 +38,151 @@ from saferace.experiments.robustness import (
     track_rows,
 )
 from saferace.learning.perception import ensure_perception_model
-from saferace.names import GENERIC_SOURCE, ROBUST_GAINS, SHIFT_LOOKS
-from saferace.track.random_track import write_random_tracks
+from saferace.names import GENERIC_SOURCE, ROBUST_GAINS
+from saferace.safety.uncertainty.conformal import clopper_pearson
 from saferace.track.track_io import write_track_csv
 
+BUILT_IN = ("lab", "oval", "technical", "varying")
 RECKLESS = ("drift", "weave", "speeding")
+SHIFTED_LOOKS = ("severity-2", "severity-4")
 COVERAGE_TARGET = 0.93
 ALARM_TARGET = 0.05
 LAP_TIME_TARGET = 1.10
+#: Simulated seconds of an expert's run: a lap of the longest circuit (458 m) and more.
+EXPERT_SECONDS = 240.0
 
 
-def kidney_track(path: Path) -> str:
-    """Our own track: a limacon stretched 1.2x, with a concave side and a lane that narrows
-    from 1.16 to 0.84 m."""
-    theta = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
-    radius = 4.0 + 1.6 * np.cos(theta) + 0.5 * np.sin(2.0 * theta)
-    half_width = 0.5 - 0.08 * np.cos(theta - 1.0)
-    x, y = 1.2 * radius * np.cos(theta), radius * np.sin(theta)
-    write_track_csv(path, x, y, half_width, half_width)
+def narrow_trefoil(path: Path) -> str:
+    """Our own narrow track: a limacon with a third harmonic, lane 0.62-0.78 m."""
+    theta = np.linspace(0.0, 2.0 * np.pi, 500, endpoint=False)
+    radius = 5.0 + 1.5 * np.cos(theta) + 0.7 * np.sin(3.0 * theta)
+    half_width = 0.35 + 0.04 * np.sin(2.0 * theta)
+    write_track_csv(
+        path, 1.3 * radius * np.cos(theta), radius * np.sin(theta), half_width, half_width
+    )
     return str(path)
 
 
-def robustness(out: Path, agent: str, tracks: list[str], looks: tuple[str, ...], source: str):
+def wide_stadium(path: Path, straight_m: float = 24.0, radius_m: float = 6.0) -> str:
+    """Our own wide track: a stadium (two straights, two half circles), lane 2.4 m."""
+    turn_m = np.pi * radius_m
+    s = np.arange(0.0, 2.0 * (straight_m + turn_m), 0.25)
+    lap = s % (straight_m + turn_m)
+    first = s < straight_m + turn_m
+    angle = lap - straight_m
+    on_turn = np.where(lap >= straight_m, angle / radius_m - np.pi / 2.0, 0.0)
+    x = np.where(
+        lap < straight_m, lap - straight_m / 2.0, straight_m / 2.0 + radius_m * np.cos(on_turn)
+    )
+    y = np.where(lap < straight_m, -radius_m, radius_m * np.sin(on_turn))
+    x, y = np.where(first, x, -x), np.where(first, y, -y)
+    write_track_csv(path, x, y, np.full_like(x, 1.2), np.full_like(x, 1.2))
+    return str(path)
+
+
+def drive_group(
+    out: Path, agent: str, tracks: tuple[str, ...], looks: tuple[str, ...], source: str,
+    max_seconds: float,
+) -> list[dict]:  # fmt: skip
     """The runs of ``agent`` on ``tracks`` in ``looks`` behind the default filter of a
-    perceived state (robust, ``tuned`` gains) fed ``source`` (``oracle``: the truth, whose
-    interval is a point)."""
+    perceived state (robust, tuned gains) fed ``source`` (``oracle``: the truth)."""
     safety = FilterConfig(
         kind="cbf",
         state_source=None if source == "oracle" else source,
         uncertainty="robust",
         gains=ROBUST_GAINS,
     )
-    config = RobustnessConfig(agent, "CenterLine", tuple(tracks), looks, (0,), safety=safety)
-    name = f"{agent.partition(':')[0]}_{source.replace(':', '-')}_{len(looks)}looks"
+    config = RobustnessConfig(
+        agent, "CenterLine", tracks, looks, (0,), max_seconds=max_seconds, safety=safety
+    )
+    name = f"{agent.partition(':')[0]}_{source.replace(':', '-')}_{'_'.join(looks)}"
     return run_robustness(config, out / name, progress=False)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("results/generic_perception"))
-    parser.add_argument("--seeds", type=int, nargs="+", default=[6001, 6002, 6003, 6004])
+    parser.add_argument("--circuits", type=Path, required=True, help="F1TENTH centre lines")
+    parser.add_argument("--learned", required=True, help="a learned driver's checkpoint")
     parser.add_argument("--source", default=GENERIC_SOURCE, help="generic or generic:RECIPE")
-    parser.add_argument("--learned", help="CKPT@TRACK: a learned driver on its own track")
+    parser.add_argument("--max-seconds", type=float, default=40.0)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--shifted", nargs=3, default=None, metavar="TRACK", help="default: lab, a circuit, wide"
+    )
     args = parser.parse_args()
     ensure_perception_model(args.source)
-    tracks = [*write_random_tracks(args.out / "tracks", args.seeds)]
-    tracks.append(kidney_track(args.out / "tracks" / "own_kidney.csv"))
+    own = args.out / "tracks"
+    own.mkdir(parents=True, exist_ok=True)
+    circuits = tuple(str(path) for path in sorted(args.circuits.glob("*_centerline.csv")))
+    ours = (narrow_trefoil(own / "own_narrow.csv"), wide_stadium(own / "own_wide.csv"))
+    tracks = (*BUILT_IN, *circuits, *ours)
+    shifted = tuple(args.shifted or ("lab", circuits[0], ours[1]))
+    drivers = (*RECKLESS, "expert", f"learned:{args.learned}")
 
-    coverage_runs = robustness(args.out, "expert", tracks, ("severity-0",), args.source)
-    rows = track_rows(coverage_runs, ("severity-0",))
-    print("Coverage of the generic model's interval, the expert at severity 0:\n")
-    print(markdown_table(TRACK_COLUMNS, rows))
-    shares = [run["covered_steps"] / run["scored_steps"] for run in coverage_runs]
-    alarms = [run["alarm_rate"] for run in coverage_runs]
-    print(
-        f"\nlowest coverage {100 * min(shares):.1f}% (target >= {100 * COVERAGE_TARGET:.0f}% on "
-        f"every track: {'met' if min(shares) >= COVERAGE_TARGET else 'missed'}); highest alarm "
-        f"rate {100 * max(alarms):.1f}% (target <= {100 * ALARM_TARGET:.0f}%: "
-        f"{'met' if max(alarms) <= ALARM_TARGET else 'missed'})\n"
+    def seconds(agent: str) -> float:
+        return EXPERT_SECONDS if agent == "expert" else args.max_seconds
+
+    jobs = [
+        *[(args.out, a, tracks, ("severity-0",), args.source, seconds(a)) for a in drivers],
+        (args.out, "expert", tracks, ("severity-0",), "oracle", EXPERT_SECONDS),
+        *[(args.out, a, shifted, SHIFTED_LOOKS, args.source, seconds(a)) for a in drivers],
+    ]
+    runs: dict[tuple, list[dict]] = {}
+    run_jobs(
+        drive_group,
+        jobs,
+        lambda job, rows: runs.__setitem__((job[1], job[3], job[4]), rows),
+        workers=args.workers,
+        describe=lambda job: f"{job[1]} {job[4]} {job[3]}",
     )
+    severity_0 = [
+        [agent.partition(":")[0], *row]
+        for agent in drivers
+        for row in track_rows(runs[(agent, ("severity-0",), args.source)], ("severity-0",))
+    ]
+    print("Behind the default filter at look severity 0:\n")
+    print(markdown_table(["driver", *TRACK_COLUMNS], severity_0))
+    worst = max(float(row[8]) for row in severity_0)
+    print(f"\nworst time outside over {len(severity_0)} runs: {worst:.2f} s (target 0)\n")
 
-    drivers = [(agent, [tracks[0], tracks[-1]]) for agent in RECKLESS]
-    if args.learned:
-        checkpoint, _, track = args.learned.partition("@")
-        drivers.append((f"learned:{checkpoint}", [track]))
-    sweep, against = [], []
-    for agent, driven in drivers:
-        runs = robustness(args.out, agent, driven, SHIFT_LOOKS, args.source)
-        truth = robustness(args.out, agent, driven, ("severity-0",), "oracle")
-        label = agent.partition(":")[0]
-        for look in SHIFT_LOOKS:
-            mine = [run for run in runs if run["look"] == look]
-            sweep.append(
-                [
-                    label,
-                    look,
-                    len(mine),
-                    f"{sum(run['laps_completed'] for run in mine)} of {len(mine)}",
-                    100 * float(np.mean([run["completion"] for run in mine])),
-                    max(run["time_outside_lane_s"] for run in mine),
-                    100 * float(np.mean([run["alarm_rate"] for run in mine])),
-                ]
-            )
-        for run in (run for run in runs if run["look"] == "severity-0"):
-            (base,) = [other for other in truth if other["track"] == run["track"]]
-            ratio = (
-                run["lap_time_s"] / base["lap_time_s"]
-                if run["lap_time_s"] and base["lap_time_s"]
-                else None
-            )
-            against.append(
-                [
-                    label,
-                    Path(run["track"]).stem,
-                    run["lap_time_s"] or "-",
-                    base["lap_time_s"] or "-",
-                    "-" if ratio is None else f"{ratio:.3f}",
-                    "-" if ratio is None else "yes" if ratio <= LAP_TIME_TARGET else "no",
-                ]
-            )
-    columns = ["driver", "look", "runs", "laps", "completion [%]", "outside, worst [s]"]
-    print("Behind the default filter at shift severities 0-5:\n")
-    print(markdown_table([*columns, "alarms [%]"], sweep))
-    outside = max(row[5] for row in sweep)
-    print(f"\nworst time outside the lane over {len(sweep)} looks: {outside:.2f} s (target 0)\n")
-    print("At severity 0, the generic model's lap against the true state's, same filter:\n")
-    print(
-        markdown_table(
-            ["driver", "track", "lap, generic [s]", "lap, true state [s]", "ratio", "within 10%"],
-            against,
+    expert = runs[("expert", ("severity-0",), args.source)]
+    truth = {run["track"]: run for run in runs[("expert", ("severity-0",), "oracle")]}
+    rows = []
+    for run in expert:
+        covered, steps = run["covered_steps"], run["scored_steps"]
+        low, high = clopper_pearson(covered, steps)
+        base = truth[run["track"]]["lap_time_s"]
+        ratio = run["lap_time_s"] / base if run["lap_time_s"] and base else None
+        rows.append(
+            [
+                Path(run["track"]).stem,
+                f"{100 * covered / steps:.1f} ({100 * low:.1f}-{100 * high:.1f})",
+                "yes" if covered / steps >= COVERAGE_TARGET else "no",
+                f"{100 * run['alarm_rate']:.1f}",
+                run["laps_completed"],
+                run["lap_time_s"] or "-",
+                base or "-",
+                "-" if ratio is None else f"{ratio:.3f}",
+                "-" if ratio is None else "yes" if ratio <= LAP_TIME_TARGET else "no",
+            ]
         )
-    )
+    print("The expert: coverage of the filter's set, alarms, and its lap against the truth's:\n")
+    headers = [
+        "track", "coverage [%] (95% band)", ">= 93%", "alarms [%]", "laps",
+        "lap, generic [s]", "lap, true state [s]", "ratio", "within 10%",
+    ]  # fmt: skip
+    print(markdown_table(headers, rows))
+
+    shifted_rows = [
+        [agent.partition(":")[0], *row]
+        for agent in drivers
+        for row in track_rows(runs[(agent, SHIFTED_LOOKS, args.source)], SHIFTED_LOOKS)
+    ]
+    print("\nAt look severities 2 and 4:\n")
+    print(markdown_table(["driver", *TRACK_COLUMNS], shifted_rows))
+    worst = max(float(row[8]) for row in shifted_rows)
+    print(f"\nworst time outside over {len(shifted_rows)} runs: {worst:.2f} s (target 0)")
 
 
 if __name__ == "__main__":

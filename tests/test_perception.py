@@ -29,13 +29,20 @@ from saferace.learning.perception import (
     rounds_folder,
     sha256,
     targets_of,
+    track_size,
 )
 from saferace.learning.rounds import load_rounds
 from saferace.safety.uncertainty.conformal import conformal_quantile, group_calibration
 from saferace.safety.uncertainty.feature_monitor import feature_monitor
 from saferace.safety.uncertainty.intervals import ConformalStateSource
-from saferace.safety.uncertainty.lane_middle import LaneMiddleStateSource, lane_middle_offset_m
+from saferace.safety.uncertainty.lane_middle import (
+    LaneMiddleStateSource,
+    centre_line_offset_m,
+    lane_middle_offset_m,
+    lane_middle_state,
+)
 from saferace.track import Track
+from saferace.track.random_track import write_random_track
 from tests.cli_helpers import run_cli
 
 #: The quick recipe: a build takes about half a minute.
@@ -131,6 +138,51 @@ def test_the_lane_middle_lies_left_of_the_centre_line_where_the_lane_is_wider_on
     )
 
 
+def test_an_offset_in_half_widths_is_the_same_on_a_lane_of_any_width():
+    """Left half width 1.2 m, right 0.8 m: the middle lies 0.2 m left of the centre line and
+    the half width is 1.0 m, so a car 0.5 m left of the centre line is 0.3 m, or 0.3 half
+    widths, left of the middle; on the same lane twice as wide, a car at the same place
+    relative to the edges (1.0 m) is at the same 0.3 half widths."""
+    assert lane_middle_state(0.5, 1.2, 0.8) == pytest.approx(0.3)
+    assert lane_middle_state(0.5, 1.2, 0.8, per_half_width=True) == pytest.approx(0.3)
+    assert lane_middle_state(1.0, 2.4, 1.6, per_half_width=True) == pytest.approx(0.3)
+    assert lane_middle_state(0.5, 0.6, 0.4, per_half_width=True) == pytest.approx(0.8)
+    for e_y, left, right in [(0.5, 1.2, 0.8), (-0.3, 0.35, 0.45), (1.0, 2.4, 1.6)]:
+        for fraction in (False, True):
+            there = lane_middle_state(e_y, left, right, per_half_width=fraction)
+            assert centre_line_offset_m(there, left, right, fraction) == pytest.approx(e_y)
+
+
+def test_the_default_recipe_trains_on_lanes_from_the_narrowest_to_a_circuit_s():
+    """Lane widths drawn log-uniformly in 0.7-2.5 m (lab's 0.8 m and the F1TENTH circuits'
+    2.2 m inside, both ends reached by the 48 training tracks), sizes in 2.5-40 m."""
+    recipe = RECIPES["default"]
+    sizes = [track_size(recipe, seed) for seed in recipe.train_track_seeds]
+    widths = np.array([width for _, width in sizes])
+    assert recipe.lane_width_range_m == (0.7, 2.5)
+    assert widths.min() >= 0.7 and widths.max() <= 2.5
+    assert widths.min() < 0.8 and widths.max() > 2.2
+    assert np.median(widths) == pytest.approx(np.sqrt(0.7 * 2.5), rel=0.25)  # log-uniform
+    radii = np.array([radius for radius, _ in sizes])
+    assert radii.min() >= 2.5 and radii.max() <= 40.0
+    assert radii.min() < 4.0 and radii.max() > 25.0  # hairpins and a circuit's bends
+    assert track_size(recipe, 90001) != track_size(recipe, 90002)
+    assert track_size(recipe, 90001) == track_size(recipe, 90001)
+
+
+def test_a_random_track_is_scaled_to_the_lane_width_asked_for(tmp_path: Path):
+    plain = np.loadtxt(write_random_track(tmp_path / "a.csv", 7), delimiter=",", skiprows=1)
+    wide = np.loadtxt(
+        write_random_track(tmp_path / "b.csv", 7, lane_width_m=2.2), delimiter=",", skiprows=1
+    )
+    assert np.array_equal(plain[:, :2], wide[:, :2])  # the same centre line
+    assert np.mean(wide[:, 2] + wide[:, 3]) == pytest.approx(2.2)
+    scale = 2.2 / np.mean(plain[:, 2] + plain[:, 3])
+    assert wide[:, 2:] == pytest.approx(scale * plain[:, 2:])
+    with pytest.raises(ValueError, match="lane_width_m"):
+        write_random_track(tmp_path / "c.csv", 7, lane_width_m=0.0)
+
+
 class _Replay:
     """A state source that returns given rows one by one, with features."""
 
@@ -149,18 +201,22 @@ def test_the_model_learns_the_offset_from_the_lane_middle_and_the_map_moves_it_b
     built: Path,
 ):
     """The targets are the true offsets less where the lane's middle lies by the track's
-    widths at each frame (the random tracks' lanes are lopsided by centimetres), and the
-    source moves them back by the widths the env reports: the truth again, exactly."""
+    widths at each frame (the random tracks' lanes are lopsided by centimetres), in half
+    widths of the lane there, and the source moves them back by the widths the env
+    reports: the truth again, exactly."""
     track_path = model_folder(TINY) / "tracks" / "train_90001.csv"
     frames = load_rounds([rounds_folder(TINY, track_path)])
     targets = targets_of(TINY, frames)["state"]
     w_right, w_left = Track.load(str(track_path)).widths(frames["s_m"])
-    moved = frames["state"][:, 0] - targets[:, 0]
+    half_width = 0.5 * (w_left + w_right)
+    moved = frames["state"][:, 0] - targets[:, 0] * half_width
     assert moved == pytest.approx(0.5 * (w_left - w_right), abs=1e-6)
     assert np.abs(moved).max() > 0.01
     assert np.array_equal(targets[:, 1:], frames["state"][:, 1:])
+    in_metres = targets_of(replace(TINY, lane_fraction=False), frames)["state"]
+    assert in_metres[:, 0] == pytest.approx(targets[:, 0] * half_width, abs=1e-6)
     assert targets_of(replace(TINY, lane_middle=False), frames) is frames
-    source = LaneMiddleStateSource(_Replay(targets.astype(float)))
+    source = LaneMiddleStateSource(_Replay(targets.astype(float)), per_half_width=True)
     back = np.array(
         [
             source.samples({}, {"w_left_m": left, "w_right_m": right})[0]

@@ -100,6 +100,12 @@ class FilterConfig:
         "what feeds the filter the lane state",
         metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
     )
+    own_track_calibration: bool = setting(
+        False,
+        "with --state-source generic: its interval and monitor calibrated on the run's own "
+        "track (the expert drives it with steering noise for about a minute, once; cached by "
+        "the track's hash) instead of pooled over random tracks",
+    )
     map_curvature: bool = setting(
         False,
         "the filter takes the centerline's curvature from the map at the car's s instead of "
@@ -178,6 +184,14 @@ class FilterConfig:
             raise ConfigError(
                 "uncertainty",
                 f"must be one of {', '.join(UNCERTAINTY_MODES)}, got {self.uncertainty!r}",
+            )
+        if self.own_track_calibration and (self.state_source or "").partition(":")[0] != (
+            "generic"
+        ):
+            raise ConfigError(
+                "own_track_calibration",
+                "calibrates the generic perception model: use it with --state-source generic "
+                f"(the state source is {self.state_source or 'the oracle'})",
             )
         if self.kind == "mpsf" and self.opponent_noise_m:
             raise ConfigError(

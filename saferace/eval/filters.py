@@ -35,6 +35,7 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
     """``env`` wrapped as ``config`` says (unchanged for ``kind="none"``)."""
     if config.kind == "none":
         return env
+    base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
     if config.state_source is not None:
         kind, _, argument = config.state_source.partition(":")
         if not argument and kind not in OPTIONAL_ARGUMENT_SOURCES:
@@ -45,7 +46,8 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         observation_space = env.observation_space
         assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
         image_shape = observation_space["image"].shape
-        source = factory(argument, image_shape, n_samples=config.samples, seed=seed)
+        own_track = {"track": base.track} if config.own_track_calibration else {}
+        source = factory(argument, image_shape, n_samples=config.samples, seed=seed, **own_track)
         if config.uncertainty == "robust" and not isinstance(source, IntervalStateSource):
             raise ConfigError(
                 "uncertainty",
@@ -61,7 +63,6 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         source = NoisyOracleStateSource((e_y_std, e_psi_std, 0.0), config.samples, seed)
     if config.spread_scale is not None:
         source = SpreadScaledStateSource(source, config.spread_scale)
-    base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
     if config.adaptive is not None:
         if not isinstance(source, ConformalStateSource):
             raise ConfigError(

@@ -36,7 +36,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import git_revision, package_versions
-from saferace.learning.agent import LearnedStateSource, check_image_shape
+from saferace.learning.agent import LearnedStateSource
 from saferace.learning.calibration import CALIBRATED_OUTPUTS, inside_lane
 from saferace.learning.checkpoint import (
     CONFORMAL_KEY,
@@ -60,7 +60,7 @@ from saferace.progress import Progress, duration_words
 from saferace.safety.uncertainty.conformal import ConformalCalibration, group_calibration
 from saferace.safety.uncertainty.feature_monitor import feature_monitor
 from saferace.safety.uncertainty.intervals import ConformalStateSource
-from saferace.safety.uncertainty.lane_middle import LaneMiddleStateSource, lane_middle_offset_m
+from saferace.safety.uncertainty.lane_middle import LaneMiddleStateSource, lane_middle_state
 from saferace.safety.uncertainty.state_sources import StateSource
 from saferace.track import Track
 from saferace.track.random_track import write_random_track
@@ -87,12 +87,14 @@ class PerceptionRecipe:
     tasks: tuple[str, ...] = ("CenterLine", "RacingLine")
     looks: tuple[str, ...] = ("none", "strong")
     calibration_looks: tuple[str, ...] = ("none",)
-    radius_range_m: tuple[float, float] = (2.5, 4.5)
+    radius_range_m: tuple[float, float] = (2.5, 40.0)
+    lane_width_range_m: tuple[float, float] = (0.7, 2.5)
     seconds_per_drive: float = 20.0
     steer_noise_rad: float = 0.08
     mirror: bool = True
     lane_middle: bool = True
-    epochs: int = 14
+    lane_fraction: bool = True
+    epochs: int = 6
     lr_schedule: str = "cosine"
     batch_size: int = 64
     alpha: float = CONFORMAL_ALPHA
@@ -120,7 +122,11 @@ class PerceptionRecipe:
 #: nothing was trained or calibrated on.
 RECIPES = {
     "default": PerceptionRecipe(
-        "default", tuple(range(90001, 90049)), tuple(range(91001, 91011)), seconds_per_drive=10.0
+        "default",
+        tuple(range(90001, 90049)),
+        tuple(range(91001, 91013)),
+        seconds_per_drive=4.0,
+        epochs=6,
     ),
     "quick": PerceptionRecipe(
         "quick",
@@ -238,16 +244,25 @@ def perception_manifest(recipe: PerceptionRecipe) -> dict:
 
 
 def write_tracks(recipe: PerceptionRecipe, part: str) -> list[Path]:
-    """The ``part`` (train or calibration) tracks' CSVs, each of a random size drawn from
-    its seed."""
+    """The ``part`` (train or calibration) tracks' CSVs, each of a random size and lane
+    width (log-uniform in the recipe's range) drawn from its seed."""
     paths = []
     for seed in getattr(recipe, f"{part}_track_seeds"):
         path = track_file(recipe, f"{part}_{seed}")
         if not path.exists():
-            radius = np.random.default_rng([recipe.seed, seed]).uniform(*recipe.radius_range_m)
-            write_random_track(path, seed, float(radius))
+            radius, width = track_size(recipe, seed)
+            write_random_track(path, seed, radius, lane_width_m=width)
         paths.append(path)
     return paths
+
+
+def track_size(recipe: PerceptionRecipe, seed: int) -> tuple[float, float]:
+    """``(radius_m, lane_width_m)`` of the recipe's random track ``seed``, log-uniform in
+    the recipe's ranges: as many tracks of 5-10 m across (hairpins, the infield in view)
+    as of 40-80 m (a circuit's long gentle bends, nothing but the lane in view)."""
+    rng = np.random.default_rng([recipe.seed, seed])
+    radius = float(np.exp(rng.uniform(*np.log(recipe.radius_range_m))))
+    return radius, float(np.exp(rng.uniform(*np.log(recipe.lane_width_range_m))))
 
 
 def track_file(recipe: PerceptionRecipe, name: str) -> Path:
@@ -405,7 +420,8 @@ def inside_frames(recipe: PerceptionRecipe, folder: Path, track: Path) -> FrameS
 def targets_of(recipe: PerceptionRecipe, frames: FrameSet) -> FrameSet:
     """``frames`` (of the recipe's tracks) with the state the network learns: with
     ``lane_middle``, ``e_y`` from the lane's middle (``saferace.safety.uncertainty.
-    lane_middle``), by the widths of each frame's track at its arc length."""
+    lane_middle``), by the widths of each frame's track at its arc length; with
+    ``lane_fraction`` too, in units of the lane's half width there."""
     if not recipe.lane_middle:
         return frames
     state = frames["state"].copy()
@@ -414,7 +430,9 @@ def targets_of(recipe: PerceptionRecipe, frames: FrameSet) -> FrameSet:
         if rows.any():
             track = Track.load(str(track_file(recipe, Path(manifest["path"]).parent.name)))
             w_right, w_left = track.widths(frames["s_m"][rows])
-            state[rows, 0] -= lane_middle_offset_m(w_left, w_right)
+            state[rows, 0] = lane_middle_state(
+                state[rows, 0], w_left, w_right, per_half_width=recipe.lane_fraction
+            )
     return FrameSet({**frames.arrays, "state": state}, frames.manifests)
 
 
@@ -431,9 +449,11 @@ def generic_state_source(
     image_shape: tuple[int, ...],
     n_samples: int = 1,
     seed: int | None = None,
+    track: Track | None = None,
 ) -> ConformalStateSource:
     """``--state-source generic[:RECIPE]``: the built model of the recipe, with its
-    calibration by track as interval and monitor."""
+    calibration by track as interval and monitor, or with ``track`` its calibration on that
+    track (:mod:`saferace.learning.track_calibration`, made once and cached)."""
     recipe = recipe_named(f"{GENERIC_SOURCE}:{argument}" if argument else GENERIC_SOURCE)
     path = model_path(recipe)
     if not (model_folder(recipe) / MANIFEST_FILE).exists():
@@ -443,14 +463,40 @@ def generic_state_source(
         )
     check_recipe(recipe)
     loaded = load_checkpoint(path)
-    check_image_shape(loaded, image_shape)
+    check_generic_image_shape(recipe, tuple(loaded.metadata["image_shape"]), image_shape)
     source: StateSource = LearnedStateSource(
         loaded.state, n_samples, seed, checkpoint=loaded.describe()
     )
     if recipe.lane_middle:
-        source = LaneMiddleStateSource(source)
+        source = LaneMiddleStateSource(source, per_half_width=recipe.lane_fraction)
+    if track is not None:
+        from saferace.learning.track_calibration import track_calibration
+
+        return ConformalStateSource(source, track_calibration(recipe, track)[0])
     return ConformalStateSource(
         source, ConformalCalibration.from_dict(loaded.metadata[CONFORMAL_KEY])
+    )
+
+
+def check_generic_image_shape(
+    recipe: PerceptionRecipe, trained: tuple[int, ...], image_shape: tuple[int, ...]
+) -> None:
+    """Refuse, in one line naming what works, images the recipe's model was not trained on
+    (it is trained on one mono camera at one size: a stereo pair or another size would
+    have to be a recipe of its own)."""
+    if tuple(image_shape) == trained:
+        return
+    height, width, channels = trained
+    fixes = []
+    if tuple(image_shape)[-1] != channels:
+        fixes.append("drop --stereo")
+    if tuple(image_shape)[:2] != (height, width):
+        fixes.append(f"use --image-size {height}")
+    raise SafeRaceError(
+        f"the generic perception model ({recipe.name} recipe) reads mono {height}x{width} "
+        f"images, not {tuple(image_shape)}: {' and '.join(fixes)}, or feed the filter "
+        "another state source (--state-source learned:CKPT, a network trained on these "
+        "images, or noisy or oracle)"
     )
 
 

@@ -23,15 +23,24 @@ def random_blob_points(
     return 1.4 * radius * np.cos(theta), radius * np.sin(theta)
 
 
-def write_random_track(path: str | Path, seed: int, radius_m: float = 6.0) -> Path:
+def write_random_track(
+    path: str | Path, seed: int, radius_m: float = 6.0, lane_width_m: float | None = None
+) -> Path:
     """A random track CSV (clockwise for odd seeds) with varying half widths of 0.35-0.7 m;
-    ``radius_m`` sets its size (the mean radius of its shorter axis)."""
+    ``radius_m`` sets its size (the mean radius of its shorter axis). With ``lane_width_m``
+    the half widths are scaled so that the lane is about that wide on average (the same
+    variation along the lap, relative to the width)."""
     x, y = random_blob_points(seed, radius_m=radius_m)
     if seed % 2:
         x, y = x[::-1], y[::-1]
     rng = np.random.default_rng(seed)
     w_right = rng.uniform(0.45, 0.6) + 0.1 * np.sin(np.linspace(0, 4 * np.pi, len(x)))
     w_left = rng.uniform(0.45, 0.6) + 0.1 * np.cos(np.linspace(0, 2 * np.pi, len(x)))
+    if lane_width_m is not None:
+        if lane_width_m <= 0.0:
+            raise ValueError(f"lane_width_m must be positive, got {lane_width_m}")
+        scale = lane_width_m / float(np.mean(w_right + w_left))
+        w_right, w_left = scale * w_right, scale * w_left
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_track_csv(path, x, y, w_right, w_left)
