@@ -176,9 +176,9 @@ def test_a_random_track_is_scaled_to_the_lane_width_asked_for(tmp_path: Path):
         write_random_track(tmp_path / "b.csv", 7, lane_width_m=2.2), delimiter=",", skiprows=1
     )
     assert np.array_equal(plain[:, :2], wide[:, :2])  # the same centre line
-    assert np.mean(wide[:, 2] + wide[:, 3]) == pytest.approx(2.2)
+    assert np.mean(wide[:, 2] + wide[:, 3]) == pytest.approx(2.2, abs=1e-5)  # 6 decimals
     scale = 2.2 / np.mean(plain[:, 2] + plain[:, 3])
-    assert wide[:, 2:] == pytest.approx(scale * plain[:, 2:])
+    assert wide[:, 2:] == pytest.approx(scale * plain[:, 2:], abs=1e-5)
     with pytest.raises(ValueError, match="lane_width_m"):
         write_random_track(tmp_path / "c.csv", 7, lane_width_m=0.0)
 
