@@ -16,7 +16,11 @@ from saferace.errors import SafeRaceError
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.filters import apply_filter
 from saferace.experiments.safety_table import RECKLESS_TASKS, filter_label, run_table
-from saferace.learning.agent import learned_agent, learned_state_source
+from saferace.learning.agent import (
+    check_generic_image_shape,
+    learned_agent,
+    learned_state_source,
+)
 from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
 from saferace.learning.configs import DaggerConfig
 from saferace.learning.perception import (
@@ -328,3 +332,13 @@ def test_the_safety_table_runs_the_reckless_agents_behind_the_generic_model(
     robust = [row for row in generic if filter_label(row) == "generic-robust"]
     assert all(row["summary"]["coverage"] is not None for row in robust)
     assert all(row["summary"]["time_outside_lane_s"] == 0.0 for row in robust)
+
+
+def test_another_camera_is_refused_in_one_line_naming_what_works():
+    check_generic_image_shape("default", (64, 64, 3), (64, 64, 3))  # the model's: no error
+    with pytest.raises(SafeRaceError, match=r"reads mono 64x64 images, not \(64, 64, 6\): drop"):
+        check_generic_image_shape("default", (64, 64, 3), (64, 64, 6))
+    with pytest.raises(SafeRaceError, match="not \\(48, 48, 3\\): use --image-size 64, or"):
+        check_generic_image_shape("default", (64, 64, 3), (48, 48, 3))
+    with pytest.raises(SafeRaceError, match="drop --stereo and use --image-size 64"):
+        check_generic_image_shape("quick", (64, 64, 3), (96, 96, 6))

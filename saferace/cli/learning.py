@@ -175,8 +175,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "(with --state-source generic) on any command then uses it.",
         epilog=example(
             "saferace calibrate-track my_track.csv",
-            "saferace eval --agent drift --filter cbf --state-source generic "
-            "--own-track-calibration --track my_track.csv",
+            "saferace calibrate-track lab oval --recipe quick",
         ),
     )
     calibrate_track.add_argument("tracks", nargs="+", metavar="TRACK", help=TRACK_HELP)

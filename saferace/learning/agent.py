@@ -260,3 +260,25 @@ def check_image_shape(checkpoint: LearnedCheckpoint, image_shape: tuple[int, ...
             f"{tuple(image_shape)}: use the same --image-size and camera ({hint} if only the "
             "channels differ)"
         )
+
+
+def check_generic_image_shape(
+    recipe: str, trained: tuple[int, ...], image_shape: tuple[int, ...]
+) -> None:
+    """Refuse, in one line naming what works, images the generic perception model of the
+    ``recipe`` was not ``trained`` on (one mono camera at one size: a stereo pair or another
+    size would have to be a recipe of its own)."""
+    if tuple(image_shape) == trained:
+        return
+    height, width, channels = trained
+    fixes = []
+    if tuple(image_shape)[-1] != channels:
+        fixes.append("drop --stereo")
+    if tuple(image_shape)[:2] != (height, width):
+        fixes.append(f"use --image-size {height}")
+    raise SafeRaceError(
+        f"the generic perception model ({recipe} recipe) reads mono {height}x{width} "
+        f"images, not {tuple(image_shape)}: {' and '.join(fixes)}, or feed the filter "
+        "another state source (--state-source learned:CKPT, a network trained on these "
+        "images, or noisy or oracle)"
+    )

@@ -36,7 +36,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import git_revision, package_versions
-from saferace.learning.agent import LearnedStateSource
+from saferace.learning.agent import LearnedStateSource, check_generic_image_shape
 from saferace.learning.calibration import CALIBRATED_OUTPUTS, inside_lane
 from saferace.learning.checkpoint import (
     CONFORMAL_KEY,
@@ -463,7 +463,7 @@ def generic_state_source(
         )
     check_recipe(recipe)
     loaded = load_checkpoint(path)
-    check_generic_image_shape(recipe, tuple(loaded.metadata["image_shape"]), image_shape)
+    check_generic_image_shape(recipe.name, tuple(loaded.metadata["image_shape"]), image_shape)
     source: StateSource = LearnedStateSource(
         loaded.state, n_samples, seed, checkpoint=loaded.describe()
     )
@@ -475,28 +475,6 @@ def generic_state_source(
         return ConformalStateSource(source, track_calibration(recipe, track)[0])
     return ConformalStateSource(
         source, ConformalCalibration.from_dict(loaded.metadata[CONFORMAL_KEY])
-    )
-
-
-def check_generic_image_shape(
-    recipe: PerceptionRecipe, trained: tuple[int, ...], image_shape: tuple[int, ...]
-) -> None:
-    """Refuse, in one line naming what works, images the recipe's model was not trained on
-    (it is trained on one mono camera at one size: a stereo pair or another size would
-    have to be a recipe of its own)."""
-    if tuple(image_shape) == trained:
-        return
-    height, width, channels = trained
-    fixes = []
-    if tuple(image_shape)[-1] != channels:
-        fixes.append("drop --stereo")
-    if tuple(image_shape)[:2] != (height, width):
-        fixes.append(f"use --image-size {height}")
-    raise SafeRaceError(
-        f"the generic perception model ({recipe.name} recipe) reads mono {height}x{width} "
-        f"images, not {tuple(image_shape)}: {' and '.join(fixes)}, or feed the filter "
-        "another state source (--state-source learned:CKPT, a network trained on these "
-        "images, or noisy or oracle)"
     )
 
 

@@ -97,8 +97,9 @@ class SafetyFilter(gym.Wrapper):
     CBF of Dean et al. 2020 and Cosner et al. 2021: the margin grows with the interval's
     width). The interval is the source's own (a conformal calibration) or ``mean +- z std``
     of its samples; the curvature comes from the map (a network's is its worst output).
-    While the source's monitor raises, the last trusted interval carried forward by odometry
-    stands in for it (:mod:`saferace.safety.uncertainty.dead_reckoning`). Where no control
+    While the source is in doubt (its monitor raises, or its interval misses the set carried
+    by odometry from the start pose) that set stands in for it (:mod:`saferace.safety.
+    uncertainty.dead_reckoning`). Where no control
     satisfies them, the filter falls back (:mod:`saferace.safety.uncertainty.fallback`): it
     brakes towards a speed at which the interval fits inside the lane (a stop where even its
     offsets do not fit), never above the map's speed limit, steering the lane's curvature
@@ -229,7 +230,7 @@ class SafetyFilter(gym.Wrapper):
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
-        self._last_trusted = LastTrusted(self.track)  # the robust mode's, carried in doubt
+        self._last_trusted = LastTrusted(self.track, base.reference)  # the robust mode's
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
@@ -238,15 +239,7 @@ class SafetyFilter(gym.Wrapper):
             self._noise_rng = np.random.default_rng([seed, 1])
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
-        self._last_trusted.reset()
-        if self.robust:  # the task's start pose: on the reference line at the start line
-            base = cast("RacingEnv", self.env.unwrapped)
-            s_m = float(info["s_m"])
-            self._last_trusted.start(
-                float(base.reference.offset_at(s_m)),
-                float(base.reference.heading_offset_at(s_m)),
-                info,
-            )
+        self._last_trusted.reset(info if self.robust else None)  # robust: the start pose's
         prefetch(self.state_source, observation)  # the agent's network runs beside it
         return observation, info
 
@@ -277,13 +270,11 @@ class SafetyFilter(gym.Wrapper):
         s_m = float(info["s_m"])
         curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
-        carried = self._last_trusted.carried(info) if self.robust else None
-        consistent = self._last_trusted.consistent(carried, (estimate.lower, estimate.upper))
-        trusted = not estimate.alarm and consistent
-        if self.robust:
-            self._last_trusted.keep(trusted, (estimate.lower, estimate.upper), carried, info)
+        interval = (estimate.lower, estimate.upper)
+        judged = self._last_trusted.update(estimate.alarm, interval, info) if self.robust else None
+        trusted, carried = judged or (not estimate.alarm, None)
         reckoned = None if trusted else carried  # in doubt: the set carried forward
-        if reckoned is not None:  # trusted: the frame's own interval
+        if reckoned is not None:  # (trusted: the frame's own interval)
             lower, upper = reckoned.interval(float(estimate.lower[2]))  # the map's curvature
             estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
         samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper

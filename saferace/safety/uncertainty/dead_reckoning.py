@@ -50,6 +50,7 @@ import numpy as np
 from saferace.track.frenet import wrap_arc
 
 if TYPE_CHECKING:
+    from saferace.track.raceline import ReferenceLine
     from saferace.track.track import Track
 
 #: How far a carried corner may be off the truth per metre driven, ``[e_y (m/m), e_psi
@@ -184,19 +185,27 @@ class DeadReckoning:
 
 class LastTrusted:
     """The set of ``[e_y, e_psi]`` a filter on ``track`` carries forward from the car's
-    start: carried by odometry every step and narrowed by every interval it trusts."""
+    start on the task's ``reference`` line: carried by odometry every step and narrowed by
+    every interval it trusts."""
 
-    def __init__(self, track: Track) -> None:
+    def __init__(self, track: Track, reference: ReferenceLine) -> None:
         self.track = track
+        self.reference = reference
         self.reckoning: DeadReckoning | None = None
 
-    def reset(self) -> None:
+    def reset(self, info: dict[str, Any] | None = None) -> None:
+        """No set, or with ``info`` the start's (:meth:`start`)."""
         self.reckoning = None
+        if info is not None:
+            self.start(info)
 
-    def start(self, e_y_m: float, e_psi_rad: float, info: dict[str, Any]) -> None:
-        """The set at the start: the task's start pose ``[e_y_m, e_psi_rad]`` (its reference
-        line's at the start line) within :data:`START_TOLERANCE`, the car as in ``info``."""
-        centre = np.array([e_y_m, e_psi_rad], float)
+    def start(self, info: dict[str, Any]) -> None:
+        """The set at the start: the task's start pose, on its reference line heading along
+        it at the car's arc length, within :data:`START_TOLERANCE`; the car as in ``info``."""
+        s_m = float(info["s_m"])
+        centre = np.array(
+            [self.reference.offset_at(s_m), self.reference.heading_offset_at(s_m)], float
+        )
         self.reckoning = DeadReckoning.trusted(
             centre - START_TOLERANCE, centre + START_TOLERANCE, car_pose(info), float(info["s_m"])
         )
@@ -209,6 +218,17 @@ class LastTrusted:
         s_m = float(info["s_m"])
         midway = midway_s(last.s_m, s_m, self.track.length_m)
         return last.carried(car_pose(info), s_m, self.track.centerline.curvature_scalar(midway))
+
+    def update(
+        self, alarm: bool, interval: tuple[np.ndarray, np.ndarray], info: dict[str, Any]
+    ) -> tuple[bool, DeadReckoning | None]:
+        """Carry the set to the car in ``info``, judge this frame and keep what the next
+        step carries (:meth:`keep`): whether the frame is trusted (no ``alarm``, and its
+        ``interval`` meets the set) and the set carried to it (None: none was started)."""
+        carried = self.carried(info)
+        trusted = not alarm and self.consistent(carried, interval)
+        self.keep(trusted, interval, carried, info)
+        return trusted, carried
 
     @staticmethod
     def consistent(carried: DeadReckoning | None, interval: tuple[np.ndarray, np.ndarray]) -> bool:
