@@ -178,7 +178,9 @@ def register(commands: argparse._SubParsersAction) -> None:
             "saferace calibrate-track lab oval --recipe quick",
         ),
     )
-    calibrate_track.add_argument("tracks", nargs="+", metavar="TRACK", help=TRACK_HELP)
+    calibrate_track.add_argument(
+        "tracks", nargs="+", type=values.track, metavar="TRACK", help=TRACK_HELP
+    )
     calibrate_track.add_argument(
         "--recipe", choices=PERCEPTION_RECIPES, default="default", help="the model's recipe"
     )
