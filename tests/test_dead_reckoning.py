@@ -277,6 +277,7 @@ def test_a_set_is_narrowed_by_the_interval_it_meets():
     assert box.meets(np.array([0.15, 0.05, 0.3]), np.array([0.5, 0.2, 0.3]))
     assert not box.meets(np.array([0.25, -0.05, 0.3]), np.array([0.5, 0.05, 0.3]))
     assert not box.meets(np.array([0.05, 0.15, 0.3]), np.array([0.1, 0.2, 0.3]))
+    assert not box.meets(np.array([-0.5, -0.05, 0.3]), np.array([-0.1, 0.05, 0.3]))  # below
     bare = box.narrowed(np.array([0.15, -0.5, 0.3]), np.array([0.5, 0.05, 0.3]), widths=1.0)
     np.testing.assert_allclose(bare.lower, [0.15, -0.1])
     np.testing.assert_allclose(bare.upper, [0.2, 0.05])
@@ -285,3 +286,26 @@ def test_a_set_is_narrowed_by_the_interval_it_meets():
     widened = box.narrowed(np.array([0.15, -0.02, 0.3]), np.array([0.25, 0.04, 0.3]))
     np.testing.assert_allclose(widened.lower, [0.1, -0.05])
     np.testing.assert_allclose(widened.upper, [0.2, 0.07])
+
+
+def test_the_set_starts_on_the_task_s_reference_line():
+    """On the racing line the car starts off the centre line: the set starts there (within
+    2 cm and 0.02 rad), where the car is, and holds it while every frame is in doubt."""
+    env = SafetyFilter(
+        gym.make("saferace/RacingLine-v0", track="lab", image_size=(16, 16)),
+        state_source=ConfidentlyWrongSource(0.5, alarm_rate=1.0),
+        uncertainty="robust",
+        **GAIN_PRESETS["tuned"],
+    )
+    reference = env.unwrapped.reference
+    s_grid = np.linspace(0.0, env.track.length_m, 200, endpoint=False)
+    start_s = float(s_grid[np.argmax(np.abs(reference.offset_at(s_grid)))])
+    _, info = env.reset(seed=0, options={"start_s_m": start_s})
+    offset = float(reference.offset_at(info["s_m"]))
+    assert abs(offset) > 0.1 and info["e_y_m"] == pytest.approx(offset, abs=0.01)
+    decisions = [env.step(np.array([0.0, 0.0]))[-1]["safety"] for _ in range(10)]
+    env.close()
+    first = decisions[0]
+    assert first["state_lower"][0] < offset < first["state_upper"][0]
+    assert first["state_upper"][0] - first["state_lower"][0] < 0.06
+    assert all(decision["covered"] for decision in decisions)

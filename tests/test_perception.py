@@ -170,6 +170,7 @@ def test_the_default_recipe_trains_on_lanes_from_the_narrowest_to_a_circuit_s():
     radii = np.array([radius for radius, _ in sizes])
     assert radii.min() >= 2.5 and radii.max() <= 40.0
     assert radii.min() < 4.0 and radii.max() > 25.0  # hairpins and a circuit's bends
+    assert np.median(radii) == pytest.approx(np.sqrt(2.5 * 40.0), rel=0.35)  # log-uniform
     assert track_size(recipe, 90001) != track_size(recipe, 90002)
     assert track_size(recipe, 90001) == track_size(recipe, 90001)
 

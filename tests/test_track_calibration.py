@@ -107,6 +107,20 @@ def test_a_track_s_calibration_is_made_once_and_kept_by_its_fingerprint(
         track_calibration(recipe, track, progress=False, drives=3)
 
 
+def test_a_calibration_is_kept_by_the_lane_not_by_its_name(tmp_path: Path):
+    """Two files of one name with other lanes are two calibrations; one lane loaded from
+    two files of other names is one."""
+    recipe = RECIPES["quick"]
+    one = write_random_track(tmp_path / "a" / "mine.csv", 5, lane_width_m=1.5)
+    wider = write_random_track(tmp_path / "b" / "mine.csv", 5, lane_width_m=2.0)
+    copy = tmp_path / "copy.csv"
+    copy.write_bytes(one.read_bytes())
+    assert Track.load(str(one)).name == Track.load(str(wider)).name
+    first = calibration_file(recipe, Track.load(str(one)))
+    assert first != calibration_file(recipe, Track.load(str(wider)))
+    assert first == calibration_file(recipe, Track.load(str(copy)))
+
+
 def test_own_track_calibration_is_the_generic_model_s_only():
     with pytest.raises(ConfigError, match="use it with --state-source generic"):
         FilterConfig(kind="cbf", own_track_calibration=True)

@@ -19,6 +19,7 @@ from saferace.names import (
     DEFAULT_GAINS,
     FILTER_KINDS,
     GAIN_NAMES,
+    GENERIC_SOURCE,
     NOISY_SAMPLES,
     ROBUST_GAINS,
     SLACK_PENALTIES,
@@ -185,9 +186,8 @@ class FilterConfig:
                 "uncertainty",
                 f"must be one of {', '.join(UNCERTAINTY_MODES)}, got {self.uncertainty!r}",
             )
-        if self.own_track_calibration and (self.state_source or "").partition(":")[0] != (
-            "generic"
-        ):
+        source_kind = (self.state_source or "").partition(":")[0]
+        if self.own_track_calibration and source_kind != GENERIC_SOURCE:
             raise ConfigError(
                 "own_track_calibration",
                 "calibrates the generic perception model: use it with --state-source generic "

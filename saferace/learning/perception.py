@@ -469,7 +469,7 @@ def generic_state_source(
     )
     if recipe.lane_middle:
         source = LaneMiddleStateSource(source, per_half_width=recipe.lane_fraction)
-    if track is not None:
+    if track is not None:  # (imported here: that module builds on this one)
         from saferace.learning.track_calibration import track_calibration
 
         return ConformalStateSource(source, track_calibration(recipe, track)[0])

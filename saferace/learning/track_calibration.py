@@ -71,6 +71,7 @@ FRAME_NAMES = ("mean", "std", "truth", "features")
 
 
 def calibration_file(recipe: PerceptionRecipe, track: Track) -> Path:
+    """Where the recipe's calibration on ``track`` is cached: by the lane's fingerprint."""
     return model_folder(recipe) / "own_tracks" / f"{track.fingerprint[:24]}.json"
 
 
@@ -120,9 +121,9 @@ def track_calibration(
 def fit_track_calibration(
     recipe: PerceptionRecipe,
     track: Track,
-    progress: bool = True,
-    drives: int = DRIVES,
-    seconds_per_drive: float = SECONDS_PER_DRIVE,
+    progress: bool,
+    drives: int,
+    seconds_per_drive: float,
 ) -> tuple[ConformalCalibration, dict]:
     """Drive, predict and fit (see the module): the track's calibration and its report."""
     loaded = load_checkpoint(model_path(recipe))

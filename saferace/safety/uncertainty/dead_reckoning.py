@@ -242,16 +242,10 @@ class LastTrusted:
         carried: DeadReckoning | None,
         info: dict[str, Any],
     ) -> DeadReckoning | None:
-        """Keep what the next step carries, and return it: the ``carried`` set, narrowed to
-        this frame's ``interval`` where that was ``trusted`` and meets it (the interval alone
-        where no set was started)."""
-        if carried is None:
-            if trusted:
-                self.reckoning = DeadReckoning.trusted(
-                    *interval, car_pose(info), float(info["s_m"])
-                )
-        elif trusted and carried.meets(*interval):
-            self.reckoning = carried.narrowed(*interval)
-        else:
-            self.reckoning = carried
-        return self.reckoning
+        """Keep what the next step carries, and return it: the ``carried`` set (None: none
+        was started), narrowed to this frame's ``interval`` where that was ``trusted`` and
+        meets it."""
+        if carried is not None and trusted and carried.meets(*interval):
+            carried = carried.narrowed(*interval)
+        self.reckoning = carried
+        return carried
