@@ -57,6 +57,7 @@ def filtered_on_lab(source: IntervalSource, uncertainty: str, action, speed: flo
         speed_limit_factor=None,
     )
     observation, info = env.reset(seed=0, options={"start_s_m": 0.5, "start_speed_mps": speed})
+    env.last_trusted.reset()  # no set carried from the start: the interval alone
     decision = env.certify(observation, info, np.asarray(action, float))
     return env, decision
 
@@ -85,7 +86,6 @@ def test_a_control_that_breaks_the_barrier_at_one_corner_is_corrected():
 
 def test_the_fallback_brakes_when_the_interval_is_wider_than_the_lane():
     # lab's half widths are 0.4 m and the car's 0.15 m (+0.05 margin): +-0.25 m cannot fit.
-    # (It meets the set carried from the start pose, on the line: trusted.)
     source = IntervalSource([0.1, 0.05, 0.0], [0.25, 0.05, 0.0])
     env, decision = filtered_on_lab(source, "robust", [0.3, 1.0])
     assert decision.fallback == "infeasible"
@@ -112,6 +112,7 @@ def test_the_fallback_keeps_the_maps_speed_limit():
             speed_limit_factor=factor,
         )
         observation, info = env.reset(seed=0, options={"start_s_m": 0.5, "start_speed_mps": 6.0})
+        env.last_trusted.reset()  # the interval alone
         decisions[factor] = env.certify(observation, info, np.array([0.0, 2.0]))
         assert env.last_problem is not None
         bounds[factor] = env.last_problem.b[-1]  # the speed row's, with a limit
@@ -125,13 +126,15 @@ def test_an_alarm_from_the_start_drives_on_the_set_carried_from_the_start_pose(
     start_s_m: float,
 ):
     """No frame is ever trusted; the set carried from the start pose (on the line, heading
-    along it) holds the car, and the agent's hard left turn is cut to what it certifies."""
+    along it) holds the car, and the agent's hard left turn is cut to what it certifies.
+    The map's speed limit stays on: the set, carried exactly, does not grow fast enough to
+    stop a car the lane barriers cannot brake, and without it the car, accelerated to
+    5 m/s, slid out of lab's first bend."""
     narrow = IntervalSource([0.0, 0.0, 0.0], [0.02, 0.02, 0.0], alarm=True)
     env = SafetyFilter(
         gym.make("saferace/CenterLine-v0", track="lab", max_laps=1),
         state_source=narrow,
         uncertainty="robust",
-        speed_limit_factor=None,
     )
     env.reset(seed=0, options={"start_s_m": start_s_m, "start_speed_mps": 2.0})
     decisions = []
@@ -201,11 +204,11 @@ def test_the_oracle_makes_the_robust_filter_the_deterministic_one():
         SafetyFilter(gym.make("saferace/CenterLine-v0", track="lab"), uncertainty="hopeful")
 
 
-def test_the_robust_modes_gains_keep_an_uncertain_car_at_speed(unseen_track_csv):
-    # A heading interval of +-0.16 rad: the grip gains' first class-K function (2.5 h) caps
-    # the speed at 2.5 h / sin(0.16) and the filter brakes the drift agent well below the
-    # true state's lap; the tuned gains' (20 h, saturating to a stopping condition) cost a
-    # few percent.
+def test_a_wide_heading_interval_does_not_slow_the_robust_filter(unseen_track_csv):
+    # A heading interval of +-0.16 rad: certified over it, the grip gains' first class-K
+    # function (2.5 h) capped the speed at 2.5 h / sin(0.16) and braked the drift agent 20%
+    # below the true state's lap. The filter holds the car over the interval's meet with
+    # the set carried by odometry, whose heading is the gyro's: neither gains lose 10%.
     laps = {}
     for gains in ("grip", "tuned"):
         for noise in (None, (0.06, 0.08)):
@@ -218,7 +221,7 @@ def test_the_robust_modes_gains_keep_an_uncertain_car_at_speed(unseen_track_csv)
             assert result.laps[0].completed and not np.any(result.steps["lane_barrier_m"] < 0)
             laps[gains, noise is not None] = result.laps[0].lap_time_s
     assert laps["tuned", True] < 1.10 * laps["tuned", False]
-    assert laps["grip", True] > 1.20 * laps["grip", False]
+    assert laps["grip", True] < 1.10 * laps["grip", False]
 
 
 def test_a_fallback_box_moves_the_speed_to_its_target_under_the_limit_within_the_grip():

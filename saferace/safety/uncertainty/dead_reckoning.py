@@ -1,26 +1,31 @@
-"""The lane state's last trusted interval carried forward by odometry and the map.
+"""The lane state's set carried forward by odometry and the map from the car's start.
 
 When the state source is in doubt (its monitor raises), what the car still knows is how it
 moved: its odometry over the control step (the body-frame displacement ``(dx, dy)`` and yaw
 change ``dyaw``, what wheel speeds and an IMU integrated at the simulator's rate measure;
-never its pose on the map) and the map's curvature where it is. The same holds before any
-frame was trusted: the car starts on its reference line at the start line, a pose the task
-defines, so a set exists from the first step (:meth:`LastTrusted.start`). A car at ``[e_y, e_psi]``
-that moves by ``(dx, dy, dyaw)`` along a centre line of curvature ``kappa`` ends at
+never its pose on the map), its arc length ``s`` (which the filter takes from the task, as
+it does the map's widths and curvature there) and the map. The same holds before any frame
+was trusted: the car starts on its reference line at the start line, a pose the task
+defines, so a set exists from the first step (:meth:`LastTrusted.start`).
 
-    ds      = L cos(phi) / (1 - kappa e_y) * a / sin(a),   a = kappa ds / 2
-    phi     = e_psi + atan2(dy, dx) - a,                   L = |(dx, dy)|
-    e_y'    = e_y + L sin(phi)
-    e_psi'  = e_psi + dyaw - kappa ds
+With ``s`` known the carrying is exact geometry (:func:`carried_states`). The centre
+line's pose ``(x, y, theta)`` at the step's two arc lengths is the map's; a car at ``[e_y,
+e_psi]`` there heads ``theta + e_psi``, so its move lands it at a known point of the plane,
+whose offset along the new normal is the new ``e_y``, and
 
-(the chord against the centre line's tangent halfway, and an arc's length over its
-chord's). Each corner of the last trusted
-``[e_y, e_psi]`` box is carried so, and the box of the carried corners, grown by the
-carrying's error bound per metre driven, holds the car: the bound was measured, not
-assumed (``benchmarks/dead_reckoning_error.py``). A car at rest grows no error: its set
-stays where it stopped. The safety filter certifies from this set while the doubt lasts,
-so a heading error inherited from the last trusted frame is still steered out, and stops
-the car where the set no longer fits the lane (:class:`~saferace.safety.cbf.filter.SafetyFilter`).
+    e_psi' = e_psi + dyaw - (theta' - theta)
+
+the gyro's turn less the lane's. Each corner of the ``[e_y, e_psi]`` box is carried so,
+and the box of the carried corners, grown by the odometry's error bound per metre driven
+(:data:`ERROR_PER_M`: the simulator's odometry has none, so this is a real car's), holds
+the car. The heading's width stays what the start gave it plus the gyro's drift. It
+matters twice: an uncertain heading moves the corners' offsets apart by ``L sin`` of it
+every step, and a filter certifying over a heading of +-0.2 rad (the generic network's
+interval on ``lab``) found no steering that held both of its extremes and stopped the car
+within 8 m. A car at rest grows no
+error: its set stays where it stopped. The safety filter certifies from this set while the
+doubt lasts, and from its intersection with a trusted frame's interval otherwise
+(:class:`~saferace.safety.cbf.filter.SafetyFilter`).
 
 The set is carried every step, trusted or not, and a trusted frame's interval narrows it.
 An interval that does not meet the carried set at all is evidence against the network,
@@ -31,10 +36,7 @@ about 95% of the frames, and a set narrowed by every frame's would lose the car 
 first frame it missed and keep it lost (replayed in ``tests/test_dead_reckoning.py``: a
 network 0.5 m off with an interval of +-0.3 m pulled a set narrowed to its bare interval
 away from the car within 2 s). Widened, an interval off by less than twice its own half
-width still holds the car, and the set stays no wider than the widened interval. The
-filter certifies a trusted frame on its own interval, as before: certified on the set
-narrowed by the widened interval, the expert stood for 27 s of 30 on ``lab``'s 0.8 m lane,
-which that set no longer fitted.
+width still holds the car, and the set stays no wider than the widened interval.
 """
 
 from __future__ import annotations
@@ -47,24 +49,23 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from saferace.track.frenet import wrap_arc
+from saferace.track.frenet import wrap_angle
 
 if TYPE_CHECKING:
+    from saferace.track.path import ClosedPath
     from saferace.track.raceline import ReferenceLine
     from saferace.track.track import Track
 
 #: How far a carried corner may be off the truth per metre driven, ``[e_y (m/m), e_psi
-#: (rad/m)]``: about three times the worst one-step error measured over 2,840 steps of
-#: four agents on three unseen random tracks (3.3e-4 m and 1.4e-3 rad per metre, by
-#: ``benchmarks/dead_reckoning_error.py``): what the step's chord and the map's curvature
-#: halfway leave out.
-ERROR_PER_M = np.array([0.001, 0.005])
-#: The stretch ``1 - kappa e_y`` is kept above this, as off a tight bend's inside.
-MIN_STRETCH = 0.1
+#: (rad/m)]``. The simulator's odometry is exact (``benchmarks/dead_reckoning_error.py``
+#: measures the carrying's error at about 1e-9 per metre), so these are a real car's: a
+#: millimetre per metre of sideways slip its wheels do not see, and a gyro drifting
+#: 5e-5 rad per metre (about 50 deg/h at 5 m/s, a consumer MEMS part).
+ERROR_PER_M = np.array([0.001, 5e-5])
 #: How far the car may be off its reference line at the start, ``[e_y (m), e_psi (rad)]``:
 #: the task places it on the line, heading along it (the physics moves it by well under a
-#: millimetre before the first step).
-START_TOLERANCE = np.array([0.02, 0.02])
+#: millimetre and a milliradian before the first step).
+START_TOLERANCE = np.array([0.01, 0.002])
 #: How many times its own width a trusted interval is widened to before it narrows the
 #: carried set (about its centre; see the module).
 NARROWING_WIDTHS = 2.0
@@ -76,10 +77,10 @@ def car_pose(info: dict) -> np.ndarray:
     return np.array([info["x_m"], info["y_m"], info["yaw_rad"]], dtype=float)
 
 
-def midway_s(s_from_m: float, s_to_m: float, length_m: float) -> float:
-    """The arc length halfway along a step from ``s_from_m`` to ``s_to_m`` on a lap of
-    ``length_m`` (across the start line too)."""
-    return (s_from_m + 0.5 * float(wrap_arc(s_to_m - s_from_m, length_m))) % length_m
+def centre_pose(centerline: ClosedPath, s_m: float) -> np.ndarray:
+    """``(x, y, theta)`` of the centre line at arc length ``s_m``: the map's."""
+    x, y, dx, dy, _, _ = centerline.eval_scalar(s_m)
+    return np.array([x, y, math.atan2(dy, dx)])
 
 
 def odometry_step(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
@@ -89,31 +90,28 @@ def odometry_step(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
     x1, y1, yaw1 = (float(v) for v in pose_to)
     cos, sin = math.cos(yaw0), math.sin(yaw0)
     dx, dy = x1 - x0, y1 - y0
-    dyaw = (yaw1 - yaw0 + math.pi) % (2.0 * math.pi) - math.pi
+    dyaw = wrap_angle(yaw1 - yaw0)
     return np.array([cos * dx + sin * dy, -sin * dx + cos * dy, dyaw])
 
 
 def carried_states(
-    e_y_m: np.ndarray, e_psi_rad: np.ndarray, step: np.ndarray, kappa_radpm: float
+    e_y_m: np.ndarray,
+    e_psi_rad: np.ndarray,
+    step: np.ndarray,
+    centre_from: np.ndarray,
+    centre_to: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(e_y, e_psi)`` after the odometry ``step`` (:func:`odometry_step`) from the given
-    states, on a centre line of curvature ``kappa_radpm`` (see the module; two fixed-point
-    passes, exact for a car that follows a parallel of the centre line)."""
+    states, the centre line's pose (:func:`centre_pose`) at the step's start ``centre_from``
+    and at its end ``centre_to`` (exact, see the module)."""
     dx, dy, dyaw = (float(v) for v in step)
-    chord_m, chord_rad = math.hypot(dx, dy), math.atan2(dy, dx)
-    stretch = np.maximum(1.0 - kappa_radpm * e_y_m, MIN_STRETCH)
-    ds = chord_m * np.cos(e_psi_rad + chord_rad) / stretch
-    for _ in range(2):
-        half = 0.5 * kappa_radpm * ds  # the tangent's turn to halfway
-        phi = e_psi_rad + chord_rad - half
-        ds = chord_m * np.cos(phi) / stretch * _arc_per_chord(half)
-    return e_y_m + chord_m * np.sin(phi), e_psi_rad + dyaw - kappa_radpm * ds
-
-
-def _arc_per_chord(half_angle_rad: np.ndarray) -> np.ndarray:
-    """An arc's length over its chord's, ``a / sin a`` for half its angle ``a``."""
-    angle = np.abs(half_angle_rad)
-    return np.where(angle < 1e-6, 1.0, angle / np.sin(np.maximum(angle, 1e-6)))
+    x0, y0, theta0 = (float(v) for v in centre_from)
+    x1, y1, theta1 = (float(v) for v in centre_to)
+    yaw = theta0 + e_psi_rad
+    x = x0 - math.sin(theta0) * e_y_m + np.cos(yaw) * dx - np.sin(yaw) * dy
+    y = y0 + math.cos(theta0) * e_y_m + np.sin(yaw) * dx + np.cos(yaw) * dy
+    e_y = (y - y1) * math.cos(theta1) - (x - x1) * math.sin(theta1)
+    return e_y, e_psi_rad + dyaw - wrap_angle(theta1 - theta0)
 
 
 @dataclass(frozen=True)
@@ -140,13 +138,19 @@ class DeadReckoning:
             float(s_m),
         )
 
-    def carried(self, pose: np.ndarray, s_m: float, kappa_radpm: float) -> DeadReckoning:
+    def carried(self, pose: np.ndarray, s_m: float, centerline: ClosedPath) -> DeadReckoning:
         """The box with the car now at ``pose`` and ``s_m``: its corners carried by the
-        step's odometry on the map's curvature ``kappa_radpm`` (midway along the step, see
-        :func:`midway_s`), grown by :data:`ERROR_PER_M` for the distance driven."""
+        step's odometry along the map's ``centerline`` (:func:`carried_states`), grown by
+        :data:`ERROR_PER_M` for the distance driven."""
         step = odometry_step(self.pose, pose)
         corners = np.array(list(itertools.product(*zip(self.lower, self.upper, strict=True))))
-        e_y, e_psi = carried_states(corners[:, 0], corners[:, 1], step, kappa_radpm)
+        e_y, e_psi = carried_states(
+            corners[:, 0],
+            corners[:, 1],
+            step,
+            centre_pose(centerline, self.s_m),
+            centre_pose(centerline, s_m),
+        )
         carried = np.column_stack([e_y, e_psi])
         step_m = math.hypot(step[0], step[1])
         growth = ERROR_PER_M * step_m
@@ -215,9 +219,7 @@ class LastTrusted:
         last = self.reckoning
         if last is None:
             return None
-        s_m = float(info["s_m"])
-        midway = midway_s(last.s_m, s_m, self.track.length_m)
-        return last.carried(car_pose(info), s_m, self.track.centerline.curvature_scalar(midway))
+        return last.carried(car_pose(info), float(info["s_m"]), self.track.centerline)
 
     def update(
         self, alarm: bool, interval: tuple[np.ndarray, np.ndarray], info: dict[str, Any]
