@@ -41,7 +41,7 @@ FILTER_KINDS = ("none", "cbf", "mpsf")
 #: slack (the paper's) or the exact L1 one, and the predictive filter.
 COMPARED_FILTERS = ("cbf", "cbf-l1", "mpsf")
 #: Named gain settings of the filter (the keys of ``saferace.safety.cbf.filter.GAIN_PRESETS``).
-GAIN_NAMES = ("paper", "grip", "tuned")
+GAIN_NAMES = ("paper", "grip", "tuned", "tuned-grip")
 #: How the filter treats its state's uncertainty: chance constraints on the samples' spread
 #: (the paper's), or barrier conditions that hold for every state of the source's interval,
 #: with a fallback where they cannot (``saferace.safety.cbf.filter.SafetyFilter``).
@@ -67,11 +67,11 @@ DEFAULT_GAINS = "grip"
 #: ``auto``: what keeps a user safe. A learned state source gets the robust mode over its
 #: conformal interval and ``ROBUST_GAINS`` (a steeper first class-K function, saturating
 #: to a stopping condition: with ``DEFAULT_GAINS`` an uncertain heading brakes the car to a
-#: crawl), and a DAgger run that feeds its filter the perceived state trains a deep
-#: ensemble; anything else gets the paper's chance constraints, ``DEFAULT_GAINS`` and MC
-#: dropout.
+#: crawl; and the steering within the tyres' grip), and a DAgger run that feeds its filter
+#: the perceived state trains a deep ensemble; anything else gets the paper's chance
+#: constraints, ``DEFAULT_GAINS`` and MC dropout.
 AUTO = "auto"
-ROBUST_GAINS = "tuned"
+ROBUST_GAINS = "tuned-grip"
 #: The filter QP's penalty on its slacks: the paper's squared one, or the exact L1 one
 #: (``saferace.safety.cbf.exact_penalty``: the hard constraints wherever they can hold).
 SQUARED_SLACK = "squared"

@@ -14,6 +14,7 @@ import pytest
 
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.eval.agents import act, make_agent
+from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.decision import nominal_parts
 from saferace.safety.uncertainty.dead_reckoning import (
@@ -179,7 +180,7 @@ def drift_off_then_doubt(track: str) -> tuple[SafetyFilter, DoubtingSource, dict
         gym.make("saferace/CenterLine-v0", track=track, image_size=(16, 16)),
         state_source=source,
         uncertainty="robust",
-        **GAIN_PRESETS["tuned"],
+        **GAIN_PRESETS[ROBUST_GAINS],
     )
     _, info = env.reset(seed=0, options={"start_s_m": 2.0, "start_speed_mps": 3.1})
     while info["e_y_m"] < 0.13:
@@ -273,7 +274,7 @@ def test_alarms_from_the_first_frame_on_a_wide_lane_keep_the_car_inside(
         gym.make("saferace/CenterLine-v0", track=wide_lane, image_size=(16, 16)),
         state_source=source,
         uncertainty="robust",
-        **GAIN_PRESETS["tuned"],
+        **GAIN_PRESETS[ROBUST_GAINS],
     )
     agent = make_agent(driver, env, seed=0)
     observation, info = env.reset(seed=0)
@@ -299,7 +300,7 @@ def test_an_interval_that_misses_the_carried_set_is_in_doubt(own_lane: str):
         gym.make("saferace/CenterLine-v0", track=own_lane, image_size=(16, 16)),
         state_source=source,
         uncertainty="robust",
-        **GAIN_PRESETS["tuned"],
+        **GAIN_PRESETS[ROBUST_GAINS],
     )
     env.reset(seed=0, options={"start_s_m": 2.0})
     decision = env.step(np.array([0.0, 0.0]))[-1]["safety"]
@@ -337,7 +338,7 @@ def test_the_set_starts_on_the_task_s_reference_line():
         gym.make("saferace/RacingLine-v0", track="lab", image_size=(16, 16)),
         state_source=ConfidentlyWrongSource(0.5, alarm_rate=1.0),
         uncertainty="robust",
-        **GAIN_PRESETS["tuned"],
+        **GAIN_PRESETS[ROBUST_GAINS],
     )
     reference = env.unwrapped.reference
     s_grid = np.linspace(0.0, env.track.length_m, 200, endpoint=False)

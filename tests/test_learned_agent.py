@@ -17,6 +17,7 @@ from saferace.eval.runner import read_jsonl
 from saferace.learning.agent import learned_state_source
 from saferace.learning.checkpoint import load_checkpoint
 from saferace.learning.gradcam import gradcam_maps
+from saferace.names import ROBUST_GAINS
 from saferace.safety.decision import NominalAction
 
 
@@ -142,7 +143,7 @@ def test_the_default_filter_refuses_an_uncalibrated_state_network(
         assert taken.returncode == 0, taken.stderr
     paper, robust = (row["filter"] for row in read_jsonl(out))
     assert (paper["uncertainty"], paper["gains"]) == ("chance", "grip")
-    assert (robust["uncertainty"], robust["gains"]) == ("robust", "tuned")
+    assert (robust["uncertainty"], robust["gains"]) == ("robust", ROBUST_GAINS)
 
 
 @pytest.mark.parametrize("stereo", [False, True])

@@ -15,6 +15,7 @@ import saferace  # noqa: F401  (registers the tasks)
 from saferace.eval.agents import make_agent
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.runner import make_task_env, run_episode
+from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import SafetyFilter
 from saferace.safety.models import MIN_SPEED_MPS
 from saferace.safety.uncertainty.fallback import (
@@ -210,7 +211,7 @@ def test_a_wide_heading_interval_does_not_slow_the_robust_filter(unseen_track_cs
     # below the true state's lap. The filter holds the car over the interval's meet with
     # the set carried by odometry, whose heading is the gyro's: neither gains lose 10%.
     laps = {}
-    for gains in ("grip", "tuned"):
+    for gains in ("grip", ROBUST_GAINS):
         for noise in (None, (0.06, 0.08)):
             config = FilterConfig(
                 kind="cbf", uncertainty="robust", gains=gains, state_noise=noise, samples=20
@@ -220,7 +221,7 @@ def test_a_wide_heading_interval_does_not_slow_the_robust_filter(unseen_track_cs
             env.close()
             assert result.laps[0].completed and not np.any(result.steps["lane_barrier_m"] < 0)
             laps[gains, noise is not None] = result.laps[0].lap_time_s
-    assert laps["tuned", True] < 1.10 * laps["tuned", False]
+    assert laps[ROBUST_GAINS, True] < 1.10 * laps[ROBUST_GAINS, False]
     assert laps["grip", True] < 1.10 * laps["grip", False]
 
 

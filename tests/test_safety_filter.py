@@ -187,9 +187,8 @@ def test_failed_solves_fall_back_to_braking_toward_the_center(monkeypatch):
 
 def test_steering_is_bounded_to_the_tyres_grip():
     """``|tan delta| <= a_max L / v^2``: less steering the faster the car."""
-    # the tuned lane barriers leave the steering free enough to bind
-    tuned = {**GAIN_PRESETS["tuned"], "max_lateral_accel_mps2": None}
-    bounded = SafetyFilter(make_env(), **{**tuned, "max_lateral_accel_mps2": 2.0})
+    tuned = GAIN_PRESETS["tuned"]  # the lane barriers leave the steering free enough to bind
+    bounded = SafetyFilter(make_env(), max_lateral_accel_mps2=2.0, **tuned)
     free = SafetyFilter(make_env(), **tuned)
     clipped = 0
     for speed in (1.0, 4.0, 6.0):

@@ -24,6 +24,7 @@ from saferace.experiments.safety_table import (
     table_rows,
 )
 from saferace.learning.checkpoint import is_calibrated
+from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import GAIN_PRESETS
 from saferace.track import builtin_track_names
 from saferace.track.random_track import write_random_track
@@ -105,7 +106,9 @@ def test_table_adds_the_perceived_state_runs(tiny_checkpoint, tmp_path: Path):
     assert {filter_label(row) for row in learned} == labels
     assert all(row["state_source"]["mc_samples"] == 3 for row in learned)
     robust = [row["filter"] for row in learned if filter_label(row) == "learned-robust"]
-    assert {(config["gains"], config["uncertainty"]) for config in robust} == {("tuned", "robust")}
+    assert {(config["gains"], config["uncertainty"]) for config in robust} == {
+        (ROBUST_GAINS, "robust")
+    }
     table = (tmp_path / "safety_table.md").read_text()
     for mode in ("cbf, probabilistic", "cbf, robust over the interval"):
         rows_of_mode = [line for line in table.splitlines() if mode in line and "perceived" in line]

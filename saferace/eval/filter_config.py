@@ -90,9 +90,10 @@ class FilterConfig:
     gains: str = setting(
         AUTO,
         "the filter's settings: the paper's gain, the same with the steering held within the "
-        "tyres' grip (drivable at racing speed), or the gains measured to cost the expert "
-        f"least on the built-in tracks; auto: {ROBUST_GAINS} in the robust mode (an uncertain "
-        f"heading keeps its speed), {DEFAULT_GAINS} otherwise",
+        "tyres' grip (drivable at racing speed), the gains measured to cost the expert "
+        "least on the built-in tracks (tuned), or those within the grip (tuned-grip); auto: "
+        f"{ROBUST_GAINS} in the robust mode (an uncertain heading keeps its speed), "
+        f"{DEFAULT_GAINS} otherwise",
         flag="--filter-gains",
         choices=(AUTO, *GAIN_NAMES),
     )

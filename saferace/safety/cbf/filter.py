@@ -49,18 +49,18 @@ if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's O
     from saferace.envs.racing_env import RacingEnv
 
 #: Settings of ``SafetyFilter`` by name (:data:`saferace.names.GAIN_NAMES`): the paper's
-#: gain; the same with the steering held within the tyres' grip (``max_lateral_accel_mps2``,
-#: :data:`saferace.names.DEFAULT_GAINS`), since at racing speed the paper's kinematic filter
-#: asks for corrections the car cannot drive; and the gains measured to leave the expert
-#: most alone while keeping every reckless run of ``saferace safety-table`` inside its lane,
-#: within the same grip (without it, a drifting agent steering 0.1 rad at a circuit's 6.7 m/s
-#: start slid out of a 2.2 m lane within 0.6 s, fed the true state).
+#: gain; the same within the tyres' grip (``max_lateral_accel_mps2``, the default), since at
+#: racing speed the paper's kinematic filter asks for corrections the car cannot drive; the
+#: gains measured to leave the expert most alone while keeping every reckless run of
+#: ``saferace safety-table`` inside; and those within the grip, the robust mode's (without
+#: it a drifting agent at a circuit's 6.7 m/s start slid out of a 2.2 m lane, fed the truth).
 GRIP = {"max_lateral_accel_mps2": SPEED_LIMIT_LATERAL_MPS2}
 GAIN_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"lam": 2.5},
     "grip": {"lam": 2.5, **GRIP, "width_preview_s": 0.3},
-    "tuned": {"lam": (20.0, 4.0), "lateral_decel_mps2": 5.0, **GRIP},
+    "tuned": {"lam": (20.0, 4.0), "lateral_decel_mps2": 5.0},
 }
+GAIN_PRESETS["tuned-grip"] = {**GAIN_PRESETS["tuned"], **GRIP}
 #: Below ``creep_speed_mps`` the filter accelerates at least this much (or as the agent does,
 #: if that is less): at a standstill the steering drops out of the lane barriers (its
 #: effect grows with ``v^2``), so a car stopped heading for an edge cannot be steered away.
