@@ -11,8 +11,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+import sympy as sp
 
 from saferace.safety.frenet_stages import MIN_STAGE_LENGTH_M, stages_along_map
+from saferace.safety.model_code import stage_linearisation
 from saferace.track import Track, wrap_angle
 
 
@@ -100,3 +103,20 @@ def test_without_a_cache_to_write_to_the_code_compiles_in_a_folder_of_its_own(tm
     command = [sys.executable, "-c", LOAD]
     run = subprocess.run(command, env=environment, capture_output=True, text=True, check=True)
     assert run.stdout.split() == ["0", "1"]
+
+
+def test_changed_equations_under_the_same_models_name_are_new_code(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The generated code is keyed by its source, not by the model's name: a model whose
+    equations change (``x p + steer`` to ``x p - accel``) is compiled afresh, never served
+    the old code from the cache."""
+    monkeypatch.setenv("SAFERACE_CACHE", str(tmp_path))
+    x, steer, accel, kappa, p = sp.symbols("x steer accel kappa p")
+    arguments = (np.array([[2.0]]), np.array([1.0]), np.array([3.0]), np.zeros(1), np.array([5.0]))
+    values = [
+        stage_linearisation("toy", (x,), (steer, accel), kappa, (p,), [output])(*arguments)
+        for output in (x * p + steer, x * p - accel)
+    ]
+    assert [float(value[0, 0]) for value in values] == [11.0, 7.0]  # 2*5 + 1, 2*5 - 3
+    assert len(list((tmp_path / "model_code").glob("toy_*.py"))) == 2

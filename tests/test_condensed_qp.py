@@ -70,6 +70,10 @@ CASES = {
     # heading for the left edge at 5 m/s, target full left and speeding up: lane and speed
     # rows bind, and the terminal heading's
     "lane and speed bind": dict(x=(0.3, 0.6, 5.0), target=(0.4, 3.0), margin=(0.0, 0.0)),
+    # heading 1.3 rad off the lane at 4 m/s, target full lock further: the terminal
+    # heading's row binds, on the left and (its other row) on the right
+    "heading binds left": dict(x=(0.0, 1.3, 4.0), target=(0.5, 0.0), margin=(0.0, 0.0)),
+    "heading binds right": dict(x=(0.0, -1.3, 4.0), target=(-0.5, 0.0), margin=(0.0, 0.0)),
     # 0.7 m either side of a lane about 1 m wide: the lane's bounds cross
     "lane tightened past itself": dict(x=(0.1, 0.0, 3.0), target=(0.0, 0.0), margin=(0.7, 0.0)),
     # braking hard at 0.1 m/s: the plan stops, and no stage's speed goes below zero
@@ -94,6 +98,8 @@ def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
     np.testing.assert_allclose(slacks, ref_slacks, atol=1e-5)
     if case == "lane and speed bind":
         assert ref_slacks.max() > 0.05  # the case is what it says
+    if case.startswith("heading binds"):
+        assert ref_slacks[-1] > 0.01
     if case == "lane tightened past itself":
         assert np.all(qp.lane_lower > qp.lane_upper) and ref_slacks[:20].min() > 0.1
     if case == "braking to a stop":

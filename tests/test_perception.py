@@ -3,6 +3,7 @@ named as a state source by every command."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -27,13 +28,16 @@ from saferace.learning.perception import (
     MANIFEST_FILE,
     RECIPES,
     build_perception_model,
+    collect_all,
     generic_state_source,
     model_folder,
     recipe_named,
+    round_dirs_of,
     rounds_folder,
     sha256,
     targets_of,
     track_size,
+    write_tracks,
 )
 from saferace.learning.rounds import load_rounds
 from saferace.safety.uncertainty.conformal import conformal_quantile, group_calibration
@@ -343,3 +347,26 @@ def test_another_camera_is_refused_in_one_line_naming_what_works():
         check_generic_image_shape("default", (64, 64, 3), (48, 48, 3))
     with pytest.raises(SafeRaceError, match="drop --stereo and use --image-size 64"):
         check_generic_image_shape("quick", (64, 64, 3), (96, 96, 6))
+
+
+def frames_digest(round_dir: Path) -> str:
+    """A digest of a round's frames: its arrays' bytes, in order."""
+    with np.load(round_dir / "frames.npz") as arrays:
+        content = b"".join(arrays[name].tobytes() for name in sorted(arrays))
+    return hashlib.sha256(content).hexdigest()
+
+
+def test_a_build_interrupted_part_way_through_a_track_resumes_to_the_same_frames(built: Path):
+    """A drive cut off before its round was complete (no manifest: the collector writes it
+    last) is driven again on resume, with its own seed: the track's rounds end as an
+    uninterrupted build's, drive by drive."""
+    track = write_tracks(TINY, "train")[0]
+    folder = rounds_folder(TINY, track)
+    rounds = round_dirs_of(folder)
+    assert len(rounds) == len(TINY.drives("train", 0)) >= 2
+    before = [frames_digest(round_dir) for round_dir in rounds]
+    (rounds[-1] / "manifest.json").unlink()  # interrupted while writing the last drive
+    assert len(round_dirs_of(folder)) == len(rounds) - 1
+    collect_all(TINY, {"train": [track]}, workers=1, progress=False)
+    after = round_dirs_of(folder)
+    assert [frames_digest(round_dir) for round_dir in after] == before

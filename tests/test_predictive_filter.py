@@ -448,3 +448,27 @@ def test_the_tail_is_followed_where_the_interval_may_hold_the_car_the_plan_expec
     on_tail = decision.filtered_action == pytest.approx(np.clip(tail[0], *box))
     assert on_tail == (half_m > 0.0), (decision.filtered_action, tail[0])
     env.close()
+
+
+def test_a_braking_plan_tightens_the_lane_for_the_heading_at_its_first_speed(
+    hairpin_track: str,
+):
+    """A heading known to +-0.3 rad tightens each stage's lane by ``sin(0.3)`` times the
+    way driven before the next estimate corrects it, at the speed the car has now (the
+    plan brakes for the hairpin: at its last stage's speed the lane tightens up to 6 cm
+    less), plus the model's error per second; worked from the plan's own arc lengths."""
+    env = PredictiveSafetyFilter(
+        make_env(hairpin_track), state_source=TruthInABox([0.0, 0.3, 0.0]), uncertainty="robust"
+    )
+    observation, info = env.reset(seed=0, options={"start_s_m": 8.0, "start_speed_mps": 4.0})
+    for _ in range(3):
+        observation, _, _, _, info = env.step(np.zeros(2))
+    env.certify(observation, info, np.zeros(2))
+    planner = env.planner
+    env.close()
+    ahead_m = planner.plan_arc_lengths[1:] - planner.plan_arc_lengths[0]
+    assert ahead_m[-1] - ahead_m[-2] < 0.8 * ahead_m[0]  # the plan brakes
+    speed = float(observation["velocity"][0])
+    stage_s = planner.settings.dt_s * np.arange(1, len(ahead_m) + 1)
+    expected = np.sin(0.3) * np.minimum(ahead_m, 0.2 * speed) + 0.05 * stage_s
+    np.testing.assert_allclose(planner.tightening_m, expected, atol=1e-9)

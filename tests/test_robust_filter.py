@@ -237,3 +237,21 @@ def test_a_fallback_box_moves_the_speed_to_its_target_under_the_limit_within_the
     assert np.all(box[0] == [-0.1, -4.0])  # the box given is left as it was
     assert grip_steer_rad(2.0, 4.0, 0.25) == pytest.approx(math.atan(4.0 * 0.25 / 4.0))
     assert grip_steer_rad(0.0, 4.0, 0.25) == grip_steer_rad(MIN_SPEED_MPS, 4.0, 0.25)
+
+
+def test_an_infinite_interval_is_in_doubt_whatever_the_monitor_says():
+    """An interval without bounds (a calibration of too few frames, an adaptive level at
+    0) rules out no state: the frame is in doubt though its monitor is calm, and the car
+    drives on the set carried from the start, not on an infinite "trusted" box."""
+    unbounded = IntervalSource([0.0, 0.0, 0.0], [math.inf, 0.01, 0.0])
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track="lab", max_laps=1),
+        state_source=unbounded,
+        uncertainty="robust",
+    )
+    env.reset(seed=0, options={"start_s_m": 0.5, "start_speed_mps": 2.0})
+    decisions = [env.step(np.array([0.0, 1.0]))[-1]["safety"] for _ in range(5)]
+    env.close()
+    assert all(decision["alarm"] and decision["mode"] == "propagated" for decision in decisions)
+    lower, upper = np.array(decisions[-1]["state_lower"]), np.array(decisions[-1]["state_upper"])
+    assert np.all(np.isfinite(lower)) and upper[0] - lower[0] < 0.05  # the carried set
