@@ -13,7 +13,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "saferace"
 #: The floors, bottom up: a module may import its own floor and those below, never above.
 FLOORS = {
     "names": 0, "config": 0, "errors": 0, "version": 0, "registry": 0, "extras": 0, "progress": 0,
-    "assets": 0, "cache": 0,
+    "assets": 0, "cache": 0, "numba_cache": 0,
     "track": 1,
     "envs": 2,
     "safety": 3, "agents": 3,

@@ -13,12 +13,14 @@ import math
 import numpy as np
 from numba import njit
 
+from saferace.numba_cache import recompiled_when_changed
 from saferace.track.path import piece_values
 
 #: Below this stretch per stage the curvature is sampled at its start.
 MIN_STAGE_LENGTH_M = 1e-3
 
 
+@recompiled_when_changed(piece_values)
 @njit(cache=True)
 def _heading_and_curvature(
     pieces: np.ndarray, spacing_m: float, length_m: float, s_m: float
@@ -29,6 +31,7 @@ def _heading_and_curvature(
     return math.atan2(dy, dx), (dx * ddy - dy * ddx) / (dx * dx + dy * dy) ** 1.5
 
 
+@recompiled_when_changed(piece_values)
 @njit(cache=True)
 def stages_along_map(
     travels_m: np.ndarray,

@@ -34,6 +34,7 @@ import sympy as sp
 from numba import njit
 
 from saferace.safety.matrix_exponential import expm_batch, expm_stacked
+from saferace.numba_cache import recompiled_when_changed
 from saferace.safety.model_code import stage_linearisation
 from saferace.safety.vehicle_params import VehicleParams
 
@@ -274,6 +275,7 @@ class FrenetModel:
         )
 
 
+@recompiled_when_changed(expm_stacked)
 @njit(cache=True)
 def _lagged_zero_order_hold(
     f: np.ndarray,
