@@ -7,7 +7,11 @@ Each mutant changes one site of the module's syntax tree: a comparison (``<`` an
 ``==`` and ``!=``, ``in`` and ``not in``), an arithmetic operator (``+`` and ``-``, ``*``
 and ``/``), a boolean operator (``and`` and ``or``), a dropped ``not`` or unary minus, a
 negated ``if``, a number (an integer plus one, a float doubled, a zero made one) or a
-boolean flipped. Docstrings, annotations and f-strings are left alone. The mutated module
+boolean flipped; and the semantic changes a real bug makes: an index into a vector one
+lower (``x[1]`` for ``x[2]``), a field read by the name of another the module reads
+(``info["s_m"]`` for ``info["e_y_m"]``), a tuple or list of two or more without its last
+member, and a midpoint ``0.5 * (a + b)`` replaced by either end. Docstrings, annotations
+and f-strings are left alone. The mutated module
 is written as ``ast.unparse`` prints it (the unmutated module is run that way first, and
 must pass), into a copy of the tree per worker, so that workers never share a file and the
 checkout is never touched. The report lists every survivor with its line and change.
@@ -54,6 +58,13 @@ TARGETS: dict[str, list[str]] = {
         "tests/test_dead_reckoning.py",
     ],
     "saferace/safety/uncertainty/dead_reckoning.py": ["tests/test_dead_reckoning.py"],
+    "saferace/safety/uncertainty/estimate.py": [
+        "tests/test_robust_filter.py",
+        "tests/test_dead_reckoning.py",
+    ],
+    "saferace/safety/predictive/condensed_qp.py": ["tests/test_condensed_qp.py"],
+    "saferace/safety/model_code.py": ["tests/test_compiled_stages.py"],
+    "saferace/numba_cache.py": ["tests/test_numba_cache.py"],
     "saferace/safety/predictive/filter.py": ["tests/test_predictive_filter.py"],
     "saferace/experiments/verify.py": ["tests/test_submission_checks.py"],
     "saferace/safety/traffic/car_barriers.py": [
@@ -144,6 +155,13 @@ def _changes(node: ast.AST) -> Iterator[tuple[str, ast.AST]]:
         mutated = copy.deepcopy(node)
         mutated.test = ast.UnaryOp(ast.Not(), mutated.test)
         yield "negate if", mutated
+    elif isinstance(node, ast.Tuple | ast.List) and len(node.elts) >= 2:
+        if isinstance(node.ctx, ast.Load) and not any(
+            isinstance(e, ast.Starred) for e in node.elts
+        ):
+            mutated = copy.deepcopy(node)
+            mutated.elts = mutated.elts[:-1]
+            yield f"drop the last of {len(node.elts)} members", mutated
     elif isinstance(node, ast.Constant) and type(node.value) in (int, float, bool):
         value = node.value
         if isinstance(value, bool):
@@ -155,14 +173,59 @@ def _changes(node: ast.AST) -> Iterator[tuple[str, ast.AST]]:
         yield f"{value!r} -> {new!r}", ast.Constant(new)
 
 
+def _is_half(node: ast.AST) -> bool:
+    return isinstance(node, ast.Constant) and node.value == 0.5
+
+
+def _midpoint_changes(node: ast.AST) -> Iterator[tuple[str, ast.AST]]:
+    """``0.5 * (a + b)`` (either way round) as ``a`` and as ``b``."""
+    if not (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Mult)):
+        return
+    pair = node.right if _is_half(node.left) else node.left if _is_half(node.right) else None
+    if isinstance(pair, ast.BinOp) and isinstance(pair.op, ast.Add):
+        yield "midpoint -> first end", copy.deepcopy(pair.left)
+        yield "midpoint -> second end", copy.deepcopy(pair.right)
+
+
+def _subscript_changes(node: ast.Subscript, keys: list[str]) -> Iterator[tuple[str, ast.AST]]:
+    """An index one lower (a positive integer index), or a field read by the name of the
+    next of the module's ``keys`` (a string key)."""
+    index = node.slice
+    if not isinstance(index, ast.Constant) or not isinstance(node.ctx, ast.Load):
+        return
+    value = index.value
+    if type(value) is int and value > 0:
+        mutated = copy.deepcopy(node)
+        mutated.slice = ast.Constant(value - 1)
+        yield f"index {value} -> {value - 1}", mutated
+    elif isinstance(value, str) and len(keys) > 1:
+        other = keys[(keys.index(value) + 1) % len(keys)]
+        mutated = copy.deepcopy(node)
+        mutated.slice = ast.Constant(other)
+        yield f"field {value!r} -> {other!r}", mutated
+
+
 def _sites(tree: ast.Module) -> list[tuple[ast.AST, str, ast.AST]]:
     skipped = _skipped_nodes(tree)
-    return [
-        (node, change, mutated)
-        for node in ast.walk(tree)
-        if id(node) not in skipped
-        for change, mutated in _changes(node)
-    ]
+    keys = sorted(
+        {
+            node.slice.value
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Subscript)
+            and isinstance(node.slice, ast.Constant)
+            and isinstance(node.slice.value, str)
+            and id(node) not in skipped
+        }
+    )
+    sites = []
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        changes = list(_changes(node)) + list(_midpoint_changes(node))
+        if isinstance(node, ast.Subscript):
+            changes += list(_subscript_changes(node, keys))
+        sites += [(node, change, mutated) for change, mutated in changes]
+    return sites
 
 
 class _Replace(ast.NodeTransformer):

@@ -40,7 +40,13 @@ from saferace.learning.perception import (
     write_tracks,
 )
 from saferace.learning.rounds import load_rounds
-from saferace.safety.uncertainty.conformal import conformal_quantile, group_calibration
+from saferace.learning.training_data import network_data
+from saferace.learning.validation import predict_frames
+from saferace.safety.uncertainty.conformal import (
+    ConformalCalibration,
+    conformal_quantile,
+    group_calibration,
+)
 from saferace.safety.uncertainty.feature_monitor import feature_monitor
 from saferace.safety.uncertainty.intervals import ConformalStateSource
 from saferace.safety.uncertainty.lane_middle import (
@@ -64,6 +70,11 @@ def built(quick_perception: Path) -> Path:
     return build_perception_model(TINY, progress=False)
 
 
+def by_rank(scores: np.ndarray, level: float) -> float:
+    """The ``ceil((n + 1) level)``-th smallest of ``n`` scores, by sorting."""
+    return float(np.sort(scores)[int(np.ceil((len(scores) + 1) * level)) - 1])
+
+
 def test_a_calibration_by_track_covers_the_hard_track_that_pooling_leaves_out():
     rng = np.random.default_rng(0)
     easy, hard = 1800, 200
@@ -76,8 +87,11 @@ def test_a_calibration_by_track_covers_the_hard_track_that_pooling_leaves_out():
     assert np.mean(scores[groups == "hard"] <= pooled) < 0.85  # pooling fails the hard track
     calibration, rows = group_calibration(mean, sigma, truth, groups, 0.05)
     by_group = {row["group"]: row for row in rows}
-    assert calibration.scale == pytest.approx(by_group["hard"]["own scale"])
-    assert by_group["hard"]["own scale"] > 2 * by_group["easy"]["own scale"]
+    # worked apart from the code: the ceil((n + 1) 0.95)-th smallest score of each track
+    own = {name: by_rank(scores[groups == name], 0.95) for name in ("easy", "hard")}
+    assert by_group["easy"]["own scale"] == own["easy"]
+    assert by_group["hard"]["own scale"] == own["hard"] > 2 * own["easy"]
+    assert calibration.scale == own["hard"]  # the largest track's, not the pooled one
     assert min(row["coverage"] for row in rows) >= 0.95
     assert calibration.frames == easy + hard
 
@@ -93,7 +107,10 @@ def test_the_monitor_threshold_by_track_is_the_largest_of_the_tracks():
         truth, np.ones_like(truth), truth, groups, 0.05, monitor, features
     )
     assert calibration.monitor is not None
-    assert calibration.monitor.threshold == max(row["own threshold"] for row in rows)
+    scores = monitor.scores(features)
+    own = [by_rank(scores[groups == name], 0.95) for name in ("near", "far")]
+    assert [row["own threshold"] for row in rows] == own
+    assert calibration.monitor.threshold == max(own)
     assert all(row["alarm rate"] <= 0.05 for row in rows)
     assert rows[0]["own threshold"] < rows[1]["own threshold"]  # the far track sets it
 
@@ -370,3 +387,23 @@ def test_a_build_interrupted_part_way_through_a_track_resumes_to_the_same_frames
     collect_all(TINY, {"train": [track]}, workers=1, progress=False)
     after = round_dirs_of(folder)
     assert [frames_digest(round_dir) for round_dir in after] == before
+
+
+def test_the_monitor_raises_on_a_look_the_model_trained_on_but_was_not_calibrated_for(
+    built: Path,
+):
+    """The monitor's Gaussian is fitted on the calibration look's training frames only: on
+    the training frames of the other look it raises far more often (fitted on both looks,
+    it would take the strong look for the usual: 5.8% and 88% of the frames measured)."""
+    loaded = load_checkpoint(built)
+    monitor = ConformalCalibration.from_dict(loaded.metadata[CONFORMAL_KEY]).monitor
+    assert monitor is not None
+    training = load_rounds([rounds_folder(TINY, track) for track in write_tracks(TINY, "train")])
+    looks = np.array([manifest["config"]["randomize"] for manifest in training.manifests])
+    frame_looks = looks[training["source"]]
+    features = predict_frames(loaded.state, network_data(training)["state"], 1).features
+    alarms = np.array([monitor.raises(feature)[1] for feature in features])
+    (calibrated,) = TINY.calibration_looks
+    other = next(look for look in TINY.looks if look != calibrated)
+    assert alarms[frame_looks == other].mean() > 0.5
+    assert alarms[frame_looks == calibrated].mean() < 0.1
