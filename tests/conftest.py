@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,9 @@ from saferace.track.random_track import write_random_track
 os.environ[DEVICE_VARIABLE] = "cpu"
 # Eager networks: compiling one for the CPU takes 10-20 s (tests/test_cpu_compile.py does).
 os.environ[COMPILE_VARIABLE] = "0"
+#: The repository the tests run in: none of them may write into it.
+REPOSITORY = Path(__file__).resolve().parents[1]
+STATUS_BEFORE = pytest.StashKey[str | None]()
 #: A file of the honest submission made beforehand, for runs of the tests many times over
 #: code that does not make it (``scripts/mutation_run.py`` makes it once and sets this).
 PREBUILT_SUBMISSION_VARIABLE = "SAFERACE_TEST_PREBUILT_SUBMISSION"
@@ -106,3 +110,31 @@ def honest_submission(tmp_path_factory: pytest.TempPathFactory) -> Path:
     else:
         run_benchmark("pure-pursuit", path, workers=2, progress=False)
     return path
+
+
+def repository_status() -> str | None:
+    """``git status`` of the repository, untracked files too (None outside a git checkout)."""
+    try:
+        return subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=all"],
+            cwd=REPOSITORY, capture_output=True, text=True, check=True,
+        ).stdout  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    session.config.stash[STATUS_BEFORE] = repository_status()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Fail the run where a test wrote into the repository (a stray file left behind)."""
+    before, after = session.config.stash.get(STATUS_BEFORE, None), repository_status()
+    if before is not None and after is not None and after != before:
+        changed = sorted(set(after.splitlines()) - set(before.splitlines()))
+        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            reporter.write_line(
+                "the tests wrote into the repository: " + ", ".join(changed), red=True
+            )
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
