@@ -89,6 +89,13 @@ BAD_FILES = {
         [HEADER, *corrupt(corrupt(circle_rows(), 12, 2, "0.1"), 12, 3, "0.1")],
         r"line 14: lane is 0.200 m wide, narrower than the car \(0.300 m\)",
     ),
+    # a C: 28 of a circle's 40 points, the last 117 degrees short of the first: a chord of
+    # 2 x 5 m x sin(58.5 deg) = 8.53 m, the spacing 2 x 5 m x sin(4.5 deg) = 0.78 m
+    "open polyline": (
+        [HEADER, *circle_rows()[:28]],
+        r"line 29: the last point is 8\.53 m from the first \(line 2\), where neighbouring "
+        r"points are 0\.78 m apart: the points do not close a loop",
+    ),
     "tight turn": (
         [HEADER, *circle_rows(radius=0.9, width=1.0)],
         r"line \d+: turn radius 0\.8\d+ m is smaller than the left half width 1.000 m",
@@ -101,6 +108,16 @@ def test_bad_file_is_rejected_with_a_specific_message(tmp_path: Path, case: str)
     lines, pattern = BAD_FILES[case]
     with pytest.raises(TrackError, match=pattern):
         Track.load(write(tmp_path, lines), strict=True)
+
+
+def test_an_open_polyline_is_refused_without_strict_too_and_a_loop_closing_in_a_step_loads(
+    tmp_path: Path,
+):
+    lines, pattern = BAD_FILES["open polyline"]
+    with pytest.raises(TrackError, match=pattern):
+        Track.load(write(tmp_path, lines))
+    closing = [HEADER, *circle_rows()[:39]]  # one point short: the gap is two spacings
+    assert Track.load(write(tmp_path, closing, "closing.csv")).length_m > 30.0
 
 
 def figure_eight(count: int = 80) -> tuple[np.ndarray, np.ndarray]:
@@ -236,7 +253,7 @@ def test_missing_file_and_unknown_name():
         Track.load("monza")
 
 
-@pytest.mark.parametrize("case", ["not a number", "tight turn", "wrong column"])
+@pytest.mark.parametrize("case", ["not a number", "tight turn", "wrong column", "open polyline"])
 def test_cli_reports_one_line_without_traceback(tmp_path: Path, case: str):
     lines, _ = BAD_FILES[case]
     path = write(tmp_path, lines)

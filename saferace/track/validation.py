@@ -24,6 +24,10 @@ def default_row_name(index: int) -> str:
     return f"point {index}"
 
 
+#: How many median spacings the last point may lie from the first (see :func:`check_closed`).
+MAX_CLOSING_GAP = 5.0
+
+
 def check_points(
     x_m: np.ndarray, y_m: np.ndarray, w_right_m: np.ndarray, w_left_m: np.ndarray, row: RowName
 ) -> None:
@@ -49,6 +53,24 @@ def check_points(
     if repeated.size:
         raise TrackError(
             f"{row(int(repeated[0]) + 1)}: repeats the previous point; remove duplicate points"
+        )
+    check_closed(x_m, y_m, step, row)
+
+
+def check_closed(x_m: np.ndarray, y_m: np.ndarray, step: np.ndarray, row: RowName) -> None:
+    """A track is a closed loop: the last point must lie about one spacing from the first.
+    A gap above :data:`MAX_CLOSING_GAP` times the median spacing, and above every other
+    spacing, is an open polyline, which a straight chord would otherwise close (on the
+    F1TENTH circuits and random tracks the gap is at most 1.1 spacings)."""
+    gap = float(np.hypot(x_m[-1] - x_m[0], y_m[-1] - y_m[0]))
+    spacing = float(np.median(step))
+    if gap > MAX_CLOSING_GAP * spacing and gap > float(step.max()):
+        last = len(x_m) - 1
+        raise TrackError(
+            f"{row(last)}: the last point is {gap:.2f} m from the first ({row(0)}), where "
+            f"neighbouring points are {spacing:.2f} m apart: the points do not close a loop. "
+            "A track file is a closed centre line: add the points of the missing stretch, or "
+            "end the file near its first point"
         )
 
 
