@@ -39,7 +39,8 @@ def recompiled_when_changed(*callees: Any) -> Callable[[Compiled], Compiled]:
         cache = getattr(dispatcher, "_cache", None)
         if cache is None or not hasattr(cache, "flush"):
             raise TypeError(f"{dispatcher!r} is not an njit function with cache=True")
-        stamp = Path(cache.cache_path) / f"{dispatcher.__qualname__}{STAMP_SUFFIX}"
+        name = getattr(dispatcher, "__qualname__", type(dispatcher).__name__)
+        stamp = Path(cache.cache_path) / f"{name}{STAMP_SUFFIX}"
         digest = callees_digest(callees)
         try:
             if stamp.is_file() and stamp.read_text() == digest:

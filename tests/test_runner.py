@@ -264,3 +264,33 @@ def test_leaderboard_without_results_is_a_clear_error(tmp_path: Path):
     assert result.returncode == 2
     assert "results: no such file or folder" in result.stderr and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_a_run_says_how_it_ended():
+    """Its laps done, the car out of its lane (terminated), or the time limit; behind a
+    filter, a car standing at the time limit is named as stopped by the filter."""
+    last = {"lap": 0, "time_s": 0.65, "v_x_mps": 0.0, "fully_outside_lane": True}
+    assert runner.episode_ending(last, True, 1, False) == "ended: the car left its lane at 0.65 s"
+    flipped = {**last, "fully_outside_lane": False}
+    assert runner.episode_ending(flipped, True, 1, False) == "ended: the car flipped at 0.65 s"
+    done = {"lap": 2, "time_s": 20.0, "v_x_mps": 3.0}
+    assert runner.episode_ending(done, False, 2, True) == "ended: 2 of 2 laps done"
+    standing = {"lap": 0, "time_s": 40.0, "v_x_mps": 0.02}
+    assert runner.episode_ending(standing, False, 1, True) == (
+        "ended: the time limit, 0 of 1 laps done, the car standing (stopped by the filter)"
+    )
+    assert runner.episode_ending(standing, False, 1, False) == (
+        "ended: the time limit, 0 of 1 laps done"
+    )
+    summary = {"laps_completed": 0, "mean_lap_time_s": None, "time_outside_lane_s": 0.15}
+    assert runner.episode_words(summary, "ended: x").endswith("longest standstill -; ended: x")
+
+
+@pytest.mark.parametrize("command", ["drive", "eval"])
+def test_a_run_that_leaves_its_lane_says_so(command: str, tmp_path: Path):
+    """The unfiltered weave agent leaves lab's lane within a second: ``eval`` says so on
+    its episode's line, ``drive`` on why it exits 1."""
+    out = ["--out", str(tmp_path / "rows.jsonl")] if command == "eval" else []
+    result = run_cli(command, "--agent", "weave", "--track", "lab", *out)
+    assert "ended: the car left its lane at 0.6" in result.stderr + result.stdout
+    assert result.returncode == (1 if command == "drive" else 0)

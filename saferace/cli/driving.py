@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from saferace.cli import example, values
@@ -185,7 +186,10 @@ def _drive(args: argparse.Namespace) -> int:
     for label, path in (("video", video), ("rerun recording", args.rerun)):
         if path:
             print(f"{label} written to {path}")
-    return 0 if result.summary["laps_completed"] == args.laps else 1
+    if result.summary["laps_completed"] == args.laps:
+        return 0
+    print(f"saferace drive: not all {args.laps} laps driven; {result.ending}", file=sys.stderr)
+    return 1
 
 
 def _eval(args: argparse.Namespace) -> int:

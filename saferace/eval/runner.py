@@ -59,6 +59,8 @@ class EpisodeResult:
     traffic: dict[str, int] | None = None
     #: Its state source's description at the end, where it ran in another process.
     source_description: dict | None = None
+    #: How it ended, in words (:func:`episode_ending`).
+    ending: str = ""
 
     @property
     def summary(self) -> dict:
@@ -120,7 +122,8 @@ def run_episode(
             if bar.terminal:  # not formatted every step where nothing shows it
                 bar.show(f"lap={info['lap']}, v={info['v_x_mps']:.1f}m/s")
         result = recorder.result(info, terminated, truncated)
-        bar.report(f"episode (seed {seed})", episode_words(result.summary), time_left=False)
+        words = episode_words(result.summary, result.ending)
+        bar.report(f"episode (seed {seed})", words, time_left=False)
     return result
 
 
@@ -138,6 +141,7 @@ class EpisodeRecorder:
         self.in_traffic = base.traffic is not None
         self.half_width_m = base.car_half_width_m
         self.control_dt_s = base.control_dt_s
+        self.max_laps = base.max_laps
         fields = (
             STEP_FIELDS
             + ("lane_barrier_m",)
@@ -167,18 +171,46 @@ class EpisodeRecorder:
         steps = {name: np.asarray(values) for name, values in self.records.items()}
         laps = lap_metrics(steps, last_info["lap_times_s"], self.control_dt_s)
         traffic = traffic_summary(steps) if self.in_traffic else None
-        return EpisodeResult(steps, laps, terminated, truncated, traffic)
+        ending = episode_ending(last_info, terminated, self.max_laps, self.filtered)
+        return EpisodeResult(steps, laps, terminated, truncated, traffic, ending=ending)
 
 
-def episode_words(summary: dict) -> str:
+#: Below this speed (m/s) a car at the end of a run behind a filter stands.
+STANDING_MPS = 0.1
+
+
+def episode_ending(
+    last_info: dict[str, Any], terminated: bool, max_laps: int, filtered: bool
+) -> str:
+    """How a run ended, from its last step: its laps done, the car out of its lane, flipped
+    or in a collision (terminated), or the time limit (and, behind a filter, the car
+    standing there: what a filter that stopped it looks like)."""
+    laps = int(last_info["lap"])
+    if terminated:
+        if last_info.get("fully_outside_lane"):
+            return f"ended: the car left its lane at {last_info['time_s']:.2f} s"
+        if last_info.get("at_fault_collisions", 0) > 0:
+            return f"ended: a collision the car caused at {last_info['time_s']:.2f} s"
+        return f"ended: the car flipped at {last_info['time_s']:.2f} s"
+    if laps >= max_laps:
+        return f"ended: {laps} of {max_laps} laps done"
+    standing = filtered and abs(float(last_info["v_x_mps"])) < STANDING_MPS
+    return f"ended: the time limit, {laps} of {max_laps} laps done" + (
+        ", the car standing (stopped by the filter)" if standing else ""
+    )
+
+
+def episode_words(summary: dict, ending: str = "") -> str:
     """An episode's key numbers, as its progress line says them: laps completed, time
-    outside the lane and beside it the longest standstill (:func:`standstill_words`)."""
+    outside the lane and beside it the longest standstill (:func:`standstill_words`), and
+    how it ended (:func:`episode_ending`)."""
     lap = summary.get("mean_lap_time_s")
     return (
         f"{summary['laps_completed']} laps"
         + (f" of {lap:.2f} s" if lap is not None else "")
         + f", {summary['time_outside_lane_s']:.2f} s outside, "
         + standstill_words(summary.get("longest_standstill_s"))
+        + (f"; {ending}" if ending else "")
     )
 
 

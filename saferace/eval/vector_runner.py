@@ -289,7 +289,8 @@ def run_together(
                 results.append(recorder.result(*end))
                 results[-1].source_description = end[0][SOURCE_KEY]
             for seed, result in zip(seeds, results, strict=True):
-                bar.report(f"episode (seed {seed})", episode_words(result.summary), False)
+                words = episode_words(result.summary, result.ending)
+                bar.report(f"episode (seed {seed})", words, False)
     finally:
         if vector is not None:
             vector.close()

@@ -33,8 +33,8 @@ import numpy as np
 import sympy as sp
 from numba import njit
 
-from saferace.safety.matrix_exponential import expm_batch, expm_stacked
 from saferace.numba_cache import recompiled_when_changed
+from saferace.safety.matrix_exponential import expm_batch, expm_stacked
 from saferace.safety.model_code import stage_linearisation
 from saferace.safety.vehicle_params import VehicleParams
 
