@@ -321,6 +321,8 @@ def test_a_set_is_narrowed_by_the_interval_it_meets():
     assert not box.meets(np.array([0.25, -0.05, 0.3]), np.array([0.5, 0.05, 0.3]))
     assert not box.meets(np.array([0.05, 0.15, 0.3]), np.array([0.1, 0.2, 0.3]))
     assert not box.meets(np.array([-0.5, -0.05, 0.3]), np.array([-0.1, 0.05, 0.3]))  # below
+    assert box.meets(np.array([0.2, -0.05, 0.3]), np.array([0.5, 0.05, 0.3]))  # touching above
+    assert box.meets(np.array([-0.5, -0.05, 0.3]), np.array([0.0, 0.05, 0.3]))  # and below
     bare = box.narrowed(np.array([0.15, -0.5, 0.3]), np.array([0.5, 0.05, 0.3]), widths=1.0)
     np.testing.assert_allclose(bare.lower, [0.15, -0.1])
     np.testing.assert_allclose(bare.upper, [0.2, 0.05])
@@ -342,7 +344,8 @@ def test_the_set_starts_on_the_task_s_reference_line():
     )
     reference = env.unwrapped.reference
     s_grid = np.linspace(0.0, env.track.length_m, 200, endpoint=False)
-    start_s = float(s_grid[np.argmax(np.abs(reference.offset_at(s_grid)))])
+    later = s_grid[s_grid > env.track.length_m / 2]  # where x_m is far from s_m
+    start_s = float(later[np.argmax(np.abs(reference.offset_at(later)))])
     _, info = env.reset(seed=0, options={"start_s_m": start_s})
     offset = float(reference.offset_at(info["s_m"]))
     assert abs(offset) > 0.1 and info["e_y_m"] == pytest.approx(offset, abs=0.01)
@@ -350,5 +353,24 @@ def test_the_set_starts_on_the_task_s_reference_line():
     env.close()
     first = decisions[0]
     assert first["state_lower"][0] < offset < first["state_upper"][0]
-    assert first["state_upper"][0] - first["state_lower"][0] < 0.06
+    lower, upper = np.array(first["state_lower"]), np.array(first["state_upper"])
+    np.testing.assert_allclose(0.5 * (lower + upper)[:2], first["state_true"][:2], atol=2e-3)
+    np.testing.assert_allclose((upper - lower)[:2], [0.02, 0.004], atol=1e-3)  # 1 cm, 2 mrad
     assert all(decision["covered"] for decision in decisions)
+
+
+def test_a_trusted_frame_narrows_the_set_that_grew_in_doubt(own_lane: str):
+    """Ten seconds in doubt widen the carried set to +-0.25 m; one trusted frame (+-4 cm)
+    narrows what is carried on to twice its width: in doubt again, the set is that."""
+    env, source, _ = drift_off_then_doubt(own_lane)
+    for _ in range(200):
+        info = env.step(np.array([0.0, 1.0]))[-1]
+    grown = np.array(info["safety"]["state_upper"]) - np.array(info["safety"]["state_lower"])
+    source.alarm = False
+    env.step(np.array([0.0, 1.0]))
+    source.alarm = True
+    decision = env.step(np.array([0.0, 1.0]))[-1]["safety"]
+    env.close()
+    narrowed = np.array(decision["state_upper"]) - np.array(decision["state_lower"])
+    assert grown[0] > 0.3 and decision["mode"] == "propagated"
+    assert narrowed[0] < 2 * 0.08 + 0.01
