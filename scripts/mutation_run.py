@@ -59,6 +59,7 @@ TARGETS: dict[str, list[str]] = {
     ],
     "saferace/safety/uncertainty/dead_reckoning.py": ["tests/test_dead_reckoning.py"],
     "saferace/safety/uncertainty/estimate.py": [
+        "tests/test_state_estimate.py",
         "tests/test_robust_filter.py",
         "tests/test_dead_reckoning.py",
     ],
