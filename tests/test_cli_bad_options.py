@@ -104,3 +104,28 @@ def test_a_bad_value_is_refused_in_one_line_naming_its_option(
     assert code == 2, lines
     assert len(lines) == 1 and name(action).replace("_", "-") in lines[0].replace("_", "-"), lines
     assert time.perf_counter() - started < 1.0  # refused before any work
+
+
+SEEDS = [
+    (command, action)
+    for command in COMMANDS
+    for action in COMMANDS[command]._actions
+    if action.dest == "seeds"
+]
+
+
+@pytest.mark.parametrize(("command", "action"), SEEDS, ids=case_id)
+def test_a_seed_given_twice_is_refused_in_one_line(
+    command: str, action: argparse.Action, capsys: pytest.CaptureFixture
+):
+    argv = arguments(command, action, "1")
+    at = argv.index(action.option_strings[-1]) + 1
+    argv[at + 1 : at + 1] = ["2", "1"]  # --seeds 1 2 1
+    try:
+        code = main(argv)
+    except SystemExit as exit:
+        code = exit.code
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and lines == [f"saferace {command}: error: argument --seeds: 1 is given "
+                                   "twice; give each once"]  # fmt: skip
+    assert isinstance(action, values.Distinct) and len(SEEDS) >= 3

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import logging
+import os
+
 import pytest
 
 from saferace.eval.parallel import available_cores, run_jobs
@@ -27,10 +30,15 @@ def test_workers_on_every_core_see_one_thread_each_and_the_serial_path_keeps_its
     assert serial == [thread_counts()]  # the serial path keeps this process's threads
 
 
-def test_more_workers_than_cores_are_warned_about():
-    with pytest.warns(RuntimeWarning, match=f"workers on {available_cores()} cores"):
-        jobs = [(-1,)] * (available_cores() + 1)
-        run_jobs(abs, jobs, lambda job, value: None, workers=available_cores() + 1)
+def test_more_workers_than_cores_are_capped_at_the_cores_in_one_line(
+    caplog: pytest.LogCaptureFixture,
+):
+    cores = available_cores()
+    pids: set[int] = set()
+    with caplog.at_level(logging.WARNING):
+        run_jobs(os.getpid, [()] * 4 * (cores + 1), lambda job, pid: pids.add(pid), cores + 2)
+    assert len(pids) <= cores  # no more processes than cores
+    assert caplog.messages == [f"{cores + 2} workers asked for on {cores} cores: running {cores}"]
 
 
 def test_no_jobs_on_several_workers_is_nothing_to_do():

@@ -61,7 +61,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     add_episode_arguments(evaluate, default_agent="expert")
     evaluate.add_argument(
-        "--seeds", type=values.seed, nargs="+", default=[0], help="one episode per seed"
+        "--seeds",
+        type=values.seed,
+        nargs="+",
+        action=values.Distinct,
+        default=[0],
+        help="one episode per seed",
     )
     evaluate.add_argument(
         "--model",

@@ -116,7 +116,12 @@ def register(commands: argparse._SubParsersAction) -> None:
     )
     add_slack_argument(tables, "every filtered run and drive")
     tables.add_argument(
-        "--seeds", type=values.seed, nargs="+", default=[0], help="one run set per seed"
+        "--seeds",
+        type=values.seed,
+        nargs="+",
+        action=values.Distinct,
+        default=[0],
+        help="one run set per seed",
     )
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     add_device_argument(tables)

@@ -17,7 +17,7 @@ import types
 import typing
 from typing import Any
 
-from saferace.cli.values import CheckedNumber
+from saferace.cli.values import CheckedNumber, Distinct
 from saferace.config import Bounds
 from saferace.names import AUTO
 
@@ -50,6 +50,8 @@ def add_config_options(
                 kwargs[key] = field.metadata[key]
         if "action" not in kwargs and "metavar" not in kwargs and "choices" not in kwargs:
             kwargs["metavar"] = field.name.upper()
+        if field.name == "seeds":  # a seed twice runs one episode twice, counted as two
+            kwargs["action"] = Distinct
         parser.add_argument(flag, dest=prefix + field.name, help=field.metadata["help"], **kwargs)
         flags[field.name] = flag
     target = command if command is not None else parser

@@ -79,6 +79,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--seeds",
         type=values.seed,
         nargs="+",
+        action=values.Distinct,
         default=[0, 1, 2, 3],
         help="a look per seed (--randomize)",
     )

@@ -79,3 +79,21 @@ def labelled_folder(text: str) -> tuple[str, Path]:
             f"name each as LABEL=FOLDER, e.g. ensemble=results/ens, got {text!r}"
         )
     return label, existing(folder)
+
+
+class Distinct(argparse.Action):
+    """An ``nargs="+"`` option's ``action`` that refuses a value given twice (``--seeds 0 0``
+    would run the same episode twice and count it as two)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        given: object,
+        option_string: str | None = None,
+    ) -> None:
+        items = list(given) if isinstance(given, list) else [given]
+        repeated = next((item for index, item in enumerate(items) if item in items[:index]), None)
+        if repeated is not None:
+            parser.error(f"argument {option_string}: {repeated} is given twice; give each once")
+        setattr(namespace, self.dest, items)

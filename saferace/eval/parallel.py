@@ -16,9 +16,9 @@ one process). The serial path keeps its threads.
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
-import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
@@ -28,6 +28,8 @@ from saferace.cache import CACHE_VARIABLE
 from saferace.errors import SafeRaceError
 from saferace.extras import require
 from saferace.names import COMPILE_VARIABLE, DEVICE_VARIABLE
+
+LOG = logging.getLogger(__name__)
 
 RAY_RETRIES = 2
 #: Of a GPU, what each Ray task asks for when the networks run on CUDA: four tasks share one.
@@ -62,13 +64,9 @@ def run_jobs(
             advance(job)
     else:
         cores, workers = available_cores(), min(workers, len(jobs))
-        if workers > cores:
-            warnings.warn(
-                f"{workers} workers on {cores} cores: they share cores and run slower than "
-                f"{cores} would",
-                RuntimeWarning,
-                stacklevel=2,
-            )
+        if workers > cores:  # more would share the cores and run slower than these
+            LOG.warning("%d workers asked for on %d cores: running %d", workers, cores, cores)
+            workers = cores
         failures = []
         with ProcessPoolExecutor(
             workers,
