@@ -171,3 +171,17 @@ def test_failed_runs_in_worker_processes_are_reported_not_dropped(tmp_path: Path
             progress=False,
             runs=LAB_RUNS,
         )
+
+
+@pytest.mark.parametrize(
+    ("count", "words"),
+    [(0, "0 at-fault collisions"), (1, "1 at-fault collision"), (3, "3 at-fault collisions")],
+)
+def test_a_runs_line_counts_its_collisions_in_good_english(count: int, words: str):
+    row = {
+        "score": 0.5,
+        "completion": 1.0,
+        "time_outside_lane_s": 0.0,
+        "at_fault_collisions": count,
+    }
+    assert benchmark.run_words(row).endswith(f", longest standstill -, {words}")

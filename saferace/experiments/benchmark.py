@@ -299,8 +299,9 @@ def run_words(row: dict) -> str:
         f"{row['time_outside_lane_s']:.2f} s outside, "
         + standstill_words(row.get("longest_standstill_s"))
     )
-    if row.get("at_fault_collisions") is not None:
-        words += f", {row['at_fault_collisions']} at-fault collisions"
+    collisions = row.get("at_fault_collisions")
+    if collisions is not None:
+        words += f", {collisions} at-fault collision{'' if collisions == 1 else 's'}"
     return words
 
 
