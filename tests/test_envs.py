@@ -11,7 +11,8 @@ from gymnasium.utils.env_checker import check_env
 
 import saferace  # noqa: F401  - registers the tasks
 from saferace.errors import SafeRaceError
-from saferace.names import TRAFFIC_TASK_IDS
+from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.names import FILTER_KINDS, TRAFFIC_TASK_IDS
 from saferace.registry import TASKS
 from saferace.track import Track, builtin_track_names
 
@@ -39,6 +40,31 @@ def test_env_checker(task_id: str):
     env = gym.make(task_id, track="lab", render_mode="rgb_array")
     check_env(env.unwrapped, skip_render_check=False)
     env.close()
+
+
+@pytest.mark.parametrize("kind", [kind for kind in FILTER_KINDS if kind != "none"])
+@pytest.mark.parametrize("task_id", TASK_IDS)
+def test_env_checker_passes_behind_every_filter_family(task_id: str, kind: str):
+    """What Stable-Baselines3 users check before they train: the wrapped task is a valid
+    gymnasium env, its info (the filter's decision) the same for the same seed and actions."""
+    env = apply_filter(gym.make(task_id, track="lab", image_size=(32, 32)), FilterConfig(kind))
+    check_env(env, skip_render_check=True)
+    env.close()
+
+
+def test_a_filters_record_keeps_its_clock_times_only_when_asked():
+    env = apply_filter(gym.make(TASK_IDS[0], track="lab", image_size=(32, 32)), FilterConfig("cbf"))
+    env.reset(seed=0)
+    untimed = env.step(np.zeros(2))[-1]["safety"]
+    timed_env = apply_filter(
+        gym.make(TASK_IDS[0], track="lab", image_size=(32, 32)), FilterConfig("cbf"), timed=True
+    )
+    timed_env.reset(seed=0)
+    timed = timed_env.step(np.zeros(2))[-1]["safety"]
+    assert untimed["solve_time_s"] == untimed["filter_time_s"] == 0.0
+    assert 0.0 < timed["solve_time_s"] <= timed["filter_time_s"]
+    env.close()
+    timed_env.close()
 
 
 @pytest.mark.parametrize("task_id", TASK_IDS)

@@ -31,8 +31,11 @@ if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's O
 __all__ = ["STATE_SOURCE_FACTORIES", "FilterConfig", "apply_filter"]
 
 
-def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) -> gym.Env:
-    """``env`` wrapped as ``config`` says (unchanged for ``kind="none"``)."""
+def apply_filter(
+    env: gym.Env, config: FilterConfig, seed: int | None = None, timed: bool = False
+) -> gym.Env:
+    """``env`` wrapped as ``config`` says (unchanged for ``kind="none"``); ``timed``: its
+    decisions record their wall-clock times (``SafetyFilter.record_timings``)."""
     if config.kind == "none":
         return env
     base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
@@ -84,11 +87,14 @@ def apply_filter(env: gym.Env, config: FilterConfig, seed: int | None = None) ->
         "uncertainty": config.uncertainty,
     }
     if config.kind == "mpsf":
-        return PredictiveSafetyFilter(env, **shared)
-    return SafetyFilter(
-        env,
-        **shared,
-        slack_penalty=config.slack,
-        opponent_noise_m=config.opponent_noise_m,
-        **GAIN_PRESETS[config.gains],
-    )
+        wrapped: SafetyFilter = PredictiveSafetyFilter(env, **shared)
+    else:
+        wrapped = SafetyFilter(
+            env,
+            **shared,
+            slack_penalty=config.slack,
+            opponent_noise_m=config.opponent_noise_m,
+            **GAIN_PRESETS[config.gains],
+        )
+    wrapped.record_timings = timed
+    return wrapped

@@ -303,7 +303,7 @@ def make_task_env(
 ) -> gym.Env:
     """A task's env for ``laps`` laps of ``track``, behind the filter ``safety`` asks for."""
     env = gym.make(task_id(task), track=track, max_laps=laps, **env_kwargs)
-    return apply_filter(env, safety, seed)
+    return apply_filter(env, safety, seed, timed=True)
 
 
 def result_row(

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+from gymnasium.utils import RecordConstructorArgs
 
 #: Why the filter stopped trusting its state source in a step (``SafetyDecision.fallback``):
 #: the out-of-distribution monitor raised, no control satisfied the robust constraints, or
@@ -89,5 +90,23 @@ class SafetyDecision:
     n_samples: int
     mode: str
 
-    def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+    def as_dict(self, timed: bool = True) -> dict[str, Any]:
+        """The decision's fields; ``timed=False``: its wall-clock times 0, so that the same
+        seed and actions give the same record."""
+        fields = asdict(self)
+        if not timed:
+            fields["solve_time_s"] = fields["filter_time_s"] = 0.0
+        return fields
+
+
+def record_args(wrapper: Any, arguments: dict[str, Any]) -> None:
+    """Record a filter wrapper's constructor ``arguments`` (its ``locals()`` on entry) as
+    gymnasium's ``RecordConstructorArgs`` does, so that ``env.spec`` can name and remake
+    it; the first call wins (a subclass's, before its parent's), and nothing is copied (a
+    state source may hold a network)."""
+    kept = {name: value for name, value in arguments.items() if name not in IMPLICIT}
+    RecordConstructorArgs.__init__(wrapper, _disable_deepcopy=True, **kept)
+
+
+#: A constructor's ``locals()`` that are not its arguments.
+IMPLICIT = ("self", "env", "__class__")

@@ -28,7 +28,7 @@ from saferace.safety.cbf.chance import (
 from saferace.safety.cbf.exact_penalty import solve_filter_qp_l1
 from saferace.safety.cbf.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
 from saferace.safety.cbf.qp import FilterProblem, FilterSolution, solve_filter_qp
-from saferace.safety.decision import SafetyDecision, decision_mode, nominal_parts
+from saferace.safety.decision import SafetyDecision, decision_mode, nominal_parts, record_args
 from saferace.safety.models import lane_model_states, param_values, symbolic_model
 from saferace.safety.traffic import car_barriers
 from saferace.safety.uncertainty.dead_reckoning import LastTrusted
@@ -48,12 +48,11 @@ from saferace.safety.vehicle_params import VehicleParams, load_params
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
     from saferace.envs.racing_env import RacingEnv
 
-#: Settings of ``SafetyFilter`` by name (:data:`saferace.names.GAIN_NAMES`): the paper's
-#: gain; the same within the tyres' grip (``max_lateral_accel_mps2``, the default), since at
-#: racing speed the paper's kinematic filter asks for corrections the car cannot drive; the
-#: gains measured to leave the expert most alone while keeping every reckless run of
-#: ``saferace safety-table`` inside; and those within the grip, the robust mode's (without
-#: it a drifting agent at a circuit's 6.7 m/s start slid out of a 2.2 m lane, fed the truth).
+#: Settings of ``SafetyFilter`` by name (:data:`saferace.names.GAIN_NAMES`): the paper's gain;
+#: the same within the tyres' grip (the default: at racing speed the paper's kinematic filter
+#: asks for corrections the car cannot drive); the gains measured to leave the expert most
+#: alone while keeping every reckless ``saferace safety-table`` run inside; and those within
+#: the grip, the robust mode's (a drifting agent slid out of a 2.2 m lane without it).
 GRIP = {"max_lateral_accel_mps2": SPEED_LIMIT_LATERAL_MPS2}
 GAIN_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"lam": 2.5},
@@ -72,7 +71,7 @@ RELINEARISE_TOL = 1e-3  # rad: a steering this close to the linearisation point 
 INFEASIBLE_SLACK = 1e-2
 
 
-class SafetyFilter(gym.Wrapper):
+class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Keep any agent in its lane with a (probabilistic) higher-order CBF QP (paper Sec. 3).
 
     Each step the filter takes the agent's action ``u_ref`` (and its spread, see
@@ -131,13 +130,15 @@ class SafetyFilter(gym.Wrapper):
     ``action_std``: the spread assumed when the agent gives none, ``min_action_std`` its
     floor; ``lane_margin_m``: added to the car's half width in the lane barriers (the
     models are not exact); ``params``: vehicle parameters (default: identified ones).
-    ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`; ``slack_penalty``:
-    the QP's squared slack (the paper's) or the exact L1 one
-    (:mod:`~saferace.safety.cbf.exact_penalty`). ``GAIN_PRESETS`` names the settings the command
-    line offers. In traffic a barrier per opponent joins the QP, where the car is kept
-    clear before the lane (:mod:`~saferace.safety.traffic.car_barriers`; where it cannot be, the
-    filter brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise on their
-    positions (else the truth, as ``s`` is)."""
+    ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`; ``slack_penalty``: the
+    QP's squared slack (the paper's) or the exact L1 one (:mod:`~saferace.safety.cbf.
+    exact_penalty`). In traffic a barrier per opponent joins the QP, where the car is kept
+    clear before the lane (:mod:`~saferace.safety.traffic.car_barriers`; where it cannot be,
+    it brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise on their
+    positions (else the truth, as ``s`` is). ``info["safety"]`` is the same for the same seed
+    and actions (the env checker's ask): its clock times are 0 unless ``record_timings``."""
+
+    record_timings = False
 
     def __init__(
         self,
@@ -164,13 +165,12 @@ class SafetyFilter(gym.Wrapper):
         slack_penalty: str = SQUARED_SLACK,
         opponent_noise_m: float = 0.0,
     ) -> None:
+        record_args(self, locals())
         super().__init__(env)
         if uncertainty not in UNCERTAINTY_MODES:
             raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
         if slack_penalty not in SLACK_PENALTIES:
-            raise ValueError(
-                f"slack_penalty must be one of {SLACK_PENALTIES}, got {slack_penalty!r}"
-            )
+            raise ValueError(f"slack_penalty must be in {SLACK_PENALTIES}, got {slack_penalty!r}")
         self.solve = solve_filter_qp if slack_penalty == SQUARED_SLACK else solve_filter_qp_l1
         gains = class_k_gains(lam)
         for name, value in (
@@ -250,7 +250,7 @@ class SafetyFilter(gym.Wrapper):
         observation, reward, terminated, truncated, info = self.env.step(
             np.asarray(decision.filtered_action, dtype=np.float32)
         )
-        info = {**info, "safety": decision.as_dict()}
+        info = {**info, "safety": decision.as_dict(timed=self.record_timings)}
         self._observation, self._info = observation, info
         prefetch(self.state_source, observation)
         return observation, reward, terminated, truncated, info

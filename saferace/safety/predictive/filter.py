@@ -19,7 +19,7 @@ import numpy as np
 from saferace.names import UNCERTAINTY_MODES
 from saferace.safety.cbf.filter import INTERVENTION_TOLERANCE, SafetyFilter
 from saferace.safety.cbf.filter_map import SPEED_LIMIT_LATERAL_MPS2
-from saferace.safety.decision import SafetyDecision
+from saferace.safety.decision import SafetyDecision, record_args
 from saferace.safety.predictive.plan import PREDICTIVE_HORIZON, PredictivePlanner
 from saferace.safety.uncertainty.estimate import checked_action, estimate_state
 from saferace.safety.uncertainty.fallback import FALLBACK_BRAKE_MPS2, fallback_steer_rad
@@ -84,6 +84,7 @@ class PredictiveSafetyFilter(SafetyFilter):
         params: VehicleParams | None = None,
         uncertainty: str = "chance",
     ) -> None:
+        record_args(self, locals())
         if uncertainty not in UNCERTAINTY_MODES:
             raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
         if horizon < 2:
