@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -46,3 +51,47 @@ def test_no_jobs_on_several_workers_is_nothing_to_do():
     for workers in (1, 2):
         run_jobs(abs, [], lambda job, value: kept.append(value), workers=workers)
     assert kept == []
+
+
+PARENT = """
+import os, sys, time
+from saferace.eval.parallel import run_jobs
+
+def wait(folder):
+    open(os.path.join(folder, str(os.getpid())), "w").close()
+    time.sleep(60)
+
+if __name__ == "__main__":
+    run_jobs(wait, [(sys.argv[1],)] * 6, lambda job, value: None, workers=2)
+"""
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as stat:  # a zombie is gone, only not yet reaped
+        return stat.read().split(")")[-1].split()[0] != "Z"
+
+
+@pytest.mark.parametrize("signal_number", [signal.SIGINT, signal.SIGTERM], ids=["int", "term"])
+def test_workers_end_with_their_parent_on_sigint_and_sigterm(tmp_path: Path, signal_number: int):
+    """The issue's trace: ``benchmark --workers 3`` stopped by SIGINT to its main process
+    left its idle workers and the resource tracker to PID 1, with leaked semaphores."""
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)
+    parent = subprocess.Popen(
+        [sys.executable, str(script), str(tmp_path)], stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.monotonic() + 60.0
+    while len(list(tmp_path.glob("[0-9]*"))) < 2 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    workers = [int(path.name) for path in tmp_path.glob("[0-9]*")]
+    assert len(workers) == 2, "both workers started a job"
+    parent.send_signal(signal_number)
+    _, stderr = parent.communicate(timeout=30)
+    assert parent.returncode != 0
+    time.sleep(1.0)
+    assert not [pid for pid in workers if alive(pid)]
+    assert "leaked semaphore" not in stderr

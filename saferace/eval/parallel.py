@@ -16,11 +16,15 @@ one process). The serial path keeps its threads.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from multiprocessing import get_context
 from typing import Any
 
@@ -30,6 +34,8 @@ from saferace.extras import require
 from saferace.names import COMPILE_VARIABLE, DEVICE_VARIABLE
 
 LOG = logging.getLogger(__name__)
+#: Linux's ``prctl`` option that has the kernel signal a process when its parent ends.
+PR_SET_PDEATHSIG = 1
 
 RAY_RETRIES = 2
 #: Of a GPU, what each Ray task asks for when the networks run on CUDA: four tasks share one.
@@ -68,21 +74,67 @@ def run_jobs(
             LOG.warning("%d workers asked for on %d cores: running %d", workers, cores, cores)
             workers = cores
         failures = []
-        with ProcessPoolExecutor(
+        pool = ProcessPoolExecutor(
             workers,
             mp_context=get_context("spawn"),
-            initializer=limit_threads,
+            initializer=start_worker,
             initargs=(max(1, cores // workers),),
-        ) as pool:
-            futures = {pool.submit(function, *job): job for job in jobs}
-            for future in as_completed(futures):
-                job = futures[future]
-                try:
-                    keep(job, future.result())
-                except Exception as error:  # keep the others' results, report it after
-                    failures.append(f"{describe(job)}: {type(error).__name__}: {error}")
-                advance(job)
+        )
+        try:
+            with interrupted_by_sigterm():
+                futures = {pool.submit(function, *job): job for job in jobs}
+                for future in as_completed(futures):
+                    job = futures[future]
+                    try:
+                        keep(job, future.result())
+                    except Exception as error:  # keep the others' results, report it after
+                        failures.append(f"{describe(job)}: {type(error).__name__}: {error}")
+                    advance(job)
+        except BaseException:  # Ctrl-C, SIGTERM: the workers end with the run, at once
+            stop_workers(pool)
+            raise
+        pool.shutdown()
         _raise_failures(failures, "in worker processes")
+
+
+@contextmanager
+def interrupted_by_sigterm() -> Iterator[None]:
+    """SIGTERM raises ``KeyboardInterrupt`` in the main thread while this lasts, as Ctrl-C
+    does, so that the pool's workers are stopped before the process ends (left alone, it
+    ended the run and left its workers to PID 1)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_interrupt(signal_number: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signal_number}")
+
+
+def stop_workers(pool: ProcessPoolExecutor) -> None:
+    """End ``pool`` now: its queued jobs cancelled, its worker processes terminated."""
+    processes = list(getattr(pool, "_processes", {}).values())  # the pool's own record
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(timeout=5.0)
+
+
+def start_worker(threads: int) -> None:
+    """A worker process's start: it ends with its parent however that ends (Linux: the
+    kernel sends it SIGTERM, even where the parent was killed outright), and it takes
+    ``threads`` threads (:func:`limit_threads`)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() == 1:  # the parent ended before the line above ran
+            os._exit(1)
+    limit_threads(threads)
 
 
 def available_cores() -> int:
