@@ -10,7 +10,9 @@ import time
 import pytest
 
 from saferace.cli import build_parser, main, values
+from saferace.cli.arguments import FAST_MEAN_SPEED_MPS, check_drive_length
 from saferace.cli.values import CheckedNumber
+from saferace.track import Track
 
 PARSER = build_parser()
 COMMANDS = next(a for a in PARSER._actions if isinstance(a, argparse._SubParsersAction)).choices
@@ -129,3 +131,20 @@ def test_a_seed_given_twice_is_refused_in_one_line(
     assert code == 2 and lines == [f"saferace {command}: error: argument --seeds: 1 is given "
                                    "twice; give each once"]  # fmt: skip
     assert isinstance(action, values.Distinct) and len(SEEDS) >= 3
+
+
+def test_laps_beyond_an_hour_of_driving_ask_for_yes_in_one_line_with_the_estimate(
+    capsys: pytest.CaptureFixture,
+):
+    """``eval --laps 1000000`` printed nothing for minutes and kept every step in memory."""
+    code = main(["eval", "--agent", "expert", "--track", "lab", "--laps", "1000000",
+                 "--seeds", "0", "1", "--out", "rows.jsonl"])  # fmt: skip
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1
+    assert "1,000,000 laps of lab" in lines[0] and "x 2 episode(s)" in lines[0]
+    assert "pass --yes" in lines[0] and "--laps" in lines[0]
+    hours = 1_000_000 * 2 * Track.load("lab").length_m / FAST_MEAN_SPEED_MPS / 3600.0
+    assert f"at least {hours:,.1f} h" in lines[0]
+    fine = argparse.Namespace(track="lab", laps=100, seeds=[0], yes=False)
+    check_drive_length(fine)  # 100 laps of lab: 7 min
+    check_drive_length(argparse.Namespace(track="lab", laps=10**6, seeds=[0], yes=True))

@@ -44,6 +44,11 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     group.add_argument("--agent", default=default_agent, help=AGENT_HELP)
     group.add_argument("--laps", type=values.count, default=1, help="laps per episode")
     group.add_argument(
+        "--yes",
+        action="store_true",
+        help=f"run even where the laps asked for are more than {LONG_DRIVE_H:g} h of driving",
+    )
+    group.add_argument(
         "--image-size", type=values.image_size, default=64, help="onboard image height and width"
     )
     group.add_argument("--stereo", action="store_true", help="stereo camera pair (6 channels)")
@@ -56,6 +61,29 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     group.add_argument(
         "--opponents", nargs="+", metavar="POLICY[:FIELD=VALUE,...]", help=OPPONENTS_HELP
     )
+
+
+#: Simulated driving (hours) beyond which a run asks for ``--yes`` (:func:`check_drive_length`).
+LONG_DRIVE_H = 1.0
+#: A fast car's mean speed (m/s), for the shortest the laps asked for can take.
+FAST_MEAN_SPEED_MPS = 6.0
+
+
+def check_drive_length(args: argparse.Namespace) -> None:
+    """Refuse, in one line with the estimate, laps that a fast car would take more than
+    :data:`LONG_DRIVE_H` hours of simulated driving over (every step is kept in memory),
+    unless ``--yes``: ``eval --laps 1000000`` printed nothing for minutes before."""
+    from saferace.track import Track
+
+    episodes = len(getattr(args, "seeds", [0]))
+    length_m = Track.load(args.track).length_m
+    hours = args.laps * episodes * length_m / FAST_MEAN_SPEED_MPS / 3600.0
+    if hours > LONG_DRIVE_H and not args.yes:
+        raise SafeRaceError(
+            f"argument --laps: {args.laps:,} laps of {Path(args.track).stem} ({length_m:.0f} m) "
+            f"x {episodes} episode(s) is at least {hours:,.1f} h of simulated driving, every "
+            "step kept in memory; pass --yes to run it"
+        )
 
 
 def add_filter_arguments(

@@ -15,6 +15,7 @@ from saferace.cli.arguments import (
     add_num_envs_argument,
     add_parallel_arguments,
     built_filter_config,
+    check_drive_length,
 )
 from saferace.errors import SafeRaceError
 from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS, VERIFY_RUNS
@@ -160,6 +161,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _drive(args: argparse.Namespace) -> int:
+    check_drive_length(args)
     from saferace.eval.drive import drive
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import result_row
@@ -198,6 +200,7 @@ def _drive(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    check_drive_length(args)
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import evaluate, max_steps_for
 
