@@ -49,6 +49,8 @@ def test_an_mp4_is_h264_in_yuv420_and_decodes_to_the_frames_written(tmp_path: Pa
     reds = [float(image[..., 0].mean()) for image in decoded]
     np.testing.assert_allclose(reds, [8 * index for index in range(FRAMES)], atol=4.0)
     assert all(abs(float(image[..., 2].mean()) - 200.0) < 4.0 for image in decoded)
+    content = writer.path.read_bytes()  # the index before the frames: progressive playback
+    assert 0 < content.find(b"moov") < content.find(b"mdat")
 
 
 def test_without_an_h264_encoder_an_mp4_becomes_a_webm_that_decodes(

@@ -110,7 +110,8 @@ class _H264Sink:
         encoder = h264_encoder()
         assert encoder is not None  # video_path chose an MP4
         self._frame = av.VideoFrame.from_ndarray
-        self._container = av.open(str(path), "w")
+        # the index (moov) before the frames: a browser plays it while it downloads
+        self._container = av.open(str(path), "w", options={"movflags": "faststart"})
         stream = self._container.add_stream(encoder, rate=round(fps))
         assert isinstance(stream, av.VideoStream)
         stream.height, stream.width = height - height % 2, width - width % 2
