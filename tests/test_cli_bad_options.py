@@ -148,3 +148,24 @@ def test_laps_beyond_an_hour_of_driving_ask_for_yes_in_one_line_with_the_estimat
     fine = argparse.Namespace(track="lab", laps=100, seeds=[0], yes=False)
     check_drive_length(fine)  # 100 laps of lab: 7 min
     check_drive_length(argparse.Namespace(track="lab", laps=10**6, seeds=[0], yes=True))
+
+
+@pytest.mark.parametrize("command", ["eval", "drive"])
+@pytest.mark.parametrize(
+    ("agent", "problem"),
+    [
+        ("no_such_module:make", "cannot load 'no_such_module:make': No module named"),
+        ("learned:/no/such.pt", "agent 'learned:/no/such.pt': no checkpoint at /no/such.pt"),
+        ("reckles", "unknown agent 'reckles'"),
+    ],
+)
+def test_an_agent_that_cannot_be_made_is_refused_before_any_setup(
+    command: str, agent: str, problem: str, capsys: pytest.CaptureFixture
+):
+    started = time.perf_counter()
+    out = ["--out", "rows.jsonl"] if command == "eval" else []
+    code = main([command, "--agent", agent, "--track", "lab", *out])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith(f"saferace {command}: error: {problem}")
+    assert time.perf_counter() - started < 1.0  # before the task is built

@@ -60,8 +60,8 @@ def test_the_command_line_refuses_a_gpu_it_cannot_see(tmp_path: Path):
     )  # fmt: skip
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
-        "saferace: error: --device cuda: PyTorch sees no CUDA GPU on this machine (a CPU-only "
-        "build, no driver, or CUDA_VISIBLE_DEVICES empty); use --device cpu or auto"
+        "saferace train: error: --device cuda: PyTorch sees no CUDA GPU on this machine (a "
+        "CPU-only build, no driver, or CUDA_VISIBLE_DEVICES empty); use --device cpu or auto"
     ]
 
 

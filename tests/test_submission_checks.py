@@ -341,8 +341,8 @@ def test_the_leaderboard_refuses_in_one_line_and_ranks_the_honest(
     assert refused.returncode != 0
     row = doctored["rows"][0]
     assert refused.stderr.strip().splitlines() == [
-        f"saferace: error: {path}: run {FIRST}: the drive ({row['driven_s']:g} s) went on "
-        f"after its last lap ({row['lap_time_s']:g} s)"
+        f"saferace leaderboard: error: {path}: run {FIRST}: the drive ({row['driven_s']:g} s) "
+        f"went on after its last lap ({row['lap_time_s']:g} s)"
     ]
     accepted = run_cli("leaderboard", str(honest_submission))
     assert accepted.returncode == 0, accepted.stderr

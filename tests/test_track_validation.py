@@ -267,7 +267,7 @@ def test_cli_reports_one_line_without_traceback(tmp_path: Path, case: str):
     assert "Traceback" not in result.stderr
     error_lines = result.stderr.strip().splitlines()
     assert len(error_lines) == 1
-    assert error_lines[0].startswith("saferace: error: ")
+    assert error_lines[0].startswith("saferace raceline: error: ")
     assert str(path) in error_lines[0]
 
 

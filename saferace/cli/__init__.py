@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="saferace", description=__doc__.split("\n\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     commands = parser.add_subparsers(
+        dest="command_name",
         required=True,
         metavar="COMMAND",
         parser_class=_Parser,
@@ -72,10 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         return args.command(args)
     except ConfigError as exc:
         flag = (getattr(args, FLAGS_KEY, None) or {}).get(exc.field, exc.field)
-        print(f"saferace: error: {flag} {exc.problem}", file=sys.stderr)
+        print(f"saferace {args.command_name}: error: {flag} {exc.problem}", file=sys.stderr)
         return 2
-    except SafeRaceError as exc:
-        print(f"saferace: error: {exc}", file=sys.stderr)
+    except SafeRaceError as exc:  # named by its command, as argparse names a bad option's
+        print(f"saferace {args.command_name}: error: {exc}", file=sys.stderr)
         return 2
 
 

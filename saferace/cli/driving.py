@@ -161,6 +161,9 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 
 def _drive(args: argparse.Namespace) -> int:
+    from saferace.eval.agents import check_agent_spec
+
+    check_agent_spec(args.agent)
     check_drive_length(args)
     from saferace.eval.drive import drive
     from saferace.eval.leaderboard import leaderboard_markdown
@@ -200,6 +203,9 @@ def _drive(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    from saferace.eval.agents import check_agent_spec
+
+    check_agent_spec(args.agent)
     check_drive_length(args)
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.eval.runner import evaluate, max_steps_for

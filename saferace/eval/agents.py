@@ -62,6 +62,25 @@ def make_agent(
     return load_entry_point(spec)(env)
 
 
+def check_agent_spec(spec: str) -> None:
+    """Refuse an agent ``spec`` that cannot be made, before any setup: an unknown name, a
+    learned agent's missing checkpoint, a ``MODULE:FACTORY`` that does not import (it was
+    found only after seconds of building the task)."""
+    if spec in BUILTIN_AGENTS:
+        return
+    if ":" not in spec:
+        names = ", ".join(BUILTIN_AGENTS)
+        raise SafeRaceError(
+            f"unknown agent {spec!r}: use {names}, learned:CHECKPOINT or MODULE:FACTORY"
+        )
+    kind, argument = spec.split(":", 1)
+    if kind in AGENT_KINDS:
+        if not Path(argument).is_file():
+            raise SafeRaceError(f"agent {spec!r}: no checkpoint at {argument}")
+        return
+    load_entry_point(spec)
+
+
 def agent_files(spec: str) -> list[Path]:
     """The files an agent ``spec`` loads besides SafeRace itself: a learned agent's
     checkpoint, or the module of ``MODULE:FACTORY``; none for a built-in driver."""
