@@ -6,6 +6,8 @@ says."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cvxpy as cp
 import gymnasium as gym
 import numpy as np
@@ -54,9 +56,12 @@ def planned(env: PredictiveSafetyFilter, *plan_args) -> tuple[StageQP, tuple[np.
     return solved[-1], (planner.plan_states[1:], planner.plan_inputs, slacks)
 
 
-@pytest.fixture()
-def env():
-    env = PredictiveSafetyFilter(gym.make("saferace/CenterLine-v0", track="lab", max_laps=1))
+@pytest.fixture(params=["CenterLine", "RacingLine"])
+def env(request: pytest.FixtureRequest):
+    """The filter on lab's centre line, and on its racing line, whose reference lies off
+    the centre line (the cost's reference then matters)."""
+    task = f"saferace/{request.param}-v0"
+    env = PredictiveSafetyFilter(gym.make(task, track="lab", max_laps=1))
     env.reset(seed=0, options={"start_s_m": 2.0, "start_speed_mps": 5.0})
     yield env
     env.close()
@@ -106,3 +111,15 @@ def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
         assert ref_states[:, env.planner.model.speed_index].min() == pytest.approx(0.0, abs=1e-6)
     if case == "free":
         assert ref_slacks.max() < 1e-6
+
+
+@pytest.mark.parametrize("missing", ["speed_caps", "heading_bound"])
+def test_the_condensed_plan_refuses_a_qp_without_its_caps_or_heading_bound(env, missing: str):
+    bounds = (np.array([-0.5, -6.0]), np.array([0.5, 6.0]))
+    qp, _ = planned(
+        env, state(env, 0.0, 0.0, 2.0), 2.0, 0.0, np.array([0.05, 0.5]), np.ones(2), bounds,
+        0.0, 0.0,
+    )  # fmt: skip
+    N, _, m = qp.B.shape
+    with pytest.raises(ValueError, match="speed caps and a terminal heading bound"):
+        env.planner._qp.solve(replace(qp, **{missing: None}), np.eye(N * m))
