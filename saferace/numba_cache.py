@@ -37,7 +37,7 @@ def recompiled_when_changed(*callees: Any) -> Callable[[Compiled], Compiled]:
 
     def decorate(dispatcher: Compiled) -> Compiled:
         cache = getattr(dispatcher, "_cache", None)
-        if cache is None or not hasattr(cache, "flush"):
+        if getattr(cache, "cache_path", None) is None:  # not njit, or without cache=True
             raise TypeError(f"{dispatcher!r} is not an njit function with cache=True")
         name = getattr(dispatcher, "__qualname__", type(dispatcher).__name__)
         stamp = Path(cache.cache_path) / f"{name}{STAMP_SUFFIX}"

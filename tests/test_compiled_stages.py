@@ -111,7 +111,8 @@ def test_changed_equations_under_the_same_models_name_are_new_code(
     """The generated code is keyed by its source, not by the model's name: a model whose
     equations change (``x p + steer`` to ``x p - accel``) is compiled afresh, never served
     the old code from the cache."""
-    monkeypatch.setenv("SAFERACE_CACHE", str(tmp_path))
+    cache = tmp_path / "not" / "made" / "yet"  # the cache's folders are made as needed
+    monkeypatch.setenv("SAFERACE_CACHE", str(cache))
     x, steer, accel, kappa, p = sp.symbols("x steer accel kappa p")
     arguments = (np.array([[2.0]]), np.array([1.0]), np.array([3.0]), np.zeros(1), np.array([5.0]))
     values = [
@@ -119,4 +120,4 @@ def test_changed_equations_under_the_same_models_name_are_new_code(
         for output in (x * p + steer, x * p - accel)
     ]
     assert [float(value[0, 0]) for value in values] == [11.0, 7.0]  # 2*5 + 1, 2*5 - 3
-    assert len(list((tmp_path / "model_code").glob("toy_*.py"))) == 2
+    assert len(list((cache / "model_code").glob("toy_*.py"))) == 2

@@ -10,8 +10,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from numba import njit
 
-from saferace.numba_cache import callees_digest
+from saferace.numba_cache import callees_digest, recompiled_when_changed
 from saferace.safety import frenet_stages, models
 from saferace.safety.matrix_exponential import expm_stacked
 from saferace.track.path import piece_values
@@ -77,3 +78,13 @@ def test_saferaces_cross_module_callers_are_stamped():
     ):
         stamp = Path(caller._cache.cache_path) / f"{caller.__qualname__}.callees"
         assert stamp.read_text() == callees_digest((callee,))
+
+
+def test_only_a_cached_njit_function_can_be_stamped():
+    def plain() -> int:
+        return 1
+
+    with pytest.raises(TypeError, match="not an njit function with cache=True"):
+        recompiled_when_changed(piece_values)(plain)
+    with pytest.raises(TypeError, match="not an njit function with cache=True"):
+        recompiled_when_changed(piece_values)(njit(plain))  # compiled, not cached
