@@ -36,7 +36,7 @@ def recompiled_when_changed(*callees: Any) -> Callable[[Compiled], Compiled]:
     (which then compiles in memory)."""
 
     def decorate(dispatcher: Compiled) -> Compiled:
-        cache = getattr(dispatcher, "_cache", None)
+        cache: Any = getattr(dispatcher, "_cache", None)
         if getattr(cache, "cache_path", None) is None:  # not njit, or without cache=True
             raise TypeError(f"{dispatcher!r} is not an njit function with cache=True")
         name = getattr(dispatcher, "__qualname__", type(dispatcher).__name__)
