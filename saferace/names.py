@@ -23,7 +23,8 @@ DRIVING_TASKS: tuple[str, ...] = (*TASKS, *TRAFFIC_TASK_IDS)
 #: The opponent specs' form on the command line and in configs.
 OPPONENTS_HELP = (
     "other cars on track, POLICY[:FIELD=VALUE,...]: expert, racer, pure-pursuit, lane-changer, "
-    "blocker, braking (fields gap_m, start_offset_m, speed_factor, lateral_offset_m)"
+    "blocker, braking, external (the caller's actions; fields gap_m, start_offset_m, "
+    "speed_factor, lateral_offset_m)"
 )
 
 #: Vehicle models of the expert MPC and the safety filter (``saferace.safety.models``).
