@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import hashlib
 import inspect
+import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 Compiled = TypeVar("Compiled")
+LOG = logging.getLogger(__name__)
 
 #: The stamp beside a function's cache index: ``NAME.callees`` in numba's cache folder.
 STAMP_SUFFIX = ".callees"
@@ -53,3 +55,18 @@ def recompiled_when_changed(*callees: Any) -> Callable[[Compiled], Compiled]:
         return dispatcher
 
     return decorate
+
+
+def compiled_here(dispatcher: Any) -> bool:
+    """Whether numba's disk cache holds an index of ``dispatcher``'s machine code (False
+    where it does not, or where it cannot tell): its first call then compiles."""
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    index = getattr(cache_file, "_index_path", None)
+    return index is not None and Path(index).is_file()
+
+
+def announce_compiling(what: str, *dispatchers: Any) -> None:
+    """Say, once, that ``what`` is compiled for this machine where a ``dispatcher`` has no
+    machine code cached yet: its first run waited 5-14 s without a word before."""
+    if not all(compiled_here(dispatcher) for dispatcher in dispatchers):
+        LOG.warning("compiling %s for this machine, once: a few seconds", what)

@@ -85,13 +85,14 @@ print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
 def test_a_models_code_is_compiled_once_and_loaded_by_the_next_process(tmp_path: Path):
     environment = os.environ | {"SAFERACE_CACHE": str(tmp_path)}
     command = [sys.executable, "-c", LOAD]
-    runs = [
-        subprocess.run(
-            command, env=environment, capture_output=True, text=True, check=True
-        ).stdout.split()
+    done = [
+        subprocess.run(command, env=environment, capture_output=True, text=True, check=True)
         for _ in range(2)
     ]
+    runs = [run.stdout.split() for run in done]
     assert runs == [["0", "1"], ["1", "0"]]  # compiled (a miss), then loaded (a hit)
+    said = "compiling the kinematic model's equations for this machine, once"
+    assert said in done[0].stderr and said not in done[1].stderr  # said where it waits
     (module,) = (tmp_path / "model_code").glob("kinematic_*.py")
     assert "def linearised(" in module.read_text()
 

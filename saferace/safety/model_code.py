@@ -23,6 +23,7 @@ from pathlib import Path
 import sympy as sp
 
 from saferace.cache import cache_root
+from saferace.numba_cache import announce_compiling
 
 #: The generated modules' folder under the cache root.
 MODEL_CODE_FOLDER = "model_code"
@@ -82,6 +83,7 @@ def stage_linearisation(
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # numba's cache finds a function's module by its name
     spec.loader.exec_module(module)
+    announce_compiling(f"the {name} model's equations", module.linearise_stages)
     return module.linearise_stages
 
 

@@ -19,6 +19,7 @@ import daqp
 import numpy as np
 from numba import njit
 
+from saferace.numba_cache import announce_compiling
 from saferace.safety.stage_qp import StageQP
 
 #: DAQP's infinity: bounds beyond it are none.
@@ -61,6 +62,7 @@ class CondensedPlanQP:
         heading_speed_gain: float,
         prices: SoftPrices,
     ) -> None:
+        announce_compiling("the predictive filter's plan", condensed_problem)
         N, m = horizon, n_control
         self.state_hessian = np.asarray(state_hessian, dtype=float)
         self.speed_index, self.heading_speed_gain = speed_index, heading_speed_gain
