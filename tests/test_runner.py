@@ -289,8 +289,8 @@ def test_a_run_says_how_it_ended():
 @pytest.mark.parametrize("command", ["drive", "eval"])
 def test_a_run_that_leaves_its_lane_says_so(command: str, tmp_path: Path):
     """The unfiltered weave agent leaves lab's lane within a second: ``eval`` says so on
-    its episode's line, ``drive`` on why it exits 1."""
+    its episode's line, ``drive`` too; both exit 0 (the run finished; it drove badly)."""
     out = ["--out", str(tmp_path / "rows.jsonl")] if command == "eval" else []
     result = run_cli(command, "--agent", "weave", "--track", "lab", *out)
     assert "ended: the car left its lane at 0.6" in result.stderr + result.stdout
-    assert result.returncode == (1 if command == "drive" else 0)
+    assert result.returncode == 0

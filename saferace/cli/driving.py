@@ -196,10 +196,9 @@ def _drive(args: argparse.Namespace) -> int:
     for label, path in (("video", video), ("rerun recording", args.rerun)):
         if path:
             print(f"{label} written to {path}")
-    if result.summary["laps_completed"] == args.laps:
-        return 0
-    print(f"saferace drive: not all {args.laps} laps driven; {result.ending}", file=sys.stderr)
-    return 1
+    if result.summary["laps_completed"] < args.laps:  # a finished run, as eval's: exit 0
+        print(f"saferace drive: not all {args.laps} laps driven; {result.ending}", file=sys.stderr)
+    return 0
 
 
 def _eval(args: argparse.Namespace) -> int:
