@@ -69,9 +69,9 @@ def run_jobs(
             keep(job, function(*job))
             advance(job)
     else:
-        cores, workers = available_cores(), min(workers, len(jobs))
+        cores, asked, workers = available_cores(), workers, min(workers, len(jobs))
         if workers > cores:  # more would share the cores and run slower than these
-            LOG.warning("%d workers asked for on %d cores: running %d", workers, cores, cores)
+            LOG.warning("%d workers asked for on %d cores: running %d", asked, cores, cores)
             workers = cores
         failures = []
         pool = ProcessPoolExecutor(
