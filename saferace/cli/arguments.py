@@ -63,6 +63,13 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     )
 
 
+def add_seeds_argument(parser: argparse.ArgumentParser, default: list[int], help: str) -> None:
+    """``--seeds``: distinct seeds (a seed twice would run one episode twice)."""
+    parser.add_argument(
+        "--seeds", type=values.seed, nargs="+", action=values.Distinct, default=default, help=help
+    )
+
+
 #: Simulated driving (hours) beyond which a run asks for ``--yes`` (:func:`check_drive_length`).
 LONG_DRIVE_H = 1.0
 #: A fast car's mean speed (m/s), for the shortest the laps asked for can take.

@@ -14,6 +14,7 @@ from saferace.cli.arguments import (
     add_filter_arguments,
     add_num_envs_argument,
     add_parallel_arguments,
+    add_seeds_argument,
     built_filter_config,
     check_drive_length,
 )
@@ -61,14 +62,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         ),
     )
     add_episode_arguments(evaluate, default_agent="expert")
-    evaluate.add_argument(
-        "--seeds",
-        type=values.seed,
-        nargs="+",
-        action=values.Distinct,
-        default=[0],
-        help="one episode per seed",
-    )
+    add_seeds_argument(evaluate, [0], "one episode per seed")
     evaluate.add_argument(
         "--model",
         default=DEFAULT_EXPERT_MODEL,

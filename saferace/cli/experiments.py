@@ -11,6 +11,7 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_num_envs_argument,
     add_parallel_arguments,
+    add_seeds_argument,
     add_slack_argument,
 )
 from saferace.cli.options import add_config_options, config_from_args
@@ -115,14 +116,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "ensemble or a MIMO ensemble (see saferace train)",
     )
     add_slack_argument(tables, "every filtered run and drive")
-    tables.add_argument(
-        "--seeds",
-        type=values.seed,
-        nargs="+",
-        action=values.Distinct,
-        default=[0],
-        help="one run set per seed",
-    )
+    add_seeds_argument(tables, [0], "one run set per seed")
     tables.add_argument("--out", type=Path, default=Path("results/paper"), help="output folder")
     add_device_argument(tables)
     tables.set_defaults(command=_paper_tables)

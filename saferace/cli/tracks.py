@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from saferace.cli import example, values
-from saferace.cli.arguments import TRACK_HELP, add_track_arguments
+from saferace.cli.arguments import TRACK_HELP, add_seeds_argument, add_track_arguments
 from saferace.errors import SafeRaceError
 
 #: How to drive a track of one's own, after the list of the built-in ones.
@@ -75,14 +75,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="instead, one contact sheet per track of the looks a domain-randomisation preset "
         "(none, mild, strong) draws for --seeds",
     )
-    shots.add_argument(
-        "--seeds",
-        type=values.seed,
-        nargs="+",
-        action=values.Distinct,
-        default=[0, 1, 2, 3],
-        help="a look per seed (--randomize)",
-    )
+    add_seeds_argument(shots, [0, 1, 2, 3], "a look per seed (--randomize)")
     shots.set_defaults(command=_snapshots)
 
 

@@ -51,15 +51,20 @@ def make_agent(
 
         return RECKLESS_AGENTS[spec].for_env(env)
     if ":" not in spec:
-        names = ", ".join(BUILTIN_AGENTS)
-        raise SafeRaceError(
-            f"unknown agent {spec!r}: use {names}, learned:CHECKPOINT or MODULE:FACTORY"
-        )
+        raise unknown_agent(spec)
     kind, argument = spec.split(":", 1)
     if kind in AGENT_KINDS:
         factory = load_entry_point(AGENT_KINDS[kind])
         return factory(env, argument, mc_samples=mc_samples, seed=seed)
     return load_entry_point(spec)(env)
+
+
+def unknown_agent(spec: str) -> SafeRaceError:
+    """The error of an agent name that is neither built in nor ``KIND:ARGUMENT``."""
+    names = ", ".join(BUILTIN_AGENTS)
+    return SafeRaceError(
+        f"unknown agent {spec!r}: use {names}, learned:CHECKPOINT or MODULE:FACTORY"
+    )
 
 
 def check_agent_spec(spec: str) -> None:
@@ -69,10 +74,7 @@ def check_agent_spec(spec: str) -> None:
     if spec in BUILTIN_AGENTS:
         return
     if ":" not in spec:
-        names = ", ".join(BUILTIN_AGENTS)
-        raise SafeRaceError(
-            f"unknown agent {spec!r}: use {names}, learned:CHECKPOINT or MODULE:FACTORY"
-        )
+        raise unknown_agent(spec)
     kind, argument = spec.split(":", 1)
     if kind in AGENT_KINDS:
         if not Path(argument).is_file():
