@@ -31,7 +31,6 @@ from saferace.safety.cbf.qp import FilterProblem, FilterSolution, solve_filter_q
 from saferace.safety.decision import SafetyDecision, decision_mode, nominal_parts, record_args
 from saferace.safety.models import lane_model_states, param_values, symbolic_model
 from saferace.safety.traffic import car_barriers
-from saferace.safety.uncertainty.dead_reckoning import LastTrusted
 from saferace.safety.uncertainty.estimate import checked_action, estimate_state
 from saferace.safety.uncertainty.fallback import (
     FALLBACK_BRAKE_MPS2,
@@ -42,6 +41,7 @@ from saferace.safety.uncertainty.fallback import (
     towards_speed,
 )
 from saferace.safety.uncertainty.intervals import interval_points
+from saferace.safety.uncertainty.last_trusted import LastTrusted
 from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource, prefetch
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
@@ -271,10 +271,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
         interval = (estimate.lower, estimate.upper)
         judged = self.last_trusted.update(estimate.alarm, interval, info) if self.robust else None
-        trusted, carried = judged or (not estimate.alarm, None)
-        reckoned = None if trusted else carried  # in doubt: the set carried forward
-        if carried is not None:  # trusted: its meet with the frame's interval
-            held = carried if reckoned is not None else carried.narrowed(*interval, widths=1.0)
+        trusted, held = judged or (not estimate.alarm, None)  # the set certified over
+        reckoned = None if trusted else held  # in doubt: the set carried forward
+        if held is not None:
             lower, upper = held.interval(float(estimate.lower[2]))  # the map's curvature
             estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
         samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper

@@ -6,7 +6,8 @@ change ``dyaw``, what wheel speeds and an IMU integrated at the simulator's rate
 never its pose on the map), its arc length ``s`` (which the filter takes from the task, as
 it does the map's widths and curvature there) and the map. The same holds before any frame
 was trusted: the car starts on its reference line at the start line, a pose the task
-defines, so a set exists from the first step (:meth:`LastTrusted.start`).
+defines, so a set exists from the first step
+(:class:`~saferace.safety.uncertainty.last_trusted.LastTrusted` keeps it).
 
 With ``s`` known the carrying is exact geometry (:func:`carried_states`). The centre
 line's pose ``(x, y, theta)`` at the step's two arc lengths is the map's; a car at ``[e_y,
@@ -22,30 +23,24 @@ the car. The heading's width stays what the start gave it plus the gyro's drift.
 matters twice: an uncertain heading moves the corners' offsets apart by ``L sin`` of it
 every step, and a filter certifying over a heading of +-0.2 rad (the generic network's
 interval on ``lab``) found no steering that held both of its extremes and stopped the car
-within 8 m. A car at rest grows no
-error: its set stays where it stopped. The safety filter certifies from this set while the
-doubt lasts, and from its intersection with a trusted frame's interval otherwise
-(:class:`~saferace.safety.cbf.filter.SafetyFilter`).
+within 8 m. A car at rest grows no error: its set stays where it stopped.
 
-The set is carried every step, trusted or not, and a trusted frame's interval narrows it.
-An interval that does not meet the carried set at all is evidence against the network,
-not against odometry: the frame counts as in doubt (:meth:`LastTrusted.consistent`). One
-that meets it narrows it to their intersection, the interval first widened to
-:data:`NARROWING_WIDTHS` times its width about its centre: an interval holds the truth on
-about 95% of the frames, and a set narrowed by every frame's would lose the car on the
-first frame it missed and keep it lost (replayed in ``tests/test_dead_reckoning.py``: a
-network 0.5 m off with an interval of +-0.3 m pulled a set narrowed to its bare interval
-away from the car within 2 s). Widened, an interval off by less than twice its own half
-width still holds the car, and the set stays no wider than the widened interval.
+A trusted frame's interval narrows the set to their intersection
+(:meth:`DeadReckoning.narrowed`), the interval first widened to :data:`NARROWING_WIDTHS`
+times its width about its centre: an interval holds the truth on about 95% of the frames,
+and a set narrowed by every frame's would lose the car on the first frame it missed and
+keep it lost (replayed in ``tests/test_dead_reckoning.py``: a network 0.5 m off with an
+interval of +-0.3 m pulled a set narrowed to its bare interval away from the car within
+2 s). Widened, an interval off by less than twice its own half width still holds the car,
+and the set stays no wider than the widened interval.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -53,8 +48,6 @@ from saferace.track.frenet import wrap_angle
 
 if TYPE_CHECKING:
     from saferace.track.path import ClosedPath
-    from saferace.track.raceline import ReferenceLine
-    from saferace.track.track import Track
 
 #: How far a carried corner may be off the truth per metre driven, ``[e_y (m/m), e_psi
 #: (rad/m)]``. The simulator's odometry is exact (``benchmarks/dead_reckoning_error.py``
@@ -141,22 +134,22 @@ class DeadReckoning:
     def carried(self, pose: np.ndarray, s_m: float, centerline: ClosedPath) -> DeadReckoning:
         """The box with the car now at ``pose`` and ``s_m``: its corners carried by the
         step's odometry along the map's ``centerline`` (:func:`carried_states`), grown by
-        :data:`ERROR_PER_M` for the distance driven."""
+        :data:`ERROR_PER_M` for the distance driven. A stack of boxes (``lower`` and
+        ``upper`` of shape ``(n, 2)``) is carried box by box."""
         step = odometry_step(self.pose, pose)
-        corners = np.array(list(itertools.product(*zip(self.lower, self.upper, strict=True))))
+        lower, upper = self.lower, self.upper
         e_y, e_psi = carried_states(
-            corners[:, 0],
-            corners[:, 1],
+            np.stack([lower[..., 0], lower[..., 0], upper[..., 0], upper[..., 0]], axis=-1),
+            np.stack([lower[..., 1], upper[..., 1], lower[..., 1], upper[..., 1]], axis=-1),
             step,
             centre_pose(centerline, self.s_m),
             centre_pose(centerline, s_m),
         )
-        carried = np.column_stack([e_y, e_psi])
         step_m = math.hypot(step[0], step[1])
         growth = ERROR_PER_M * step_m
         return DeadReckoning(
-            carried.min(axis=0) - growth,
-            carried.max(axis=0) + growth,
+            np.stack([e_y.min(axis=-1), e_psi.min(axis=-1)], axis=-1) - growth,
+            np.stack([e_y.max(axis=-1), e_psi.max(axis=-1)], axis=-1) + growth,
             np.asarray(pose, float).copy(),
             float(s_m),
             self.driven_m + step_m,
@@ -173,6 +166,13 @@ class DeadReckoning:
             and np.all(self.lower <= np.asarray(upper, float)[:2])
         )
 
+    def holds(self, lower: np.ndarray, upper: np.ndarray) -> bool:
+        """Whether the box ``lower .. upper`` (of ``[e_y, e_psi, ...]``) lies in this set."""
+        return bool(
+            np.all(self.lower <= np.asarray(lower, float)[:2])
+            and np.all(np.asarray(upper, float)[:2] <= self.upper)
+        )
+
     def narrowed(
         self, lower: np.ndarray, upper: np.ndarray, widths: float = NARROWING_WIDTHS
     ) -> DeadReckoning:
@@ -185,69 +185,3 @@ class DeadReckoning:
             lower=np.maximum(self.lower, centre - half),
             upper=np.minimum(self.upper, centre + half),
         )
-
-
-class LastTrusted:
-    """The set of ``[e_y, e_psi]`` a filter on ``track`` carries forward from the car's
-    start on the task's ``reference`` line: carried by odometry every step and narrowed by
-    every interval it trusts."""
-
-    def __init__(self, track: Track, reference: ReferenceLine) -> None:
-        self.track = track
-        self.reference = reference
-        self.reckoning: DeadReckoning | None = None
-
-    def reset(self, info: dict[str, Any] | None = None) -> None:
-        """No set, or with ``info`` the start's (:meth:`start`)."""
-        self.reckoning = None
-        if info is not None:
-            self.start(info)
-
-    def start(self, info: dict[str, Any]) -> None:
-        """The set at the start: the task's start pose, on its reference line heading along
-        it at the car's arc length, within :data:`START_TOLERANCE`; the car as in ``info``."""
-        s_m = float(info["s_m"])
-        centre = np.array(
-            [self.reference.offset_at(s_m), self.reference.heading_offset_at(s_m)], float
-        )
-        self.reckoning = DeadReckoning.trusted(
-            centre - START_TOLERANCE, centre + START_TOLERANCE, car_pose(info), float(info["s_m"])
-        )
-
-    def carried(self, info: dict[str, Any]) -> DeadReckoning | None:
-        """The set carried to the car in ``info``; None where none was started."""
-        last = self.reckoning
-        if last is None:
-            return None
-        return last.carried(car_pose(info), float(info["s_m"]), self.track.centerline)
-
-    def update(
-        self, alarm: bool, interval: tuple[np.ndarray, np.ndarray], info: dict[str, Any]
-    ) -> tuple[bool, DeadReckoning | None]:
-        """Carry the set to the car in ``info``, judge this frame and keep what the next
-        step carries (:meth:`keep`): whether the frame is trusted (no ``alarm``, and its
-        ``interval`` meets the set) and the set carried to it (None: none was started)."""
-        carried = self.carried(info)
-        trusted = not alarm and self.consistent(carried, interval)
-        self.keep(trusted, interval, carried, info)
-        return trusted, carried
-
-    @staticmethod
-    def consistent(carried: DeadReckoning | None, interval: tuple[np.ndarray, np.ndarray]) -> bool:
-        """Whether a frame's ``interval`` meets the ``carried`` set (True without one)."""
-        return carried is None or carried.meets(*interval)
-
-    def keep(
-        self,
-        trusted: bool,
-        interval: tuple[np.ndarray, np.ndarray],
-        carried: DeadReckoning | None,
-        info: dict[str, Any],
-    ) -> DeadReckoning | None:
-        """Keep what the next step carries, and return it: the ``carried`` set (None: none
-        was started), narrowed to this frame's ``interval`` where that was ``trusted`` and
-        meets it."""
-        if carried is not None and trusted and carried.meets(*interval):
-            carried = carried.narrowed(*interval)
-        self.reckoning = carried
-        return carried

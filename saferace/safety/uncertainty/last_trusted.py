@@ -1,0 +1,142 @@
+"""What a robust filter knows of the lane state: the set carried from the car's start,
+narrowed by the frames it trusts, and the box the recent ones agree on.
+
+Every step the set (:mod:`~saferace.safety.uncertainty.dead_reckoning`) is carried to the
+car, and the frame is judged: trusted where the state source raises no alarm and its
+interval meets the set. An interval that does not meet the carried set at all is evidence
+against the network, not against odometry, so that frame counts as in doubt
+(:meth:`LastTrusted.consistent`). The filter certifies over the set alone while in doubt,
+and over its meet with the box the recent trusted intervals vote for otherwise
+(:mod:`~saferace.safety.uncertainty.interval_votes`;
+:class:`~saferace.safety.cbf.filter.SafetyFilter`).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from saferace.safety.uncertainty.dead_reckoning import START_TOLERANCE, DeadReckoning, car_pose
+from saferace.safety.uncertainty.interval_votes import RecentIntervals
+
+if TYPE_CHECKING:
+    from saferace.track.raceline import ReferenceLine
+    from saferace.track.track import Track
+
+
+def cuts(carried: DeadReckoning | None, interval: tuple[np.ndarray, np.ndarray]) -> bool:
+    """Whether ``interval`` says something of the offset the ``carried`` set does not: it
+    leaves out part of the set's ``e_y`` (always, without a set). An interval wider than
+    the set (an unfamiliar look) would hold every point the set does and outvote nothing."""
+    if carried is None:
+        return True
+    return bool(interval[0][0] > carried.lower[0] or interval[1][0] < carried.upper[0])
+
+
+def offset_with_heading(
+    interval: tuple[np.ndarray, np.ndarray], carried: DeadReckoning | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The box of ``[e_y, e_psi]`` a trusted ``interval`` is kept as: its offset, and its
+    heading met with the ``carried`` set's. The network's heading is +-0.4 rad on a
+    circuit's straight and the set's a few mrad; carried, every radian of a box's heading
+    spreads its offset by the distance driven."""
+    lower, upper = (np.asarray(bound, float)[:2].copy() for bound in interval)
+    if carried is not None:
+        lower[1], upper[1] = max(lower[1], carried.lower[1]), min(upper[1], carried.upper[1])
+    return lower, upper
+
+
+class LastTrusted:
+    """The set of ``[e_y, e_psi]`` a filter on ``track`` carries forward from the car's
+    start on the task's ``reference`` line: carried by odometry every step and narrowed by
+    every interval it trusts; and the recent trusted intervals, carried beside it."""
+
+    def __init__(self, track: Track, reference: ReferenceLine) -> None:
+        self.track = track
+        self.reference = reference
+        self.reckoning: DeadReckoning | None = None
+        self.recent = RecentIntervals()
+
+    def reset(self, info: dict[str, Any] | None = None) -> None:
+        """No set, or with ``info`` the start's (:meth:`start`); no recent interval."""
+        self.reckoning = None
+        self.recent.reset()
+        if info is not None:
+            self.start(info)
+
+    def start(self, info: dict[str, Any]) -> None:
+        """The set at the start: the task's start pose, on its reference line heading along
+        it at the car's arc length, within :data:`START_TOLERANCE`; the car as in ``info``."""
+        s_m = float(info["s_m"])
+        centre = np.array(
+            [self.reference.offset_at(s_m), self.reference.heading_offset_at(s_m)], float
+        )
+        self.reckoning = DeadReckoning.trusted(
+            centre - START_TOLERANCE, centre + START_TOLERANCE, car_pose(info), float(info["s_m"])
+        )
+
+    def carried(self, info: dict[str, Any]) -> DeadReckoning | None:
+        """The set carried to the car in ``info``; None where none was started."""
+        last = self.reckoning
+        if last is None:
+            return None
+        return last.carried(car_pose(info), float(info["s_m"]), self.track.centerline)
+
+    def update(
+        self, alarm: bool, interval: tuple[np.ndarray, np.ndarray], info: dict[str, Any]
+    ) -> tuple[bool, DeadReckoning | None]:
+        """Carry the set and the recent intervals to the car in ``info``, judge this frame
+        and keep what the next step carries (:meth:`keep`). Returns whether the frame is
+        trusted (no ``alarm``, and its ``interval`` meets the set) and the set the filter
+        certifies over (:meth:`held`; None: none was started)."""
+        carried = self.carried(info)
+        pose, s_m = car_pose(info), float(info["s_m"])
+        self.recent.carry(pose, s_m, self.track.centerline)
+        trusted = not alarm and self.consistent(carried, interval)
+        if trusted and cuts(carried, interval):
+            self.recent.add(offset_with_heading(interval, carried), pose, s_m)
+        self.keep(trusted, interval, carried)
+        return trusted, self.held(trusted, interval, carried)
+
+    @staticmethod
+    def consistent(carried: DeadReckoning | None, interval: tuple[np.ndarray, np.ndarray]) -> bool:
+        """Whether a frame's ``interval`` meets the ``carried`` set (True without one)."""
+        return carried is None or carried.meets(*interval)
+
+    def held(
+        self,
+        trusted: bool,
+        interval: tuple[np.ndarray, np.ndarray],
+        carried: DeadReckoning | None,
+    ) -> DeadReckoning | None:
+        """The ``carried`` set met with the box the recent trusted intervals vote for
+        (:meth:`RecentIntervals.voted`) and, where the frame is ``trusted``, with its own
+        ``interval``, each only where it meets what the others left (a frame the majority
+        outvotes does not narrow). In doubt the votes count only where the set holds all of
+        their box: a network the odometry contradicts (its intervals reaching beyond the
+        set) is wrong in the votes too, and the set alone holds the car."""
+        if carried is None:
+            return None
+        voted = self.recent.voted()
+        if voted is not None and not trusted and not carried.holds(*voted):
+            voted = None
+        held = carried
+        for box in ([] if voted is None else [voted]) + ([interval] if trusted else []):
+            if held.meets(*box):
+                held = held.narrowed(*box, widths=1.0)
+        return held
+
+    def keep(
+        self,
+        trusted: bool,
+        interval: tuple[np.ndarray, np.ndarray],
+        carried: DeadReckoning | None,
+    ) -> DeadReckoning | None:
+        """Keep what the next step carries, and return it: the ``carried`` set (None: none
+        was started), narrowed to this frame's ``interval`` where that was ``trusted`` and
+        meets it."""
+        if carried is not None and trusted and carried.meets(*interval):
+            carried = carried.narrowed(*interval)
+        self.reckoning = carried
+        return carried
