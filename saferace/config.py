@@ -64,8 +64,15 @@ class Bounds:
             (self.below, lambda x, m: x >= m, "below"),
         ):
             if limit is not None and wrong(value, limit):
-                return f"must be {words} {limit:g}, got {value:g}"
+                return f"must be {words} {readable(limit)}, got {readable(value)}"
         return None
+
+
+def readable(number: float) -> str:
+    """``number`` as a person writes it: 86,400 and 4,294,967,295, not 4.29497e+09."""
+    if math.isfinite(number) and number == int(number) and abs(number) < 1e18:
+        return f"{int(number):,}"
+    return f"{number:g}"
 
 
 #: Ranges that many settings share.

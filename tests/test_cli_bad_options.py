@@ -5,12 +5,14 @@ exit status 2 and one line that names the option, before any work starts."""
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import pytest
 
 from saferace.cli import build_parser, main, values
 from saferace.cli.arguments import FAST_MEAN_SPEED_MPS, check_drive_length
+from saferace.cli.maxima import MAXIMA, UNCAPPED, uncapped, upper_end
 from saferace.cli.values import CheckedNumber
 from saferace.track import Track
 
@@ -72,12 +74,36 @@ def arguments(command: str, tested: argparse.Action, bad: str) -> list[str]:
     return argv
 
 
+def too_large(action: argparse.Action) -> tuple[str, ...]:
+    """Just past the largest value ``action`` takes (none where it has no largest)."""
+    if not isinstance(action.type, CheckedNumber):
+        return ()
+    end, bounds = upper_end(action.type), action.type.bounds
+    if math.isinf(end):
+        return ()
+    if bounds.below is not None and bounds.below == end:
+        return (f"{end:g}",)  # the open end itself
+    return (str(int(end) + 1) if action.type.number_type is int else f"{end * 1.5:g}",)
+
+
+def bad_values(action: argparse.Action, checked: str) -> tuple[str, ...]:
+    if checked == "number":
+        return ("-1", BAD_VALUES["number"], *too_large(action))
+    return (BAD_VALUES[checked],)
+
+
 CASES = [
     (command, action, bad)
     for command in COMMANDS
     for action in COMMANDS[command]._actions
     if (checked := kind(action)) is not None
-    for bad in (("-1", BAD_VALUES["number"]) if checked == "number" else (BAD_VALUES[checked],))
+    for bad in bad_values(action, checked)
+]
+NUMBERS = [
+    (command, action)
+    for command in COMMANDS
+    for action in COMMANDS[command]._actions
+    if isinstance(action.type, CheckedNumber) and action.option_strings
 ]
 
 
@@ -88,9 +114,23 @@ def case_id(case: object) -> str:
 def test_the_walk_covers_every_command_and_kind_of_value():
     covered = {(command, kind(action)) for command, action, _ in CASES}
     assert len(CASES) >= 150
+    large = [bad for _, _, bad in CASES if bad not in ("-1", BAD_VALUES["number"])]
+    assert len([value for value in large if value.replace(".", "").isdigit()]) >= 60
     assert {("eval", "number"), ("train", "existing"), ("raceline", "track")} <= covered
     assert ("drive", "video file") in covered
     assert {command for command, _ in covered} >= set(COMMANDS) - {"tracks", "sysid"}
+
+
+@pytest.mark.parametrize(("command", "action"), NUMBERS, ids=case_id)
+def test_every_numeric_option_has_a_largest_value_or_says_why_not(
+    command: str, action: argparse.Action
+):
+    """``benchmark --workers 100000`` started 72 processes on 2 cores; ``eval --laps
+    1000000`` ran for minutes in silence. A new option without an entry in
+    ``saferace.cli.maxima`` fails here."""
+    flag = action.option_strings[-1]
+    assert math.isfinite(upper_end(action.type)) or uncapped(command, flag), (command, flag)
+    assert flag in MAXIMA or flag in UNCAPPED or math.isfinite(upper_end(action.type))
 
 
 @pytest.mark.parametrize(("command", "action", "bad"), CASES, ids=case_id)

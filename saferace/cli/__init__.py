@@ -14,6 +14,7 @@ import logging
 import sys
 from typing import Any, NoReturn
 
+from saferace.cli.maxima import cap_numbers
 from saferace.cli.options import FLAGS_KEY
 from saferace.errors import ConfigError, SafeRaceError
 
@@ -56,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     for name in COMMAND_MODULES:
         importlib.import_module(f"saferace.cli.{name}").register(commands)
+    cap_numbers(parser)
     return parser
 
 
