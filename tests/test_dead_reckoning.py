@@ -267,8 +267,9 @@ def test_alarms_from_the_first_frame_on_a_wide_lane_keep_the_car_inside(
     the start pose holds the car on every frame in doubt: a wrong interval either misses
     the set (an alarm) or narrows it only as far as twice its width (narrowed by the bare
     interval, the set lost the car within 2 s). A trusted frame is certified on its bare
-    interval's meet with the set, which may miss the truth here, and the car still stays
-    inside."""
+    interval's meet with the set and the recent ones' vote, which may miss the truth here,
+    and the car still stays inside; in doubt those votes reach beyond the set, and do not
+    count."""
     source = ConfidentlyWrongSource(offset_m, alarm_rate=0.88)
     env = SafetyFilter(
         gym.make("saferace/CenterLine-v0", track=wide_lane, image_size=(16, 16)),

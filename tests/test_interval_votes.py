@@ -1,0 +1,181 @@
+"""The recent trusted intervals and their vote: a frame that misses is outvoted, a majority
+is not, a car at rest keeps no new frame, an interval wider than the set keeps none, and a
+stretch of wide intervals (YasMarina's hairpins) is driven on what the frames before it
+said."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.eval.agents import act, make_agent
+from saferace.names import ROBUST_GAINS
+from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.uncertainty.dead_reckoning import DeadReckoning
+from saferace.safety.uncertainty.interval_votes import (
+    MAJORITY,
+    SPACING_M,
+    VOTES,
+    RecentIntervals,
+    voted_box,
+)
+from saferace.safety.uncertainty.last_trusted import LastTrusted, cuts, offset_with_heading
+from saferace.safety.uncertainty.state_sources import true_lane_state
+from saferace.track.random_track import write_random_track
+from tests.test_dead_reckoning import StraightLine
+
+
+def box(e_y: tuple[float, float], e_psi: tuple[float, float] = (0.0, 0.0)) -> tuple:
+    """``(lower, upper)`` of ``[e_y, e_psi, kappa]``; carried straight ahead, a box with
+    the heading known grows by the odometry's error bound alone (2 mm in 2 m)."""
+    return np.array([e_y[0], e_psi[0], 0.0]), np.array([e_y[1], e_psi[1], 0.0])
+
+
+def test_the_voted_box_is_the_hull_of_the_points_enough_intervals_hold():
+    lower = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [0.5, -1.0]])
+    upper = np.array([[3.0, 1.0], [4.0, 1.0], [5.0, 1.0], [2.5, 2.0]])
+    three = voted_box(lower, upper, 3)
+    assert three is not None
+    np.testing.assert_allclose(three[0], [1.0, 0.0])  # 1 is in [0,3], [1,4], [0.5,2.5]
+    np.testing.assert_allclose(three[1], [3.0, 1.0])  # 3 is in [0,3], [1,4], [2,5]
+    four = voted_box(lower, upper, 4)
+    assert four is not None
+    np.testing.assert_allclose(four[0], [2.0, 0.0])
+    np.testing.assert_allclose(four[1], [2.5, 1.0])
+    apart = voted_box(np.array([[0.0], [2.0]]), np.array([[1.0], [3.0]]), 2)
+    assert apart is None  # no point in both
+
+
+def kept(frames: list[tuple], step_m: float = SPACING_M) -> RecentIntervals:
+    """``frames`` kept one per ``step_m`` driven along a straight line."""
+    recent = RecentIntervals()
+    for index, frame in enumerate(frames):
+        pose = np.array([index * step_m, 0.0, 0.0])
+        recent.carry(pose, index * step_m, StraightLine())
+        recent.add(frame, pose, index * step_m)
+    return recent
+
+
+def test_a_frame_that_misses_is_outvoted_and_a_majority_is_not():
+    good, off = box((-0.1, 0.1)), box((0.5, 0.7))
+    recent = kept([good] * (VOTES - 1) + [off])
+    voted = recent.voted()
+    assert voted is not None
+    np.testing.assert_allclose([voted[0][0], voted[1][0]], [-0.1, 0.1], atol=3e-3)
+    recent = kept([good] * VOTES + [off] * MAJORITY)
+    assert recent.boxes is not None and len(recent.boxes.lower) == VOTES  # the last 9
+    voted = recent.voted()
+    assert voted is not None
+    np.testing.assert_allclose([voted[0][0], voted[1][0]], [0.5, 0.7], atol=3e-3)
+    assert kept([good] * (MAJORITY - 1)).voted() is None  # too few to vote
+
+
+def test_a_car_at_rest_keeps_no_new_frame():
+    at_rest = kept([box((-0.1, 0.1))] * VOTES, step_m=0.0)
+    assert at_rest.boxes is not None and len(at_rest.boxes.lower) == 1
+    creeping = kept([box((-0.1, 0.1))] * VOTES, step_m=SPACING_M / 2)
+    assert creeping.boxes is not None and len(creeping.boxes.lower) == (VOTES + 1) // 2
+
+
+def test_only_an_interval_that_leaves_out_part_of_the_set_votes():
+    carried = DeadReckoning.trusted([-0.5, -0.01], [0.5, 0.01], [0.0, 0.0, 0.0], 0.0)
+    assert cuts(carried, box((-0.3, 0.3)))
+    assert cuts(carried, box((-0.9, 0.3)))  # on one side
+    assert not cuts(carried, box((-0.9, 0.9), (-5.0, 5.0)))  # an unfamiliar look
+    assert cuts(None, box((-0.9, 0.9)))
+
+
+def test_a_kept_interval_takes_the_set_s_heading():
+    carried = DeadReckoning.trusted([-0.5, -0.01], [0.5, 0.02], [0.0, 0.0, 0.0], 0.0)
+    lower, upper = offset_with_heading(box((-0.3, 0.4), (-0.4, 0.4)), carried)
+    np.testing.assert_allclose(lower, [-0.3, -0.01])
+    np.testing.assert_allclose(upper, [0.4, 0.02])
+
+
+def test_in_doubt_the_votes_count_only_where_the_set_holds_their_box():
+    last = LastTrusted(track=None, reference=None)  # type: ignore[arg-type]  # held only
+    last.recent = kept([box((-0.1, 0.1))] * VOTES)
+    inside = DeadReckoning.trusted([-0.5, -0.02], [0.5, 0.02], [0.0, 0.0, 0.0], 0.0)
+    frame = box((0.05, 0.4))
+    trusted = last.held(True, frame, inside)
+    assert trusted is not None
+    np.testing.assert_allclose([trusted.lower[0], trusted.upper[0]], [0.05, 0.1], atol=3e-3)
+    in_doubt = last.held(False, frame, inside)
+    assert in_doubt is not None  # the votes, not the frame
+    np.testing.assert_allclose([in_doubt.lower[0], in_doubt.upper[0]], [-0.1, 0.1], atol=3e-3)
+    beyond = DeadReckoning.trusted([0.0, -0.02], [0.5, 0.02], [0.0, 0.0, 0.0], 0.0)
+    alone = last.held(False, frame, beyond)  # the votes reach beyond the set: not theirs
+    assert alone is not None
+    np.testing.assert_allclose([alone.lower[0], alone.upper[0]], [0.0, 0.5])
+    outvoted = last.held(True, box((0.3, 0.4)), inside)  # the frame misses the votes' box
+    assert outvoted is not None
+    np.testing.assert_allclose([outvoted.lower[0], outvoted.upper[0]], [-0.1, 0.1], atol=3e-3)
+
+
+class WideningSource:
+    """The truth held to +-0.3 m and +-0.4 rad (a circuit's straight, as the generic model
+    reads it), or, when told, to +-1.2 m and +-5 rad (a hairpin no training track has),
+    its monitor quiet throughout."""
+
+    def __init__(self) -> None:
+        self.wide = False
+
+    def reset(self, seed: int | None = None) -> None:
+        """Nothing to reset."""
+
+    def samples(self, observation: dict, info: dict) -> np.ndarray:
+        return true_lane_state(info)[None]
+
+    def interval(self, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        half = np.array([1.2, 5.0, 0.0]) if self.wide else np.array([0.3, 0.4, 0.0])
+        return samples[0] - half, samples[0] + half
+
+    def monitor(self, samples: np.ndarray) -> tuple[float, bool]:
+        return 0.0, False
+
+
+@pytest.fixture(scope="module")
+def wide_lane(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """A 2.2 m lane (an F1TENTH circuit's) on a random track of bends (seed 8123)."""
+    folder = tmp_path_factory.mktemp("tracks")
+    return str(write_random_track(folder / "wide_8123.csv", 8123, 8.0, lane_width_m=2.2))
+
+
+def test_a_stretch_of_wide_intervals_is_driven_on_what_the_frames_before_it_said(
+    wide_lane: str,
+):
+    """Two seconds of +-1.2 m intervals after a drive on +-0.3 m ones long enough for the
+    heading's drift to widen the carried set past +-0.5 m: the filter certifies over the
+    box the earlier frames vote for, carried to the car (+-0.3 m and the distance's
+    growth), which holds the truth and stays 0.2 m narrower than the carried set."""
+    source = WideningSource()
+    env = SafetyFilter(
+        gym.make("saferace/CenterLine-v0", track=wide_lane, image_size=(16, 16)),
+        state_source=source,
+        uncertainty="robust",
+        **GAIN_PRESETS[ROBUST_GAINS],
+    )
+    driver = make_agent("expert", env, seed=0)
+    observation, info = env.reset(seed=0)
+    for _ in range(2000):
+        observation, _, _, _, info = env.step(act(driver, observation, info))
+        carried = env.last_trusted.reckoning
+        if carried is not None and carried.upper[0] - carried.lower[0] > 1.0:
+            break
+    assert carried is not None and carried.upper[0] - carried.lower[0] > 1.0
+    source.wide = True
+    decisions, carried_widths = [], []
+    for _ in range(40):
+        observation, _, _, _, info = env.step(act(driver, observation, info))
+        decisions.append(info["safety"])
+        carried = env.last_trusted.reckoning
+        assert carried is not None
+        carried_widths.append(carried.upper[0] - carried.lower[0])
+    env.close()
+    widths = [decision["state_upper"][0] - decision["state_lower"][0] for decision in decisions]
+    assert widths[0] < 0.65 and max(widths) < 0.85  # grows with the heading's width
+    assert all(held < carried - 0.2 for held, carried in zip(widths, carried_widths, strict=True))
+    assert all(decision["covered"] for decision in decisions)
+    assert all(decision["mode"] == "certified" for decision in decisions)
