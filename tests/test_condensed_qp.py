@@ -95,19 +95,28 @@ CASES = {
 }
 
 
-@pytest.mark.parametrize("case", CASES, ids=list(CASES))
-@pytest.mark.parametrize("weight", [(1.0, 1.0), (2500.0, 25.0)], ids=["weight one", "spread"])
-def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
-    setup = CASES[case]
+def condensed_against_sparse(env, setup: dict, weight) -> tuple[StageQP, np.ndarray, ...]:
+    """The plan for ``setup`` (its first steering ``held`` where it says, from its
+    ``previous`` one), its condensed solution checked against the sparse QP's: that QP,
+    and the sparse solution's states, inputs and slacks."""
     bounds = (np.array([-0.5, -6.0]), np.array([0.5, 6.0]))
+    if "held" in setup:
+        bounds[0][0] = bounds[1][0] = setup["held"]
     qp, (states, inputs, slacks) = planned(
-        env, state(env, *setup["x"]), 2.0, 0.0, np.array(setup["target"]), np.array(weight),
-        bounds, *setup["margin"],
+        env, state(env, *setup["x"]), 2.0, setup.get("previous", 0.0), np.array(setup["target"]),
+        np.array(weight), bounds, *setup["margin"],
     )  # fmt: skip
     ref_states, ref_inputs, ref_slacks = reference_solution(env.planner, qp)
     np.testing.assert_allclose(inputs, ref_inputs, atol=1e-4)
     np.testing.assert_allclose(states, ref_states, atol=1e-4)
     np.testing.assert_allclose(slacks, ref_slacks, atol=1e-5)
+    return qp, ref_states, ref_inputs, ref_slacks
+
+
+@pytest.mark.parametrize("case", CASES, ids=list(CASES))
+@pytest.mark.parametrize("weight", [(1.0, 1.0), (2500.0, 25.0)], ids=["weight one", "spread"])
+def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
+    qp, ref_states, _, ref_slacks = condensed_against_sparse(env, CASES[case], weight)
     if case == "lane and speed bind":
         assert ref_slacks.max() > 0.05  # the case is what it says
     if case.startswith("heading binds") and env.track.name == "lab":  # made for lab's bend
@@ -118,6 +127,33 @@ def test_the_condensed_plan_is_the_sparse_qps_solution(env, case: str, weight):
         assert ref_states[:, env.planner.model.speed_index].min() == pytest.approx(0.0, abs=1e-6)
     if case == "free":
         assert ref_slacks.max() < 1e-6
+
+
+#: Cases made for lab's first bend (elsewhere they bind elsewhere, or not at all).
+LAB_CASES = {
+    # 8 m/s where the caps are 3-5 m/s, speeding up: every stage's cap binds, the first and
+    # the last too (priced as the terminal heading, not as the lane)
+    "speeding": dict(x=(0.0, 0.0, 8.0), target=(0.0, 6.0), margin=(0.0, 0.0)),
+    # the wheels at 0.3 rad left and the first input held there, the plan turning right:
+    # the steering's change from the first stage to the second binds (0.3 rad a stage)
+    "steering rate binds": dict(
+        x=(0.1, 0.2, 4.0), target=(0.3, 0.0), margin=(0.0, 0.0), previous=0.3, held=0.3
+    ),
+}
+
+
+@pytest.mark.parametrize("case", LAB_CASES, ids=list(LAB_CASES))
+@pytest.mark.parametrize("weight", [(1.0, 1.0), (2500.0, 25.0)], ids=["weight one", "spread"])
+def test_the_caps_and_the_steering_rate_bind_as_the_sparse_qp_says(case: str, weight):
+    env = PredictiveSafetyFilter(gym.make("saferace/CenterLine-v0", track="lab", max_laps=1))
+    env.reset(seed=0, options={"start_s_m": 2.0, "start_speed_mps": 5.0})
+    _, _, ref_inputs, ref_slacks = condensed_against_sparse(env, LAB_CASES[case], weight)
+    env.close()
+    N = len(ref_inputs)
+    if case == "speeding":
+        assert ref_slacks[N : 2 * N].min() > 0.1
+    else:
+        assert ref_inputs[1, 0] - ref_inputs[0, 0] == pytest.approx(-0.3, abs=1e-6)
 
 
 @pytest.mark.parametrize("missing", ["speed_caps", "heading_bound"])
