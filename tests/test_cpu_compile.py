@@ -133,6 +133,35 @@ def test_weights_loaded_as_new_tensors_are_compiled_again(fake_loads):
     assert len(fake_loads.keys) == 2
 
 
+def test_the_package_key_is_every_part_of_what_it_was_compiled_from():
+    """The key is the content: a copy of the network keys the same package; a weight, a
+    buffer (BatchNorm's running mean, a normaliser's statistics), the network's config, the
+    compiled method, the inputs' shapes and the threads each key another."""
+    network = networks()["control, MC dropout"]
+    signature = ((((1, 64, 64, 3), torch.uint8), ((1, 3), torch.float32)), 2)
+    key = cpu_compile.CompiledStep(network)._key(signature)
+    assert cpu_compile.CompiledStep(copy.deepcopy(network))._key(signature) == key
+    changed = []
+    for edit in ("weight", "buffer", "config"):
+        other = copy.deepcopy(network)
+        with torch.no_grad():
+            if edit == "weight":
+                other.output_layer.bias.add_(1e-3)
+            elif edit == "buffer":
+                batch_norm = next(m for m in other.modules() if isinstance(m, torch.nn.BatchNorm2d))
+                assert batch_norm.running_mean is not None
+                batch_norm.running_mean.add_(1e-3)
+            else:
+                other.config = control_config(dropout=0.5)
+        changed.append(cpu_compile.CompiledStep(other)._key(signature))
+    step = cpu_compile.CompiledStep(network, method="forward")
+    changed.append(step._key(signature))
+    (image, velocity), threads = signature
+    changed.append(cpu_compile.CompiledStep(network)._key(((image, ((2, 3), torch.float32)), 2)))
+    changed.append(cpu_compile.CompiledStep(network)._key(((image, velocity), threads + 1)))
+    assert len({key, *changed}) == 1 + len(changed)
+
+
 def test_a_frame_that_is_a_strided_view_runs_from_contiguous_inputs(fake_loads, monkeypatch):
     network = networks()["control, MC dropout"]
     view = torch.from_numpy(IMAGE).permute(1, 0, 2)  # (64, 64, 3), not contiguous

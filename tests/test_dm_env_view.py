@@ -75,3 +75,22 @@ def test_a_task_that_ends_off_the_track_ends_with_discount_zero():
 def test_an_unknown_task_is_refused():
     with pytest.raises(SafeRaceError, match="unknown task 'Drift': one of CenterLine"):
         dm_env_view.load("Drift")
+
+
+def test_the_seed_starts_the_first_episode_and_the_next_go_on_from_it():
+    """Random starts: the same seed draws the same episodes in two views, another seed
+    others, and the second episode is not the first again (the seed is used once)."""
+
+    def starts(seed: int) -> list[float]:
+        view = dm_env_view.load("CenterLine", {**SMALL, "random_start": True}, seed=seed)
+        drawn = []
+        for _ in range(3):
+            view.reset()
+            drawn.append(float(view.info["s_m"]))
+        view.close()
+        return drawn
+
+    first = starts(5)
+    assert starts(5) == first
+    assert starts(6)[0] != first[0]
+    assert len(set(first)) == 3

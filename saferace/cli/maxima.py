@@ -41,7 +41,7 @@ MAXIMA: dict[str, float] = {
     "--packed-gamma": 16,  # groups per member
     "--perturb": 1.0,  # rad of steering noise
     "--perturb-correlation-s": 60.0,  # s a push of the noise lasts
-    "--random-tracks": 1000,  # seeds, one track each
+    "--random-tracks": 2**32 - 1,  # the seeds of the tracks drawn
     "--runs": 1000,  # runs replayed
     "--samples": 1000,  # state samples or MC passes per frame
     "--seed": 2**32 - 1,  # numpy's and gymnasium's seeds are 32-bit
