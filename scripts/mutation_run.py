@@ -63,7 +63,22 @@ TARGETS: dict[str, list[str]] = {
         "tests/test_robust_filter.py",
         "tests/test_dead_reckoning.py",
     ],
+    "saferace/safety/uncertainty/last_trusted.py": [
+        "tests/test_interval_votes.py",
+        "tests/test_dead_reckoning.py",
+        "tests/test_robust_filter.py",
+    ],
+    "saferace/safety/uncertainty/interval_votes.py": [
+        "tests/test_interval_votes.py",
+        "tests/test_dead_reckoning.py",
+    ],
     "saferace/safety/predictive/condensed_qp.py": ["tests/test_condensed_qp.py"],
+    "saferace/safety/predictive/plan.py": [
+        "tests/test_predictive_filter.py",
+        "tests/test_condensed_qp.py",
+    ],
+    "saferace/learning/cpu_compile.py": ["tests/test_cpu_compile.py"],
+    "saferace/envs/dm_env_view.py": ["tests/test_dm_env_view.py"],
     "saferace/safety/model_code.py": ["tests/test_compiled_stages.py"],
     "saferace/numba_cache.py": ["tests/test_numba_cache.py"],
     "saferace/safety/predictive/filter.py": ["tests/test_predictive_filter.py"],
