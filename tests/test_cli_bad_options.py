@@ -209,3 +209,22 @@ def test_an_agent_that_cannot_be_made_is_refused_before_any_setup(
     assert code == 2 and len(lines) == 1
     assert lines[0].startswith(f"saferace {command}: error: {problem}")
     assert time.perf_counter() - started < 1.0  # before the task is built
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_an_argument_no_option_takes_is_refused_by_its_command(
+    command: str, capsys: pytest.CaptureFixture
+):
+    """``drive --out run`` said ``saferace: error: unrecognized arguments: --out run``,
+    naming no command."""
+    argv = [command]
+    for action in COMMANDS[command]._actions:  # what the command requires, so it parses
+        if action.required and action.option_strings:
+            argv += [action.option_strings[-1], *[__file__] * count(action)]
+        elif not action.option_strings and action.dest != "help":
+            argv += [GOOD_VALUES.get(kind(action), __file__)] * count(action)
+    with pytest.raises(SystemExit) as exit:
+        main([*argv, "--no-such-option"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert exit.value.code == 2
+    assert lines == [f"saferace {command}: error: unrecognized arguments: --no-such-option"]

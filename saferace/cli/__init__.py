@@ -44,6 +44,17 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message}\n")
 
+    def parse_args(self, args: Any = None, namespace: Any = None) -> argparse.Namespace:  # type: ignore[override]
+        """As argparse's, with arguments no option takes refused by the command they
+        followed (``saferace drive: error: unrecognized arguments: --out run``)."""
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            commands = [a for a in self._actions if isinstance(a, argparse._SubParsersAction)]
+            name = getattr(parsed, "command_name", None)
+            command = commands[0].choices.get(name, self) if commands and name else self
+            command.error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``saferace`` parser with every command (also what the docs' reference renders)."""
