@@ -228,3 +228,21 @@ def test_an_argument_no_option_takes_is_refused_by_its_command(
     lines = capsys.readouterr().err.strip().splitlines()
     assert exit.value.code == 2
     assert lines == [f"saferace {command}: error: unrecognized arguments: --no-such-option"]
+
+
+def test_a_command_stopped_by_ctrl_c_says_so_in_one_line(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+):
+    """A stopped benchmark printed a Python traceback and exited 1."""
+    import saferace.cli
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+
+    def stopped(args: argparse.Namespace) -> int:
+        raise KeyboardInterrupt
+
+    commands.choices["tracks"].set_defaults(command=stopped)
+    monkeypatch.setattr(saferace.cli, "build_parser", lambda: parser)
+    assert main(["tracks"]) == 130
+    assert capsys.readouterr().err == "saferace tracks: interrupted\n"

@@ -18,6 +18,8 @@ from saferace.cli.maxima import cap_numbers
 from saferace.cli.options import FLAGS_KEY
 from saferace.errors import ConfigError, SafeRaceError
 
+#: The exit status of a command stopped by Ctrl-C or SIGTERM (a shell's for SIGINT).
+INTERRUPTED = 130
 #: The command families, in the order ``saferace --help`` lists them.
 COMMAND_MODULES = ("tracks", "driving", "safety", "learning", "experiments", "sysid")
 
@@ -91,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     except SafeRaceError as exc:  # named by its command, as argparse names a bad option's
         print(f"saferace {args.command_name}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM where workers run: no traceback
+        print(f"saferace {args.command_name}: interrupted", file=sys.stderr)
+        return INTERRUPTED
 
 
 def example(*commands: str) -> str:
