@@ -5,6 +5,8 @@ said."""
 
 from __future__ import annotations
 
+import itertools
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ import saferace  # noqa: F401  (registers the tasks)
 from saferace.eval.agents import act, make_agent
 from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
-from saferace.safety.uncertainty.dead_reckoning import DeadReckoning
+from saferace.safety.uncertainty.dead_reckoning import ERROR_PER_M, DeadReckoning, carried_states
 from saferace.safety.uncertainty.interval_votes import (
     MAJORITY,
     SPACING_M,
@@ -24,7 +26,7 @@ from saferace.safety.uncertainty.interval_votes import (
 from saferace.safety.uncertainty.last_trusted import LastTrusted, cuts, offset_with_heading
 from saferace.safety.uncertainty.state_sources import true_lane_state
 from saferace.track.random_track import write_random_track
-from tests.test_dead_reckoning import StraightLine
+from tests.test_dead_reckoning import RADIUS_M, StraightLine, lane_state_on_circle, on_circle
 
 
 def box(e_y: tuple[float, float], e_psi: tuple[float, float] = (0.0, 0.0)) -> tuple:
@@ -179,3 +181,49 @@ def test_a_stretch_of_wide_intervals_is_driven_on_what_the_frames_before_it_said
     assert all(held < carried - 0.2 for held, carried in zip(widths, carried_widths, strict=True))
     assert all(decision["covered"] for decision in decisions)
     assert all(decision["mode"] == "certified" for decision in decisions)
+
+
+class Circle:
+    """The centre line of ``tests/test_dead_reckoning.py``'s circle, as a map gives it."""
+
+    @staticmethod
+    def eval_scalar(s_m: float) -> tuple[float, ...]:
+        angle = s_m / RADIUS_M
+        x, y, _ = on_circle(angle)
+        return x, y, np.cos(angle), np.sin(angle), 0.0, 0.0
+
+    @staticmethod
+    def pose(s_m: float) -> np.ndarray:
+        return on_circle(s_m / RADIUS_M)
+
+
+def test_a_stack_of_boxes_is_carried_round_a_bend_box_by_box_and_holds_the_car():
+    """Three boxes with the car at a corner of each, carried by the car's move round the
+    circle: each carried box is the box carried alone, and holds where polar geometry puts
+    the car."""
+    e_y0, e_psi0, turn = 0.3, 0.2, 0.25
+    centre = on_circle(0.0)
+    start = centre[:2] + e_y0 * np.array([-np.sin(centre[2]), np.cos(centre[2])])
+    pose0 = np.array([*start, centre[2] + e_psi0])
+    step = np.array([1.2, 0.01, turn])
+    yaw = pose0[2]
+    rotation = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    pose1 = np.array([*(start + rotation @ step[:2]), yaw + turn])
+    e_y1, e_psi1, centre_to = lane_state_on_circle(pose1)
+    s1 = float(centre_to[2]) * RADIUS_M
+    lower = np.array([[e_y0, e_psi0], [e_y0 - 0.2, e_psi0], [e_y0, e_psi0 - 0.1]])
+    upper = np.array([[e_y0 + 0.2, e_psi0 + 0.1], [e_y0, e_psi0 + 0.05], [e_y0 + 0.1, e_psi0]])
+    stack = DeadReckoning(lower, upper, pose0, 0.0).carried(pose1, s1, Circle())
+    growth = ERROR_PER_M * np.hypot(*step[:2])
+    for index in range(3):
+        alone = DeadReckoning(lower[index], upper[index], pose0, 0.0).carried(pose1, s1, Circle())
+        np.testing.assert_allclose(stack.lower[index], alone.lower, atol=1e-12)
+        np.testing.assert_allclose(stack.upper[index], alone.upper, atol=1e-12)
+        corners = np.array(list(itertools.product(*zip(lower[index], upper[index], strict=True))))
+        moved = np.column_stack(
+            carried_states(corners[:, 0], corners[:, 1], step, centre, Circle.pose(s1))
+        )  # all four corners, each carried
+        np.testing.assert_allclose(stack.lower[index], moved.min(axis=0) - growth, atol=1e-12)
+        np.testing.assert_allclose(stack.upper[index], moved.max(axis=0) + growth, atol=1e-12)
+        assert stack.lower[index][0] <= e_y1 <= stack.upper[index][0]
+        assert stack.lower[index][1] <= e_psi1 <= stack.upper[index][1]
