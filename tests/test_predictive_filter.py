@@ -142,6 +142,32 @@ def test_a_plans_last_stage_is_held_to_the_maps_invariant_limit(hairpin_track: s
     env.close()
 
 
+def test_a_stage_whose_wheels_are_turned_is_capped_at_the_tyres_grip(hairpin_track: str):
+    """With the wheels at 0.3 rad, the speed at which a kinematic car's lateral
+    acceleration ``v^2 tan(delta) / L`` reaches the grip is below the map's limits: that
+    stage's cap; the straight-wheeled stages keep the map's."""
+    env = PredictiveSafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=hairpin_track, max_laps=1)
+    )
+    env.reset(seed=0)
+    planner, limit = env.planner, env.planner.speed_limit
+    assert limit is not None
+    s_m = np.linspace(2.0, 6.0, planner.settings.horizon)  # on the straight
+    states = np.zeros((len(s_m), planner.model.n_state + 1))
+    states[:, 0] = planner.reference.offset_at(s_m)
+    states[:, planner.model.speed_index] = 3.0
+    turned = [3, 7]
+    states[turned, -1] = [0.3, -0.3]  # left and right
+    caps = planner._speed_caps_mps(s_m, states)
+    grip_mps = np.sqrt(planner.max_lateral_accel_mps2 * planner.params.wheelbase_m / np.tan(0.3))
+    map_limits = limit.along(s_m, states[:, 0])
+    assert grip_mps < map_limits[turned].min() - 0.5  # the grip binds there
+    np.testing.assert_allclose(caps[turned], grip_mps, rtol=1e-12)
+    straight = [k for k in range(len(s_m) - 1) if k not in turned]
+    np.testing.assert_allclose(caps[straight], map_limits[straight], rtol=1e-12)
+    env.close()
+
+
 def test_a_stages_map_limit_holds_what_the_last_steps_plan_held_it_to(hairpin_track: str):
     """A plan moved off the racing line does not meet map limits below those the last
     step's plan met at the same arc lengths (the blend falls by metres per second over
