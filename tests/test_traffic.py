@@ -509,6 +509,25 @@ def test_opponent_predictions_wrap_the_lap_and_take_the_speed_along_the_track():
     assert again == noisy  # drawn from the generator given: the same per seed
 
 
+def test_an_opponent_in_a_bend_moves_along_the_track_at_its_own_curvature():
+    """Mid-bend on lab, 0.1 m inside and 0.3 rad to its lane at 2 m/s, seen from the
+    straight: its arc length grows at ``2 cos 0.3 / (1 - kappa 0.1)``, the curvature its
+    own, not the ego's."""
+    track = Track.load("lab")
+    grid = np.linspace(0.0, track.length_m, 400, endpoint=False)
+    curvatures = np.array([track.centerline.curvature_scalar(s) for s in grid])
+    s_o, ego_s = (
+        float(grid[np.argmax(np.abs(curvatures))]),
+        float(grid[np.argmin(np.abs(curvatures))]),
+    )
+    kappa = track.centerline.curvature_scalar(s_o)
+    assert abs(kappa) > 0.5 and abs(track.centerline.curvature_scalar(ego_s)) < 0.05
+    opponent = {"s_m": s_o, "e_y_m": 0.1, "e_psi_rad": 0.3, "speed_mps": 2.0}
+    ((_, _, v_o),) = opponent_predictions([opponent], track, ego_s)
+    assert v_o == pytest.approx(2.0 * np.cos(0.3) / (1.0 - kappa * 0.1), rel=1e-9)
+    assert abs(v_o - 2.0 * np.cos(0.3)) > 0.05
+
+
 def test_the_car_rows_brake_for_a_car_ahead_in_line_and_vanish_far_away():
     params = param_values(load_params())
     state = np.array([0.0, 0.0, 3.0, 0.0])
