@@ -6,6 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
+import scipy.stats
 
 from saferace.safety.cbf.chance import (
     confidence_quantile,
@@ -122,6 +123,17 @@ def test_chance_constraint_holds_with_the_requested_probability():
     holds = np.mean(d[:, :2] @ u <= d[:, 2])
     assert holds == pytest.approx(0.95, abs=0.01)
     assert constraint_std(statistics, u)[0] > 0.0
+    # the fit is numpy's own mean and (biased) covariance of the samples
+    samples = np.column_stack([a[:, 0, :], b[:, 0]])
+    np.testing.assert_allclose(statistics.a_mean[0], samples[:, :2].mean(axis=0), atol=1e-12)
+    np.testing.assert_allclose(
+        statistics.covariance[0], np.cov(samples, rowvar=False, bias=True), atol=1e-12
+    )
+    # and against the Gaussian the samples came from (not the fit): a u - b is normal with
+    # mean 4 u_0 + 0.3 u_1 - 0.2 and variance (0.8 u_0)^2 + (0.05 u_1)^2 + 0.3^2
+    mean = 4.0 * u[0] + 0.3 * u[1] - 0.2
+    std = np.sqrt((0.8 * u[0]) ** 2 + (0.05 * u[1]) ** 2 + 0.3**2)
+    assert scipy.stats.norm.cdf(-mean / std) == pytest.approx(0.95, abs=0.02)
 
 
 def test_the_spread_at_a_fixed_acceleration_keeps_the_mean():
