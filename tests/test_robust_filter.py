@@ -17,6 +17,7 @@ from saferace.eval.filter_config import FilterConfig
 from saferace.eval.runner import make_task_env, run_episode
 from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import SafetyFilter
+from saferace.safety.cbf.filter_map import MAP_DS_M
 from saferace.safety.models import MIN_SPEED_MPS
 from saferace.safety.uncertainty.fallback import (
     DISTRUST_BRAKE_MPS2,
@@ -120,6 +121,27 @@ def test_the_fallback_keeps_the_maps_speed_limit():
     assert decisions[None].fallback == decisions[1.1].fallback == "infeasible"
     assert decisions[None].filtered_action[1] == pytest.approx(2.0)
     assert bounds[1.1] < 0.0 and decisions[1.1].filtered_action[1] == pytest.approx(bounds[1.1])
+
+
+def test_the_speed_row_is_the_limit_s_barrier_with_its_fall_ahead():
+    """Braking into lab's first turn, the row ``accel <= lam_1 (v_limit - v) + dv_limit/ds
+    v`` at the candidate offset whose limit is lowest, worked from the map's limit."""
+    env = SafetyFilter(gym.make("saferace/CenterLine-v0", track="lab"), speed_limit_factor=1.1)
+    filter_map, limit = env.map, env.map.speed_limit
+    assert limit is not None
+    grid = np.linspace(0.0, env.track.length_m, 300, endpoint=False)
+    falls = np.array([limit(s + 0.05, 0.0) - limit(s, 0.0) for s in grid])
+    s_m, v_x = float(grid[np.argmin(falls)]), 5.0  # where the limit falls fastest
+    offsets = np.array([-0.2, 0.0, 0.25])
+    values = [limit(s_m, e) for e in offsets]
+    lowest = float(offsets[int(np.argmin(values))])
+    slope = (limit(s_m + MAP_DS_M, lowest) - min(values)) / MAP_DS_M
+    assert slope < -0.5  # falling
+    row, bound, h = filter_map.speed_constraint(s_m, v_x, offsets)
+    env.close()
+    np.testing.assert_array_equal(row, [0.0, 1.0])
+    assert h == pytest.approx(min(values) - v_x, abs=1e-12)
+    assert bound == pytest.approx(filter_map.speed_gain * h + slope * v_x, abs=1e-9)
 
 
 @pytest.mark.parametrize("start_s_m", [0.5, 9.0])  # a straight, a turn
