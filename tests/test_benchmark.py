@@ -74,6 +74,26 @@ def test_an_interrupted_benchmark_continues_to_the_same_submission(tmp_path: Pat
         run_benchmark("expert", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
 
 
+def test_a_run_s_score_worked_by_hand():
+    """Half a lap in 10 s where the expert laps lab in its reference time, 1.3 s outside,
+    then the same with two collisions it caused: each factor of the score by hand."""
+    suite = benchmark.load_suite()
+    spec = next(run for run in suite.runs() if run.track == "lab" and run.opponents is None)
+    expert_s = suite.expert_lap_time_s[suite.reference_key(spec)]
+    measured = {"completion": 0.5, "driven_s": 10.0, "lap_time_s": None,
+                "time_outside_lane_s": 1.3, "at_fault_collisions": 0}  # fmt: skip
+    row = benchmark.scored(measured, spec, suite)
+    speed_ratio = 0.5 * suite.laps_of(spec) * expert_s / 10.0
+    assert row["speed_ratio"] == pytest.approx(speed_ratio, rel=1e-12)
+    assert row["score"] == pytest.approx(0.5 * speed_ratio * math.exp(-1.3), rel=1e-12)
+    assert row["lap_time_ratio"] is None
+    traffic = next(run for run in suite.runs() if run.opponents is not None)
+    expert_traffic_s = suite.expert_lap_time_s[suite.reference_key(traffic)]
+    collided = benchmark.scored({**measured, "at_fault_collisions": 2}, traffic, suite)
+    alone = 0.5 * (0.5 * suite.laps_of(traffic) * expert_traffic_s / 10.0) * math.exp(-1.3)
+    assert collided["score"] == pytest.approx(alone * 0.6**2, rel=1e-12)  # 0.6 a collision
+
+
 def test_rows_scores_and_workers(tmp_path: Path):
     serial = run_benchmark("pure-pursuit", tmp_path / "a.json", progress=False, runs=LAB_RUNS)
     parallel = run_benchmark(
