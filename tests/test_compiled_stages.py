@@ -17,6 +17,7 @@ import sympy as sp
 from saferace.safety.frenet_stages import MIN_STAGE_LENGTH_M, stages_along_map
 from saferace.safety.model_code import stage_linearisation
 from saferace.track import Track, wrap_angle
+from saferace.track.track_io import write_track_csv
 
 
 def python_stages(path, travels_m, offsets_m, s0_m):
@@ -55,6 +56,24 @@ def test_the_stages_along_the_map_are_the_paths_own_across_the_lap_line_and_pi()
         assert kappas[7] == path.curvature_scalar(s_stage[7])
         assert not math.isclose(kappas[8], path.curvature_scalar(s_stage[8]))
         assert s_stage[0] < (path.length_m if s0 > wraps else wraps) < s_stage[-1]
+
+
+def test_the_stages_round_a_circle_advance_as_its_parallels_say(tmp_path: Path):
+    """On a circle of 5 m (anticlockwise), a car 0.4 m inside the centre line travels on a
+    circle of 4.6 m: each stage's travel d moves the arc length by d 5 / 4.6, and its mean
+    curvature is 1/5; 0.4 m outside, by d 5 / 5.4."""
+    angles = np.linspace(0.0, 2.0 * math.pi, 400, endpoint=False)
+    path_file = tmp_path / "circle.csv"
+    write_track_csv(path_file, 5.0 * np.cos(angles), 5.0 * np.sin(angles), 0.6, 0.6)
+    path = Track.load(str(path_file)).centerline
+    travels = np.full(12, 0.3)
+    for offset_m in (0.4, -0.4):
+        s_stage, kappas = stages_along_map(
+            travels, np.full(12, offset_m), 2.0, path.piece_array, path.knot_spacing_m,
+            path.length_m,
+        )  # fmt: skip
+        np.testing.assert_allclose(np.diff(s_stage), 0.3 * 5.0 / (5.0 - offset_m), rtol=2e-3)
+        np.testing.assert_allclose(kappas, 0.2, rtol=2e-3)
 
 
 def test_the_compiled_piece_evaluation_is_the_splines_own():
