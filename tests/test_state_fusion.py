@@ -15,6 +15,7 @@ from saferace.agents.pure_pursuit import PurePursuit
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.safety.uncertainty.state_fusion import OdometryFusedStateSource, frenet_step
 from saferace.safety.uncertainty.state_sources import NoisyOracleStateSource, true_lane_state
+from tests.test_dead_reckoning import lane_state_on_circle, on_circle
 
 
 class BiasedSource:
@@ -118,6 +119,25 @@ def test_frenet_step_jacobian_matches_finite_differences():
             ]
         )  # fmt: skip
         np.testing.assert_allclose(jacobian, numeric, atol=1e-6)
+
+
+def test_a_frenet_step_round_a_circle_is_where_the_car_goes_to_first_order():
+    """On the 2 m circle of ``tests/test_dead_reckoning.py`` (curvature 0.5), a car 0.3 m
+    inside at 0.2 rad, moving at ``[3, 0.1, 1.0]``: over 1 ms the step lands within 1e-5 of
+    where polar geometry puts the car (a first-order step's error; a wrong sign or term is
+    off by about 1e-3)."""
+    e_y0, e_psi0, (v_x, v_y, yaw_rate), dt = 0.3, 0.2, (3.0, 0.1, 1.0), 1e-3
+    centre = on_circle(0.0)
+    x, y = centre[:2] + e_y0 * np.array([-np.sin(centre[2]), np.cos(centre[2])])
+    yaw = centre[2] + e_psi0
+    for _ in range(1000):  # the body's motion, integrated finely
+        h = dt / 1000
+        x += h * (v_x * np.cos(yaw) - v_y * np.sin(yaw))
+        y += h * (v_x * np.sin(yaw) + v_y * np.cos(yaw))
+        yaw += h * yaw_rate
+    e_y1, e_psi1, _ = lane_state_on_circle(np.array([x, y, yaw]))
+    moved, _ = frenet_step(np.array([e_y0, e_psi0]), np.array([v_x, v_y, yaw_rate]), 0.5, dt)
+    np.testing.assert_allclose(moved, [e_y1, e_psi1], atol=1e-5)
 
 
 def test_filter_config_fuses_the_source_it_builds():
