@@ -19,6 +19,8 @@ from saferace.experiments.robustness import (
     run_robustness,
     track_rows,
 )
+from saferace.track.track_io import write_track_csv
+from tests.track_shapes import paperclip
 
 
 def short(agent: str, **kwargs) -> RobustnessConfig:
@@ -102,6 +104,27 @@ def test_a_second_state_network_beside_the_filters_is_refused():
             safety=FilterConfig(kind="cbf", state_source="learned:a.pt"),
             monitor_state_source="learned:b.pt",
         )
+
+
+def test_a_track_edited_under_the_same_name_is_driven_again(tmp_path: Path, monkeypatch):
+    """Runs are kept by the track's content as well as its name: a rerun after the CSV's
+    lane changed drives every run again (before, it kept the old lane's rows)."""
+    driven: list[str] = []
+
+    def drive(config, track, preset, seed, progress):
+        driven.append(preset)
+        return {"completion": 1.0}
+
+    monkeypatch.setattr(robustness, "drive_once", drive)
+    track = tmp_path / "mine.csv"
+    write_track_csv(track, *paperclip(legs_apart_m=6.0, straight_m=10.0), 0.5, 0.5)
+    config = replace(short("pure-pursuit"), tracks=(str(track),))
+    run_robustness(config, tmp_path / "out", progress=False)
+    run_robustness(config, tmp_path / "out", progress=False)
+    assert driven == ["none", "strong"]  # kept
+    write_track_csv(track, *paperclip(legs_apart_m=6.0, straight_m=10.0), 0.5, 0.6)
+    rows = run_robustness(config, tmp_path / "out", progress=False)
+    assert driven == ["none", "strong"] * 2 and len(rows) == 2
 
 
 def test_settings_with_tuples_resume(tmp_path: Path):

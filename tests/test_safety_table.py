@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,7 @@ from cli_helpers import run_cli
 from saferace.errors import ConfigError
 from saferace.eval.leaderboard import row_filter
 from saferace.eval.runner import read_jsonl
+from saferace.experiments import safety_table
 from saferace.experiments.filter_comparison import COMPARISON_COLUMNS, comparison_rows, failed
 from saferace.experiments.safety_table import (
     EXPERT_COLUMNS,
@@ -28,6 +30,8 @@ from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import GAIN_PRESETS
 from saferace.track import builtin_track_names
 from saferace.track.random_track import write_random_track
+from saferace.track.track_io import write_track_csv
+from tests.track_shapes import paperclip
 
 
 def assert_the_filter_keeps_the_cars_in(rows: list[dict], tracks: list[str]) -> None:
@@ -81,6 +85,38 @@ def test_table_command_writes_tables_and_resumes(tmp_path: Path):
         return row["agent"], row["task"], row["track_arg"], row["summary"], row["trajectory"]
 
     assert sorted(map(measured, again), key=str) == sorted(map(measured, rows), key=str)
+
+
+def test_a_rerun_matches_kept_rows_by_the_track_s_content_and_the_table_s_settings(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """A rerun into the same folder skipped every run whose agent, task, track name and
+    filter it found: the rows of a CSV since edited, or of another ``--laps``, were kept.
+    (The driving and the tables are faked: only which runs run is checked.)"""
+    driven: list[tuple] = []
+
+    def drive(run, seed: int, laps: int, env_kwargs: dict) -> dict:
+        driven.append((Path(run.track).name, laps))
+        summary = {"laps_completed": 0, "time_outside_lane_s": 0.0, "longest_standstill_s": 0.0}
+        return {"agent": run.agent, "task": run.task, "track_arg": run.track,
+                "filter": dataclasses.asdict(run.safety), "summary": summary}  # fmt: skip
+
+    monkeypatch.setattr(safety_table, "table_row", drive)
+    for name in ("write_tables", "write_comparison", "plot_reckless_paths", "plot_failures"):
+        monkeypatch.setattr(safety_table, name, lambda *args, **kwargs: None)
+    track = tmp_path / "mine.csv"
+    write_track_csv(track, *paperclip(legs_apart_m=6.0, straight_m=10.0), 0.5, 0.5)
+    options = dict(max_seconds=3.0, progress=False, state_source=None)
+    run_table([str(track)], tmp_path / "out", laps=1, **options)
+    first = len(driven)
+    assert first == 16 and {laps for _, laps in driven} == {1}
+    run_table([str(track)], tmp_path / "out", laps=1, **options)
+    assert len(driven) == first  # all kept
+    write_track_csv(track, *paperclip(legs_apart_m=6.0, straight_m=10.0), 0.5, 0.6)
+    run_table([str(track)], tmp_path / "out", laps=1, **options)
+    assert len(driven) == 2 * first  # the same name, another lane: every run again
+    run_table([str(track)], tmp_path / "out", laps=2, **options)
+    assert len(driven) == 3 * first and {laps for _, laps in driven[-first:]} == {2}
 
 
 def test_table_over_two_workers_gives_the_serial_rows(tmp_path: Path):

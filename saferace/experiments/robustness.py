@@ -35,6 +35,7 @@ from saferace.eval.tables import markdown_table, or_dash, write_csv
 from saferace.experiments.robustness_config import RobustnessConfig
 from saferace.safety.uncertainty.conformal import MIN_SIGMA, clopper_pearson
 from saferace.safety.uncertainty.intervals import state_interval
+from saferace.track.track import Track
 
 RUNS_FILE = "runs.jsonl"
 TABLE_COLUMNS = (
@@ -91,13 +92,18 @@ def run_robustness(
                 f"{path} holds runs of other settings ({_difference(row['settings'], settings)}): "
                 "use another --out"
             )
+    made_of = {track: Track.load(track).fingerprint for track in config.tracks}
     finished = {_key(row) for row in done}
-    wanted = [(t, p, s) for t in config.tracks for p in config.presets for s in config.seeds]
-    for track, preset, seed in wanted:
-        if (track, preset, seed) in finished:
+    wanted = [
+        (t, made_of[t], p, s) for t in config.tracks for p in config.presets for s in config.seeds
+    ]
+    for key in wanted:
+        if key in finished:
             continue
+        track, fingerprint, preset, seed = key
         row = {
             "track": track,
+            "track_fingerprint": fingerprint,
             "look": preset,
             "seed": seed,
             **drive_once(config, track, preset, seed, progress),
@@ -108,8 +114,10 @@ def run_robustness(
     return [row for row in done if _key(row) in set(wanted)]
 
 
-def _key(row: dict) -> tuple[str, str, int]:
-    return row["track"], row["look"], row["seed"]
+def _key(row: dict) -> tuple[str, str | None, str, int]:
+    """A run's: its track by name and by content (a CSV edited under the same name is
+    driven again), its look and its seed."""
+    return row["track"], row.get("track_fingerprint"), row["look"], row["seed"]
 
 
 def drive_once(

@@ -5,8 +5,9 @@ without a filter, with the oracle filter, and with noisy state samples through t
 probabilistic filter and through the deterministic filter on the samples' mean; and the
 MPC expert on both tasks without and with the oracle filter (its lap-time cost), with the
 filter's gains named by ``gains`` (the paper's or the tuned ones). Rows are
-appended to ``runs.jsonl`` as each run ends and a rerun skips the runs already there, so
-an interrupted table resumes.
+appended to ``runs.jsonl`` as each run ends and a rerun skips the runs already there (the
+same run, on a track of the same content, at the same laps, seed and step limit), so an
+interrupted table resumes.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from saferace.names import AUTO, DEFAULT_GAINS, ROBUST_GAINS, SQUARED_SLACK, TAS
 from saferace.names import RANDOM_TRACK_RADIUS_M as RANDOM_TRACK_RADIUS_M  # size of test tracks
 from saferace.progress import Progress
 from saferace.track.random_track import write_random_tracks
+from saferace.track.track import Track
 
 LOG = logging.getLogger(__name__)
 
@@ -134,6 +136,9 @@ def run_table(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
+    env_kwargs = {"max_steps": max_steps_for(max_seconds)}
+    made_of = {track: Track.load(track).fingerprint for track in tracks}
+    settings = {"laps": laps, "seed": seed, **env_kwargs}
     runs_file = out_dir / "runs.jsonl"
     done = {_row_key(row): row for row in read_jsonl(runs_file)} if runs_file.exists() else {}
     kind, _, checkpoint = (state_source or "").partition(":")
@@ -150,18 +155,19 @@ def run_table(
     runs = planned_runs(
         tracks, noise, samples, model, gains, state_source, mc_samples, robust, filters
     )
-    todo = [run for run in runs if run.key not in done]
-    env_kwargs = {"max_steps": max_steps_for(max_seconds)}
+    keys = {run: resume_key(run.key, made_of[run.track], settings) for run in runs}
+    todo = [run for run in runs if keys[run] not in done]
 
     def keep(job: tuple, row: dict) -> None:
+        row["resume"] = {"track_fingerprint": made_of[job[0].track], **settings}
         append_jsonl(runs_file, row)
-        done[job[0].key] = row
+        done[keys[job[0]]] = row
 
     def describe(job: tuple) -> str:
         return " ".join(map(str, job[0].key[:4]))
 
     def finished_words(job: tuple) -> str:
-        row = done.get(job[0].key)
+        row = done.get(keys[job[0]])
         return "failed" if row is None else row_words(row)
 
     with Progress(len(todo), "safety table", "run", enabled=progress) as bar:
@@ -174,7 +180,7 @@ def run_table(
             advance=lambda job: bar.done(describe(job), finished_words(job)),
             describe=describe,
         )
-    rows = [done[run.key] for run in runs]
+    rows = [done[keys[run]] for run in runs]
     write_tables(rows, out_dir, gains, filters)
     write_comparison(rows, out_dir, laps)
     plot_reckless_paths(rows, out_dir / "reckless_paths.png")
@@ -214,8 +220,18 @@ def run_key(agent: str, task: str, track: str, safety: FilterConfig) -> tuple:
     return (agent, task, track, safety.label, safety.gains, safety.state_source, safety.samples)
 
 
+def resume_key(key: tuple, track_fingerprint: str, settings: dict) -> tuple:
+    """What a rerun matches a kept row by: the run's :func:`run_key`, its track's content
+    (a CSV edited under the same name is a new track) and the table's laps, seed and step
+    limit (a rerun with ``--laps 3`` into a folder of 1-lap rows kept those)."""
+    return (*key, track_fingerprint, *sorted(settings.items()))
+
+
 def _row_key(row: dict) -> tuple:
-    return run_key(row["agent"], row["task"], row["track_arg"], row_filter(row))
+    resume = dict(row.get("resume", {}))
+    fingerprint = resume.pop("track_fingerprint", None)
+    key = run_key(row["agent"], row["task"], row["track_arg"], row_filter(row))
+    return resume_key(key, str(fingerprint), resume)
 
 
 def filter_label(row: dict) -> str:
