@@ -17,7 +17,6 @@ from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.uncertainty.dead_reckoning import ERROR_PER_M, DeadReckoning, carried_states
 from saferace.safety.uncertainty.interval_votes import (
-    MAJORITY,
     SPACING_M,
     VOTES,
     RecentIntervals,
@@ -66,19 +65,21 @@ def test_a_frame_that_misses_is_outvoted_and_a_majority_is_not():
     voted = recent.voted()
     assert voted is not None
     np.testing.assert_allclose([voted[0][0], voted[1][0]], [-0.1, 0.1], atol=3e-3)
-    recent = kept([good] * VOTES + [off] * MAJORITY)
-    assert recent.boxes is not None and len(recent.boxes.lower) == VOTES  # the last 9
+    recent = kept([good] * 9 + [off] * 5)  # the last 9: 4 good, 5 off
+    assert recent.boxes is not None and len(recent.boxes.lower) == 9
     voted = recent.voted()
     assert voted is not None
     np.testing.assert_allclose([voted[0][0], voted[1][0]], [0.5, 0.7], atol=3e-3)
-    assert kept([good] * (MAJORITY - 1)).voted() is None  # too few to vote
+    assert kept([good] * 4).voted() is None  # too few to vote
+    five = kept([good] * 5).voted()  # five are enough
+    assert five is not None and five[0][0] == pytest.approx(-0.1, abs=3e-3)
 
 
 def test_a_car_at_rest_keeps_no_new_frame():
-    at_rest = kept([box((-0.1, 0.1))] * VOTES, step_m=0.0)
+    at_rest = kept([box((-0.1, 0.1))] * 9, step_m=0.0)
     assert at_rest.boxes is not None and len(at_rest.boxes.lower) == 1
-    creeping = kept([box((-0.1, 0.1))] * VOTES, step_m=SPACING_M / 2)
-    assert creeping.boxes is not None and len(creeping.boxes.lower) == (VOTES + 1) // 2
+    creeping = kept([box((-0.1, 0.1))] * 9, step_m=0.125)  # one kept every 0.25 m: 0, .., 1 m
+    assert creeping.boxes is not None and len(creeping.boxes.lower) == 5
 
 
 def test_only_an_interval_that_leaves_out_part_of_the_set_votes():
@@ -86,6 +87,8 @@ def test_only_an_interval_that_leaves_out_part_of_the_set_votes():
     assert cuts(carried, box((-0.3, 0.3)))
     assert cuts(carried, box((-0.9, 0.3)))  # on one side
     assert not cuts(carried, box((-0.9, 0.9), (-5.0, 5.0)))  # an unfamiliar look
+    assert not cuts(carried, box((-0.9, 0.9), (-0.001, 0.001)))  # the offset decides, not
+    assert cuts(carried, box((-0.3, 0.9), (-0.001, 0.001)))  # the heading
     assert cuts(None, box((-0.9, 0.9)))
 
 
@@ -94,6 +97,9 @@ def test_a_kept_interval_takes_the_set_s_heading():
     lower, upper = offset_with_heading(box((-0.3, 0.4), (-0.4, 0.4)), carried)
     np.testing.assert_allclose(lower, [-0.3, -0.01])
     np.testing.assert_allclose(upper, [0.4, 0.02])
+    lower, upper = offset_with_heading(box((-0.3, 0.4), (-0.005, 0.015)), carried)
+    np.testing.assert_allclose(lower, [-0.3, -0.005])  # inside the set's: the interval's
+    np.testing.assert_allclose(upper, [0.4, 0.015])
 
 
 def test_in_doubt_the_votes_count_only_where_the_set_holds_their_box():
@@ -104,6 +110,7 @@ def test_in_doubt_the_votes_count_only_where_the_set_holds_their_box():
     trusted = last.held(True, frame, inside)
     assert trusted is not None
     np.testing.assert_allclose([trusted.lower[0], trusted.upper[0]], [0.05, 0.1], atol=3e-3)
+    assert inside.holds(inside.lower, inside.upper)  # a box on its edges is held
     in_doubt = last.held(False, frame, inside)
     assert in_doubt is not None  # the votes, not the frame
     np.testing.assert_allclose([in_doubt.lower[0], in_doubt.upper[0]], [-0.1, 0.1], atol=3e-3)
