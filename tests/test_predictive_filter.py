@@ -168,6 +168,79 @@ def test_a_stage_whose_wheels_are_turned_is_capped_at_the_tyres_grip(hairpin_tra
     env.close()
 
 
+def test_each_stage_s_steering_is_bounded_by_the_grip_at_its_own_speed(hairpin_track: str):
+    """A plan speeding up from 1 to 8 m/s: each stage's steering within the lock (where
+    the grip allows more: at 1 m/s) or ``atan(a L / v^2)`` at that stage's own
+    speed, whichever is less; the first stage's within the bounds asked for too."""
+    env = PredictiveSafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=hairpin_track, max_laps=1)
+    )
+    env.reset(seed=0)
+    planner = env.planner
+    horizon = planner.settings.horizon
+    plan_x = np.zeros((horizon + 1, planner.model.n_state + 1))
+    speeds = np.linspace(1.0, 8.0, horizon + 1)
+    plan_x[:, planner.model.speed_index] = speeds
+    planner.first_bounds = (np.array([0.05, -1.0]), np.array([0.3, 1.0]))
+    u_min, u_max = planner._input_bounds(plan_x)
+    plan_x[1:, planner.model.speed_index] = 8.0  # the first stage slow, the rest fast
+    planner.first_bounds = (np.array([-1.0, -10.0]), np.array([1.0, 10.0]))  # none binds
+    first_min, first_max = (bound[0] for bound in planner._input_bounds(plan_x))
+    env.close()
+    params = planner.drivetrain  # the car's lock, brake and drive
+    lock, accel_min, accel_max = params.max_steer_rad, -params.max_brake_mps2, params.max_accel_mps2
+    grip = np.arctan(planner.max_lateral_accel_mps2 * planner.params.wheelbase_m / speeds[:-1] ** 2)
+    expected_max = np.minimum(lock, grip)
+    np.testing.assert_allclose(u_max[1:, 0], expected_max[1:], rtol=1e-12)
+    np.testing.assert_allclose(u_min[1:, 0], -expected_max[1:], rtol=1e-12)
+    assert grip[0] > lock and grip[-1] < 0.1  # both ends bind somewhere
+    np.testing.assert_allclose(u_min[0], [0.05, -1.0])  # the first stage: as asked
+    np.testing.assert_allclose(u_max[0], [0.3, 1.0])
+    np.testing.assert_allclose(u_min[1:, 1], accel_min)
+    np.testing.assert_allclose(u_max[1:, 1], accel_max)
+    np.testing.assert_allclose(first_min, [-lock, accel_min])  # its own, not stage 1's grip
+    np.testing.assert_allclose(first_max, [lock, accel_max])
+
+
+def test_a_plan_s_first_steering_moves_from_the_last_command_by_the_rate_limit(
+    hairpin_track: str,
+):
+    """Heading for the left edge with the wheels at 0.3 rad left: the plan turns right as
+    fast as it may, the first steering 0.3 rad a stage less than the last command's."""
+    env = PredictiveSafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=hairpin_track, max_laps=1)
+    )
+    env.reset(seed=0)
+    planner = env.planner
+    x0 = np.append(planner.model.state_from(0.2, 0.4, 4.0), 0.3)
+    bounds = (np.array([-0.36, -6.0]), np.array([0.36, 6.0]))
+    u, solved = planner.plan(
+        x0, 2.0, 0.3, np.array([0.3, 0.0]), np.array([0.0, 0.0]), bounds, 0.0, 0.0
+    )
+    env.close()
+    assert solved
+    assert u[0] == pytest.approx(0.3 - 0.3, abs=1e-6)  # at the rate limit from 0.3 rad
+
+
+def test_a_stage_beyond_the_last_plan_s_arc_lengths_holds_to_no_old_limit(hairpin_track: str):
+    """The last plan held its stages' arc lengths to their limits; arc lengths before or
+    after that stretch are held to none, a lap on is the same stretch, and a failed plan
+    is never certified."""
+    env = PredictiveSafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=hairpin_track, max_laps=1)
+    )
+    env.reset(seed=0)
+    planner = env.planner
+    planner._held_limits = (np.array([5.0, 6.0, 7.0]), np.array([3.0, 2.5, 2.0]))
+    held = planner._held_limit(np.array([4.0, 5.5, 6.5, 8.0]))
+    np.testing.assert_array_equal(held, [-np.inf, 2.75, 2.25, -np.inf])
+    lap = planner.track.length_m
+    np.testing.assert_array_equal(planner._held_limit(np.array([5.5, 6.5]) + lap), [2.75, 2.25])
+    planner._plan_slack = None  # as a failed solve leaves it
+    assert planner.plan_slacks is None and not planner.certified
+    env.close()
+
+
 def test_a_stages_map_limit_holds_what_the_last_steps_plan_held_it_to(hairpin_track: str):
     """A plan moved off the racing line does not meet map limits below those the last
     step's plan met at the same arc lengths (the blend falls by metres per second over
