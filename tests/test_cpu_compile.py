@@ -124,6 +124,19 @@ def test_changed_weights_are_compiled_again(fake_loads):
     assert fake_loads.keys[0][1] != fake_loads.keys[1][1]  # another package
 
 
+def test_changed_buffers_are_compiled_again(fake_loads):
+    """BatchNorm's running statistics are frozen into a package as weights are: a network
+    trained on since (its buffers changed in place) runs from a new one."""
+    network = networks()["control, MC dropout"]
+    predict(network)
+    batch_norm = next(m for m in network.modules() if isinstance(m, torch.nn.BatchNorm2d))
+    assert batch_norm.running_mean is not None
+    with torch.no_grad():
+        batch_norm.running_mean.add_(0.1)
+    predict(network)
+    assert len(fake_loads.keys) == 2
+
+
 def test_weights_loaded_as_new_tensors_are_compiled_again(fake_loads):
     network = networks()["control, MC dropout"]
     for _ in range(2):  # new tensors, each with version 0: only their storage tells
@@ -136,7 +149,8 @@ def test_weights_loaded_as_new_tensors_are_compiled_again(fake_loads):
 def test_the_package_key_is_every_part_of_what_it_was_compiled_from():
     """The key is the content: a copy of the network keys the same package; a weight, a
     buffer (BatchNorm's running mean, a normaliser's statistics), the network's config, the
-    compiled method, the inputs' shapes and the threads each key another."""
+    compiled method, the inputs' shapes, the threads and the CPU's vector instructions
+    (a cache shared by two machines) each key another."""
     network = networks()["control, MC dropout"]
     signature = ((((1, 64, 64, 3), torch.uint8), ((1, 3), torch.float32)), 2)
     key = cpu_compile.CompiledStep(network)._key(signature)
@@ -159,6 +173,10 @@ def test_the_package_key_is_every_part_of_what_it_was_compiled_from():
     (image, velocity), threads = signature
     changed.append(cpu_compile.CompiledStep(network)._key(((image, ((2, 3), torch.float32)), 2)))
     changed.append(cpu_compile.CompiledStep(network)._key(((image, velocity), threads + 1)))
+    isa = torch._inductor.cpu_vec_isa
+    with pytest.MonkeyPatch.context() as patch:  # another CPU's vector instructions
+        patch.setattr(isa, "pick_vec_isa", lambda: "another CPU's instruction set")
+        changed.append(cpu_compile.CompiledStep(network)._key(signature))
     assert len({key, *changed}) == 1 + len(changed)
 
 
@@ -227,6 +245,18 @@ def test_a_failed_compile_warns_once_and_runs_eagerly(compiling, monkeypatch, ca
     assert_close(first, expected, 0.0)
     assert_close(second, expected, 0.0)
     assert not list(compiling.glob("*.pt2"))
+
+
+def test_a_lock_is_pruned_only_long_after_its_package_went(tmp_path):
+    """A package's lock without the package is a compile under way (its package not yet
+    written) or one that went long ago: only an hour-old one is removed."""
+    fresh, old = tmp_path / "fresh.lock", tmp_path / "old.lock"
+    fresh.touch()
+    old.touch()
+    past = time.time() - 2.0 * cpu_compile.STALE_PARTIAL_S
+    os.utime(old, (past, past))
+    cpu_compile.prune_packages(tmp_path, 10**9)
+    assert fresh.exists() and not old.exists()
 
 
 def test_the_cache_keeps_the_most_recently_used_packages_within_its_limit(tmp_path):
