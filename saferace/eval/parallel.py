@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import multiprocessing.util
 import os
 import signal
 import sys
@@ -28,6 +27,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from multiprocessing import get_context
 from typing import Any
+
+from tqdm import tqdm
 
 from saferace.cache import CACHE_VARIABLE
 from saferace.errors import SafeRaceError
@@ -118,36 +119,28 @@ def _raise_interrupt(signal_number: int, frame: object) -> None:
 
 
 def stop_workers(pool: ProcessPoolExecutor) -> None:
-    """End ``pool`` now: its queued jobs cancelled, its worker processes terminated, and
-    then its queues closed (left open, the run ended with "2 leaked semaphore objects")."""
+    """End ``pool`` now: its queued jobs cancelled, its worker processes terminated."""
     processes = list(getattr(pool, "_processes", {}).values())  # the pool's own record
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         process.terminate()
     for process in processes:
         process.join(timeout=5.0)
-    pool.shutdown(wait=True)  # the pool's manager sees its workers gone, and closes up
 
 
 def start_worker(threads: int) -> None:
     """A worker process's start: it ends with its parent however that ends (Linux: the
-    kernel sends it SIGTERM, even where the parent was killed outright), cleanly
-    (:func:`_end_worker`), and it takes ``threads`` threads (:func:`limit_threads`)."""
-    signal.signal(signal.SIGTERM, _end_worker)
+    kernel sends it SIGTERM, even where the parent was killed outright), and it takes
+    ``threads`` threads (:func:`limit_threads`). Its progress bars share a thread lock, not
+    tqdm's default one across processes: a worker terminated holding that semaphore left it
+    to the resource tracker ("2 leaked semaphore objects" after ``benchmark --workers 2``
+    was stopped)."""
+    tqdm.set_lock(threading.RLock())  # see the docstring
     if sys.platform.startswith("linux"):
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
         if os.getppid() == 1:  # the parent ended before the line above ran
             os._exit(1)
     limit_threads(threads)
-
-
-def _end_worker(signal_number: int, frame: object) -> None:
-    """A worker's SIGTERM: it ends now, its locks released first (killed outright, each
-    worker left a progress bar's lock to the resource tracker: "2 leaked semaphore
-    objects"). ``SystemExit`` would not do: the pool's worker loop catches it as a job's
-    failure and takes the next job."""
-    multiprocessing.util._run_finalizers(0)  # type: ignore[attr-defined]  # the locks'
-    os._exit(128 + signal_number)
 
 
 def available_cores() -> int:
