@@ -54,9 +54,13 @@ def test_no_jobs_on_several_workers_is_nothing_to_do():
 
 
 PARENT = """
-import os, sys, time
+import os, signal, sys, time
 from tqdm import tqdm
 from saferace.eval.parallel import run_jobs
+
+# a command run in the foreground, as a user's Ctrl-C meets it (a suite run in the
+# background hands its children SIGINT ignored, and Python then never raises on it)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 def wait(folder):
     tqdm(disable=True).close()  # a run's progress bar, as every worker's job makes
