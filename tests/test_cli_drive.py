@@ -6,6 +6,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from cli_helpers import run_cli
 from rerun.chunk import RrdReader
 
@@ -97,6 +98,7 @@ def test_snapshots_of_a_randomisation_preset_make_a_contact_sheet(tmp_path: Path
     assert refused.returncode != 0 and "unknown VisualRandomization preset 'wild'" in refused.stderr
 
 
+@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
 def test_drive_in_traffic_records_the_opponents_collisions_and_car_barriers(tmp_path: Path):
     recordings = {}
     for filtered in (False, True):

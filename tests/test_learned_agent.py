@@ -127,6 +127,7 @@ def test_eval_rows_record_checkpoint_and_state_source(tiny_checkpoint, tmp_path:
     assert refused.returncode == 2 and "--filter cbf" in refused.stderr
 
 
+@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
 def test_the_default_filter_refuses_an_uncalibrated_state_network(
     tiny_checkpoint, uncalibrated_checkpoint: Path, tmp_path: Path
 ):

@@ -239,6 +239,7 @@ def test_unseen_tracks_timings_and_the_recording(tables):
     assert {"/filter/kappa_radpm/believed", "/filter/accel_mps2/filtered"} <= entities
 
 
+@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
 def test_a_second_call_resumes_and_redoes_nothing(tables):
     out, _ = tables
     runs = [(task, kind) for task in TASKS for kind, _, _ in RUN_KINDS]

@@ -51,6 +51,7 @@ def assert_the_filter_keeps_the_cars_in(rows: list[dict], tracks: list[str]) -> 
             assert by_key[("expert", task, track, "oracle")]["time_outside_lane_s"] == 0.0
 
 
+@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
 def test_table_command_writes_tables_and_resumes(tmp_path: Path):
     out = tmp_path / "safety"
     unseen = str(write_random_track(tmp_path / "unseen_31.csv", 31, RANDOM_TRACK_RADIUS_M))

@@ -173,6 +173,7 @@ def test_bad_settings_are_refused():
     env.close()
 
 
+@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
 def test_the_command_line_fuses_only_a_filtered_uncertain_source(tmp_path):
     drive = ("drive", "--track", "lab", "--laps", "1", "--agent", "pure-pursuit")
     refused = [

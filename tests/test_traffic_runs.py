@@ -126,6 +126,7 @@ def test_the_plot_draws_each_opponent_and_marks_collisions_by_fault():
     plt.close(figure)
 
 
+@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
 def test_the_filter_sees_the_opponents_with_the_noise_asked_for(tmp_path: Path):
     rows_path = tmp_path / "rows.jsonl"
     common = ("eval", "--agent", "speeding", "--track", "lab", "--opponents", SLOW_CAR)
