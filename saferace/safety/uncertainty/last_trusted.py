@@ -132,11 +132,9 @@ class LastTrusted:
         trusted: bool,
         interval: tuple[np.ndarray, np.ndarray],
         carried: DeadReckoning | None,
-    ) -> DeadReckoning | None:
-        """Keep what the next step carries, and return it: the ``carried`` set (None: none
-        was started), narrowed to this frame's ``interval`` where that was ``trusted`` and
-        meets it."""
+    ) -> None:
+        """Keep what the next step carries: the ``carried`` set (None: none was started),
+        narrowed to this frame's ``interval`` where that was ``trusted`` and meets it."""
         if carried is not None and trusted and carried.meets(*interval):
             carried = carried.narrowed(*interval)
         self.reckoning = carried
-        return carried
