@@ -15,6 +15,11 @@ and f-strings are left alone. The mutated module
 is written as ``ast.unparse`` prints it (the unmutated module is run that way first, and
 must pass), into a copy of the tree per worker, so that workers never share a file and the
 checkout is never touched. The report lists every survivor with its line and change.
+
+Each verdict is appended to a file beside the report (``--out`` with ``.jsonl``) as it is
+reached, keyed by the module's and its tests' content: a run stopped part way (a module's
+mutants can take hours) resumes where it was, and a change to the module or its tests
+judges its mutants again.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ from __future__ import annotations
 import argparse
 import ast
 import copy
+import hashlib
+import json
 import os
 import queue
 import shutil
@@ -34,6 +41,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from itertools import repeat
 from pathlib import Path
+from threading import Lock
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -75,10 +83,17 @@ TARGETS: dict[str, list[str]] = {
     "saferace/safety/predictive/condensed_qp.py": ["tests/test_condensed_qp.py"],
     "saferace/safety/predictive/plan.py": [
         "tests/test_predictive_filter.py",
+        "tests/test_plan_linearisation.py",
         "tests/test_condensed_qp.py",
     ],
     "saferace/learning/cpu_compile.py": ["tests/test_cpu_compile.py"],
     "saferace/envs/dm_env_view.py": ["tests/test_dm_env_view.py"],
+    # the model's build, resume, manifest and calibration by track; without the safety
+    # table behind it (20 s a mutant, and the table's own module has its tests)
+    "saferace/learning/perception.py": [
+        "tests/test_perception.py::not safety_table",
+        "tests/test_track_calibration.py",
+    ],
     "saferace/safety/model_code.py": ["tests/test_compiled_stages.py"],
     "saferace/numba_cache.py": ["tests/test_numba_cache.py"],
     "saferace/safety/predictive/filter.py": ["tests/test_predictive_filter.py"],
@@ -341,6 +356,54 @@ def judge(target: Target, mutant: Mutant, trees: queue.Queue[Path]) -> bool:
         trees.put(tree)
 
 
+def content_key(module: str, tests: list[str]) -> str:
+    """A hash of the module and of the tests that judge its mutants, and how they are run."""
+    digest = hashlib.sha256(module.encode() + (ROOT / module).read_bytes())
+    for test in tests:
+        digest.update(test.encode() + (ROOT / test.partition("::")[0]).read_bytes())
+    return digest.hexdigest()[:16]
+
+
+class Verdicts:
+    """The verdicts reached so far (``path``, JSON lines): whether each mutant survived,
+    by module, content key and mutant index; each new one appended as it is reached."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._lock = Lock()
+        lines = path.read_text().splitlines() if path.exists() else []
+        self._known = {
+            (row["module"], row["key"], row["index"]): row["survived"]
+            for row in map(json.loads, lines)
+        }
+
+    def get(self, module: str, key: str, index: int) -> bool | None:
+        return self._known.get((module, key, index))
+
+    def add(self, module: str, key: str, mutant: Mutant, survived: bool) -> None:
+        row = {"module": module, "key": key, "index": mutant.index, "line": mutant.line,
+               "change": mutant.change, "survived": survived}  # fmt: skip
+        with self._lock:
+            self._known[(module, key, mutant.index)] = survived
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with self.path.open("a") as handle:
+                handle.write(json.dumps(row) + "\n")
+
+
+def judge_and_keep(
+    target: Target, key: str, verdicts: Verdicts, mutant: Mutant, trees: queue.Queue[Path]
+) -> bool:
+    """:func:`judge`, or the verdict kept from an earlier run of the same content."""
+    known = verdicts.get(target.module, key, mutant.index)
+    if known is not None:
+        return known
+    survived = judge(target, mutant, trees)
+    verdicts.add(target.module, key, mutant, survived)
+    verdict = "survived" if survived else "killed"
+    print(f"  line {mutant.line} `{mutant.change}` (site {mutant.index}): {verdict}", flush=True)
+    return survived
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=2)
@@ -357,6 +420,7 @@ def main() -> int:
     for worker in range(args.workers):
         trees.put(copy_tree(scratch / f"tree{worker}"))
     first_tree = scratch / "tree0"
+    verdicts = Verdicts(args.out.with_suffix(".jsonl"))
     lines = ["# Mutation run", "", "| module | mutants | killed | survived |", "|---|---|---|---|"]
     survivors: list[str] = []
     submission = None
@@ -372,9 +436,17 @@ def main() -> int:
                 raise SystemExit(f"{module}: its tests fail on the unmutated, unparsed module")
             target = Target(module, TARGETS[module], 3.0 * baseline_s + 30.0, shared)
             found = mutants(module)
-            print(f"{module}: {len(found)} mutants, tests {baseline_s:.0f} s", flush=True)
+            key = content_key(module, TARGETS[module])
+            kept = sum(verdicts.get(module, key, mutant.index) is not None for mutant in found)
+            print(
+                f"{module}: {len(found)} mutants ({kept} judged before), tests "
+                f"{baseline_s:.0f} s", flush=True,
+            )  # fmt: skip
             with ThreadPoolExecutor(args.workers) as pool:
-                survived = list(pool.map(judge, repeat(target), found, repeat(trees)))
+                survived = list(
+                    pool.map(judge_and_keep, repeat(target), repeat(key), repeat(verdicts), found,
+                             repeat(trees))
+                )  # fmt: skip
             alive = [mutant for mutant, lives in zip(found, survived, strict=True) if lives]
             lines.append(f"| {module} | {len(found)} | {len(found) - len(alive)} | {len(alive)} |")
             survivors += [f"- {m.module}:{m.line} `{m.change}` (site {m.index})" for m in alive]

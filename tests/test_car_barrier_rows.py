@@ -9,9 +9,10 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import sympy as sp
 
 from saferace.safety.cbf.qp import FilterProblem
-from saferace.safety.models import param_values
+from saferace.safety.models import FrenetModel, param_values, symbolic_model
 from saferace.safety.traffic import car_barriers as cb
 from saferace.safety.vehicle_params import load_params
 
@@ -111,3 +112,63 @@ def test_the_car_rows_join_a_chance_constrained_problem_with_no_spread_of_their_
     assert np.all(joined.covariance[2:] == 0.0) and np.all(joined.covariance[:2] == 1.0)
     np.testing.assert_array_equal(joined.b, [0.5, 0.7, *b])
     assert values.shape == (5, 4) and np.all(values[:, 2:] == h)
+
+
+def augmented_rk4(model: FrenetModel, z: np.ndarray, u: np.ndarray, a_o: float, h_s: float):
+    """One RK4 step of the ego's model state with ``ds`` and the opponent's speed ``v_o``
+    appended: ``d(ds)/dt = s_dot - v_o`` in the bend, ``d(v_o)/dt = a_o``."""
+
+    def rate(z: np.ndarray) -> np.ndarray:
+        x = z[:-2]
+        ds_rate = model.s_dot(x, KAPPA_RADPM) - z[-1]
+        return np.array([*model.f(x, u, KAPPA_RADPM), ds_rate, a_o])
+
+    k1 = rate(z)
+    k2 = rate(z + 0.5 * h_s * k1)
+    k3 = rate(z + 0.5 * h_s * k2)
+    k4 = rate(z + h_s * k3)
+    return z + h_s * (k1 + 2 * k2 + 2 * k3 + k4) / 6.0
+
+
+@pytest.mark.parametrize("model_name", ["kinematic", "dynamic"])
+@pytest.mark.parametrize("a_o", [0.0, -cb.OPPONENT_ACCEL_MPS2])
+def test_each_order_of_the_car_condition_is_the_last_s_rate_along_the_model_in_a_bend(
+    model_name: str, a_o: float
+):
+    """``psi_i = d/dt psi_(i-1) + lam_i psi_(i-1)``, the rate taken numerically along the
+    model in a 0.5 1/m bend, 30 cm off the centre line (where the arc length's rate has the
+    bend's ``1 / (1 - kappa e_y)``) and closing on an opponent that may brake."""
+    model = symbolic_model(model_name)
+    numeric = FrenetModel(model_name, load_params())
+    axes = (cb.SEMI_AXIS_S_M, cb.SEMI_AXIS_Y_M)
+    fixed = {
+        model.kappa: KAPPA_RADPM, cb._E_Y_O: 0.1, cb._A_O: a_o,
+        cb._AXIS_S: axes[0], cb._AXIS_Y: axes[1],
+        **dict(zip(cb._LAMS, cb.CAR_GAINS, strict=True)),
+        **dict(zip(model.params, PARAMS, strict=True)),
+    }  # fmt: skip
+    psi = [
+        sp.lambdify((*model.state, *model.control, cb._DS, cb._V_O), p.subs(fixed), "math")
+        for p in cb.car_condition(model_name)
+    ]
+    assert len(psi) == 3  # steering reaches the barrier at its second derivative
+    u = np.array([0.1, 0.8])
+    x = numeric.state_from(0.3, 0.2, 3.0, 0.1, 0.5)
+    z = np.array([*x, -0.6, 1.5])
+    step_s = 1e-5  # the dynamic model's yaw rate changes at 50 rad/s^2 here
+    ahead, behind = (
+        augmented_rk4(numeric, z, u, a_o, step_s),
+        augmented_rk4(numeric, z, u, a_o, -step_s),
+    )
+    for i in (1, 2):
+        rate = psi[i - 1](*ahead[:-2], *u, *ahead[-2:]) - psi[i - 1](*behind[:-2], *u, *behind[-2:])
+        expected = rate / (2 * step_s) + cb.CAR_GAINS[i - 1] * psi[i - 1](*z[:-2], *u, *z[-2:])
+        assert psi[i](*z[:-2], *u, *z[-2:]) == pytest.approx(expected, rel=1e-6)
+    final, steer_gradient, accel_gradient, h = cb._car_function(model_name)(
+        *x, *u, KAPPA_RADPM, *PARAMS, -0.6, 0.1, 1.5, a_o, *axes, *cb.CAR_GAINS
+    )
+    assert final == pytest.approx(psi[2](*x, *u, -0.6, 1.5))
+    assert h == pytest.approx(psi[0](*x, *u, -0.6, 1.5))
+    for gradient, nudge in ((steer_gradient, [1e-6, 0.0]), (accel_gradient, [0.0, 1e-6])):
+        change = psi[2](*x, *(u + nudge), -0.6, 1.5) - psi[2](*x, *(u - nudge), -0.6, 1.5)
+        assert gradient == pytest.approx(change / 2e-6, rel=1e-5)

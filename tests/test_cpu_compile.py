@@ -60,7 +60,15 @@ def networks() -> dict[str, torch.nn.Module]:
     }
 
 
-@pytest.mark.parametrize("name", list(networks()))
+@pytest.mark.parametrize(
+    "name",
+    [
+        "control, MC dropout",
+        # 15-30 s: the default suite stays within 15 min on 2 cores (its keys and loads are
+        # checked with the compile faked below)
+        pytest.param("deep ensemble", marks=pytest.mark.slow),
+    ],
+)
 def test_a_compiled_prediction_equals_the_eager_one_and_its_package_is_reused(
     name, compiling, monkeypatch
 ):
@@ -301,3 +309,47 @@ def test_a_package_lock_is_held_by_one_at_a_time(tmp_path):
         order.append("first")
     waiting.join()
     assert order == ["first", "second"]
+
+
+def test_a_frame_of_another_dtype_runs_from_its_own_package(fake_loads):
+    """A package reads its inputs as the dtypes it was compiled for: the same frame as
+    floats is another signature, not the uint8 frame's package."""
+    network = networks()["control, MC dropout"]
+    image = torch.from_numpy(IMAGE)[None]
+    velocity = torch.from_numpy(VELOCITY)[None]
+    network._compiled(image, velocity)
+    network._compiled(image.float(), velocity)
+    network._compiled(image, velocity.double())
+    dtypes = [tuple(dtype for _, dtype in signature[0]) for signature, _ in fake_loads.keys]
+    assert dtypes == [
+        (torch.uint8, torch.float32),
+        (torch.float32, torch.float32),
+        (torch.uint8, torch.float64),
+    ]
+    assert len({key for _, key in fake_loads.keys}) == 3
+
+
+def test_a_fresh_machines_first_compiles_make_the_cache_folders(monkeypatch, tmp_path):
+    """No cache yet (its parent folders neither): the first package makes them, and a
+    second network's package goes into the folder the first made. Exporting and compiling
+    stand in by a package file and the eager step."""
+    root = tmp_path / "home" / "cache"
+    monkeypatch.setenv(cpu_compile.COMPILE_VARIABLE, "1")
+    monkeypatch.setenv(CACHE_VARIABLE, str(root))
+    first = networks()["control, MC dropout"]
+    second = copy.deepcopy(first)
+    with torch.no_grad():
+        second.output_layer.bias.add_(1.0)
+
+    def package(program, package_path, inductor_configs):
+        Path(package_path).write_bytes(b"a package")
+
+    monkeypatch.setattr(torch.export, "export", lambda step, examples: step)
+    monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", package)
+    monkeypatch.setattr(
+        torch._inductor, "aoti_load_package", lambda path: lambda *t: [*first.predict_tensors(*t)]
+    )
+    for network in (first, second):
+        predict(network)
+        assert not network._compiled._failed
+    assert len(list((root / "compiled").glob("*.pt2"))) == 2

@@ -147,7 +147,12 @@ def test_the_default_filter_refuses_an_uncalibrated_state_network(
     assert (robust["uncertainty"], robust["gains"]) == ("robust", ROBUST_GAINS)
 
 
-@pytest.mark.parametrize("stereo", [False, True])
+@pytest.mark.parametrize(
+    "stereo",
+    # the stereo checkpoint's training and maps: 15 s, so in the slow suite (its network's
+    # two cameras are checked in tests/test_networks.py)
+    [False, pytest.param(True, marks=pytest.mark.slow)],
+)
 def test_gradcam_maps_and_command(tiny_checkpoint, tmp_path: Path, stereo: bool):
     checkpoint = tiny_checkpoint(stereo)[0]
     loaded = load_checkpoint(checkpoint)

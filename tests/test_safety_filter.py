@@ -36,8 +36,9 @@ LOWER, UPPER = np.array([-0.36, -4.0]), np.array([0.36, 4.0])
 UNBOUNDED = np.array([1e3, 1e3])
 
 
-def psi_functions(model_name: str, context: BarrierContext, kappa: float, params: tuple):
-    """``psi_0 .. psi_{m-1}`` of every barrier as numeric functions of (state, control)."""
+def psi_functions(model_name: str, context: BarrierContext, params: tuple):
+    """``psi_0 .. psi_{m-1}`` of every barrier as numeric functions of (state, control,
+    curvature)."""
     model = symbolic_model(model_name)
     values = {
         "w_left": context.w_left_m,
@@ -53,9 +54,8 @@ def psi_functions(model_name: str, context: BarrierContext, kappa: float, params
         sp.Symbol(k, **({"positive": True} if k == "lateral_decel" else {"real": True})): v
         for k, v in values.items()
     }
-    substitutions[model.kappa] = kappa
     substitutions.update(dict(zip(model.params, params, strict=True)))
-    arguments = (*model.state, *model.control)
+    arguments = (*model.state, *model.control, model.kappa)
     return [
         sp.lambdify(arguments, psi.subs(substitutions), "math")
         for name in BARRIER_NAMES
@@ -90,12 +90,12 @@ def test_forward_invariance_in_the_pure_model(
     bound = np.array([1.4 if model_name == "kinematic" else 1e4, 4.0])
     rng = np.random.default_rng(0)
     worst, runs, rejected, acted, steps = np.inf, 0, 0, 0, 0
+    psi = psi_functions(model_name, context, values)
     while runs < 20:
         kappa = rng.uniform(-0.3, 0.3)
-        psi = psi_functions(model_name, context, kappa, values)
         speed = rng.uniform(1.0, 4.0)
         x = model.state_from(rng.uniform(-0.35, 0.35), rng.uniform(-0.4, 0.4), speed)
-        if min(f(*x, 0.0, 0.0) for f in psi) < 0.0:
+        if min(f(*x, 0.0, 0.0, kappa) for f in psi) < 0.0:
             rejected += 1
             continue  # outside the HOCBF safe set (every psi_i, i < m, non-negative)
         runs += 1

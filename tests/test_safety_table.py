@@ -121,7 +121,7 @@ def test_a_rerun_matches_kept_rows_by_the_track_s_content_and_the_table_s_settin
 
 
 def test_table_over_two_workers_gives_the_serial_rows(tmp_path: Path):
-    options = dict(laps=1, max_seconds=3.0, progress=False)
+    options = dict(laps=1, max_seconds=1.0, progress=False)
     serial = run_table(["lab"], tmp_path / "serial", **options)
     parallel = run_table(["lab"], tmp_path / "parallel", workers=2, **options)
 

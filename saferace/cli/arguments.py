@@ -199,11 +199,13 @@ def check_filter_asked(option: dict, source: str, noise: object) -> None:
 
 def built_filter_config(args: argparse.Namespace):
     """:func:`filter_config`, with the generic perception model it names built first (once,
-    in this process, before any worker needs it)."""
-    from saferace.learning.perception import ensure_perception_model
-
+    in this process, before any worker needs it). Only that source imports the learning
+    package (PyTorch: seconds a command)."""
     config = filter_config(args)
-    ensure_perception_model(config.state_source, getattr(args, "workers", 1))
+    if (config.state_source or "").partition(":")[0] == GENERIC_SOURCE:
+        from saferace.learning.perception import ensure_perception_model
+
+        ensure_perception_model(config.state_source, getattr(args, "workers", 1))
     return config
 
 
