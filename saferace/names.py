@@ -20,6 +20,12 @@ TASKS: tuple[str, ...] = tuple(TASK_IDS)
 TRAFFIC_TASK_IDS = {"Overtake": "saferace/Overtake-v0"}
 #: Every task a driver can be run, collected or trained on.
 DRIVING_TASKS: tuple[str, ...] = (*TASKS, *TRAFFIC_TASK_IDS)
+#: The sensor and actuator faults' form on the command line (``saferace.faults``).
+FAULTS_HELP = (
+    "sensor and actuator faults, seeded by the episode: blackout, frozen, dropped, latency, "
+    "occlusion, flicker, odometry, steering, delay, each with start=S, duration=S, severity=1-3 "
+    "and its own sizes (blackout:start=3,duration=2 latency:steps=2)"
+)
 #: The opponent specs' form on the command line and in configs.
 OPPONENTS_HELP = (
     "other cars on track, POLICY[:FIELD=VALUE,...]: expert, racer, pure-pursuit, lane-changer, "

@@ -8,10 +8,10 @@ import gymnasium as gym
 from saferace.names import TASK_IDS, TRAFFIC_TASK_IDS
 
 #: Task id -> entry point. The tasks share the car and scene; they differ in reference line
-#: and in the opponents they start among.
+#: and in the opponents they start among. Each takes ``faults`` (``saferace.faults``).
 TASKS = {
-    **{task_id: f"saferace.envs.racing_env:{task}Env" for task, task_id in TASK_IDS.items()},
-    **{task_id: f"saferace.envs.overtake:{task}Env" for task, task_id in TRAFFIC_TASK_IDS.items()},
+    task_id: f"saferace.envs.tasks:{task}"
+    for task, task_id in {**TASK_IDS, **TRAFFIC_TASK_IDS}.items()
 }
 
 

@@ -15,7 +15,7 @@ FLOORS = {
     "names": 0, "config": 0, "errors": 0, "version": 0, "registry": 0, "extras": 0, "progress": 0,
     "assets": 0, "cache": 0, "numba_cache": 0,
     "track": 1,
-    "envs": 2,
+    "envs": 2, "faults": 2,
     "safety": 3, "agents": 3,
     "eval": 4, "sysid": 4, "multi": 4,
     "learning": 5,
@@ -72,7 +72,7 @@ MODULE_STRING = re.compile(r"(saferace(?:\.\w+)+)(?::\w*)?")
 #: The modules that load a higher floor by name at run time, and what they load: plug-in
 #: points kept visible here (an entry missing from the source fails as well as a new one).
 DYNAMIC_IMPORTS_ALLOWED = {
-    "saferace.registry": {"saferace.envs.racing_env", "saferace.envs.overtake"},
+    "saferace.registry": {"saferace.envs.tasks"},
     "saferace.envs.traffic": {"saferace.agents.opponents"},
     "saferace.eval.agents": {"saferace.learning.agent"},
     "saferace.eval.filter_config": {"saferace.learning.agent", "saferace.learning.perception"},

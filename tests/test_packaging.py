@@ -155,6 +155,7 @@ def run_without(modules: tuple[str, ...], code: str, cwd: Path) -> subprocess.Co
     )  # fmt: skip
 
 
+@pytest.mark.slow  # 15 s (the extras' lazy loading: test_the_core_imports_none_of_the_extras)
 def test_rerun_and_captum_load_only_to_record_and_to_draw_gradcam(tmp_path: Path):
     """Driving without a recording and training need neither (rerun-sdk is 170 MB, and a
     GPU machine's offline install leaves it behind)."""

@@ -1,4 +1,5 @@
-"""The paper's tables from one command: a tiny preset end to end, and the quick one (slow)."""
+"""The paper's tables from one command: a tiny preset end to end and the quick one (both
+slow: the tiny one's runs take a minute), and the tables and claims from rows."""
 
 from __future__ import annotations
 
@@ -51,6 +52,9 @@ TINY = Preset(
 SETTING = TINY.settings[0]
 
 
+# The tiny preset's runs take a minute: the tests that read them are in the slow suite (the
+# default suite stays within 15 min on 2 cores); the tables and claims from hand-made rows
+# are not.
 @pytest.fixture(scope="module")
 def tables(tmp_path_factory: pytest.TempPathFactory, quick_perception) -> tuple[Path, list[Path]]:
     out = tmp_path_factory.mktemp("paper")
@@ -62,6 +66,7 @@ def metrics(out: Path, task: str, kind: str) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
+@pytest.mark.slow
 def test_every_output_is_written(tables):
     _, written = tables
     names = {path.name for path in written}
@@ -76,6 +81,7 @@ def test_every_output_is_written(tables):
     assert all(path.stat().st_size > 0 for path in written)
 
 
+@pytest.mark.slow
 def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
     out, _ = tables
     with open(out / "table2.csv") as handle:
@@ -120,6 +126,7 @@ def test_the_table_has_the_papers_layout_and_the_runs_numbers(tables):
                 assert f"{row['time_outside_lane_s']:.2f} s outside the lane" in claim
 
 
+@pytest.mark.slow
 def test_the_claims_are_judged_for_both_perception_modes(tables):
     out, _ = tables
     text = (out / "table2.md").read_text()
@@ -194,6 +201,7 @@ def test_a_filtered_run_held_still_inside_the_lane_shows_in_the_tables_and_claim
     )
 
 
+@pytest.mark.slow
 def test_the_forks_share_the_unfiltered_iterations(tables):
     out, _ = tables
     for task in TASKS:
@@ -213,6 +221,7 @@ def test_the_forks_share_the_unfiltered_iterations(tables):
         assert calibrated == {"none": False, "cbf": False, "robust": True}
 
 
+@pytest.mark.slow
 def test_unseen_tracks_timings_and_the_recording(tables):
     out, _ = tables
     unseen = [
@@ -239,7 +248,7 @@ def test_unseen_tracks_timings_and_the_recording(tables):
     assert {"/filter/kappa_radpm/believed", "/filter/accel_mps2/filtered"} <= entities
 
 
-@pytest.mark.slow  # 15-30 s: the default suite stays within 15 min on 2 cores
+@pytest.mark.slow
 def test_a_second_call_resumes_and_redoes_nothing(tables):
     out, _ = tables
     runs = [(task, kind) for task in TASKS for kind, _, _ in RUN_KINDS]

@@ -341,6 +341,7 @@ def test_the_command_line_refuses_an_unknown_recipe():
     assert "no perception recipe 'nope'" in done.stderr
 
 
+@pytest.mark.slow  # 15-30 s (the table's perceived rows: tests/test_safety_table.py)
 def test_the_safety_table_runs_the_reckless_agents_behind_the_generic_model(
     quick_perception: Path, tmp_path: Path
 ):

@@ -120,6 +120,7 @@ def test_a_rerun_matches_kept_rows_by_the_track_s_content_and_the_table_s_settin
     assert len(driven) == 3 * first and {laps for _, laps in driven[-first:]} == {2}
 
 
+@pytest.mark.slow  # 15 s: workers' rows equal the serial ones in the benchmark's tests
 def test_table_over_two_workers_gives_the_serial_rows(tmp_path: Path):
     options = dict(laps=1, max_seconds=1.0, progress=False)
     serial = run_table(["lab"], tmp_path / "serial", **options)

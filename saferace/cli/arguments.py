@@ -12,6 +12,7 @@ from saferace.names import (
     DEFAULT_STATE_NOISE,
     DEVICE_HELP,
     DRIVING_TASKS,
+    FAULTS_HELP,
     GENERIC_SOURCE,
     MC_SAMPLES,
     NOISY_SAMPLES,
@@ -32,7 +33,8 @@ TRACK_HELP = (
 
 
 def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -> None:
-    """The arguments of one driven episode: task, track, agent, laps, camera, opponents."""
+    """The arguments of one driven episode: task, track, agent, laps, camera, opponents,
+    sensor faults."""
     group = parser.add_argument_group("episode")
     group.add_argument(
         "--task",
@@ -60,6 +62,9 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     )
     group.add_argument(
         "--opponents", nargs="+", metavar="POLICY[:FIELD=VALUE,...]", help=OPPONENTS_HELP
+    )
+    group.add_argument(
+        "--faults", nargs="+", type=values.fault, metavar="NAME[:KEY=VALUE,...]", help=FAULTS_HELP
     )
 
 
@@ -198,15 +203,21 @@ def check_filter_asked(option: dict, source: str, noise: object) -> None:
 
 
 def built_filter_config(args: argparse.Namespace):
-    """:func:`filter_config`, with the generic perception model it names built first (once,
-    in this process, before any worker needs it). Only that source imports the learning
-    package (PyTorch: seconds a command)."""
+    """:func:`filter_config`, with the generic perception model it names built first
+    (:func:`ensure_generic_model`)."""
     config = filter_config(args)
-    if (config.state_source or "").partition(":")[0] == GENERIC_SOURCE:
+    ensure_generic_model(config.state_source, getattr(args, "workers", 1))
+    return config
+
+
+def ensure_generic_model(source: str | None, workers: int = 1) -> None:
+    """Build the generic perception model ``source`` names where it is not built yet (once,
+    in this process, before any worker needs it). Only that source imports the learning
+    package: PyTorch costs a command that needs none seconds to start."""
+    if (source or "").partition(":")[0] == GENERIC_SOURCE:
         from saferace.learning.perception import ensure_perception_model
 
-        ensure_perception_model(config.state_source, getattr(args, "workers", 1))
-    return config
+        ensure_perception_model(source, workers)
 
 
 def is_perceived(source: str) -> bool:

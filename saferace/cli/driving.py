@@ -179,13 +179,15 @@ def _drive(args: argparse.Namespace) -> int:
         mc_samples=args.mc_samples,
         safety=safety,
         opponents=args.opponents,
+        faults=args.faults,
     )
     row = result_row(
         args.agent, args.task, Path(args.track).stem, args.track, args.seed, args.laps, "-",
         result, safety=safety,
     )  # fmt: skip
-    if args.opponents:
-        row["config"]["env"] = {"opponents": args.opponents}
+    environment = {"opponents": args.opponents, "faults": args.faults}
+    if any(environment.values()):
+        row["config"]["env"] = {key: value for key, value in environment.items() if value}
     print(leaderboard_markdown([row]))
     for label, path in (("video", video), ("rerun recording", args.rerun)):
         if path:
@@ -216,6 +218,7 @@ def _eval(args: argparse.Namespace) -> int:
             "image_size": (args.image_size, args.image_size),
             "stereo": args.stereo,
             **({} if args.opponents is None else {"opponents": args.opponents}),
+            **({} if args.faults is None else {"faults": args.faults}),
         },
         safety=built_filter_config(args),
         mc_samples=args.mc_samples,

@@ -13,6 +13,7 @@ from saferace.cli.arguments import (
     add_parallel_arguments,
     add_seeds_argument,
     add_slack_argument,
+    ensure_generic_model,
 )
 from saferace.cli.options import add_config_options, config_from_args
 from saferace.errors import SafeRaceError
@@ -178,11 +179,10 @@ def forked_state_uncertainty(base: Path) -> str:
 def _dagger(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table
     from saferace.learning.dagger import METRIC_COLUMNS, DaggerRun
-    from saferace.learning.perception import ensure_perception_model
 
     config = dagger_config(args)
     if config.filters:
-        ensure_perception_model(config.filter.state_source, args.workers)
+        ensure_generic_model(config.filter.state_source, args.workers)
     rows = DaggerRun(
         args.out,
         config,

@@ -13,6 +13,7 @@ from saferace.cli.arguments import (
     add_filter_arguments,
     add_num_envs_argument,
     add_parallel_arguments,
+    ensure_generic_model,
     filter_config,
 )
 from saferace.cli.options import add_config_options, config_from_args
@@ -257,10 +258,9 @@ def train_config(args: argparse.Namespace):
 def _collect(args: argparse.Namespace) -> int:
     from saferace.eval.leaderboard import leaderboard_markdown
     from saferace.learning.collect import collect_round
-    from saferace.learning.perception import ensure_perception_model
 
     config = collection_config(args)
-    ensure_perception_model(config.safety.state_source, args.workers)
+    ensure_generic_model(config.safety.state_source, args.workers)
     collected = collect_round(
         args.out, config, workers=args.workers, ray_address=args.ray, num_envs=args.num_envs
     )

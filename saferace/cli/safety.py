@@ -11,6 +11,7 @@ from saferace.cli.arguments import (
     add_device_argument,
     add_filter_arguments,
     add_parallel_arguments,
+    ensure_generic_model,
     filter_config,
     is_perceived,
 )
@@ -158,7 +159,6 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _safety_table(args: argparse.Namespace) -> int:
     from saferace.experiments.safety_table import run_table
-    from saferace.learning.perception import ensure_perception_model
     from saferace.track import builtin_track_names
 
     source = None if args.state_source == "none" else args.state_source
@@ -166,7 +166,7 @@ def _safety_table(args: argparse.Namespace) -> int:
         raise SafeRaceError(
             f"--state-source must be generic[:RECIPE], learned:CHECKPOINT or none, got {source}"
         )
-    ensure_perception_model(source, args.workers)
+    ensure_generic_model(source, args.workers)
     run_table(
         list(args.tracks) if args.tracks else list(builtin_track_names()),
         args.out,
@@ -200,10 +200,9 @@ def robustness_config(args: argparse.Namespace):
 
 def _robustness(args: argparse.Namespace) -> int:
     from saferace.experiments.robustness import run_robustness, write_report
-    from saferace.learning.perception import ensure_perception_model
 
     config = robustness_config(args)
-    ensure_perception_model(config.safety.state_source)
+    ensure_generic_model(config.safety.state_source)
     runs = run_robustness(config, args.out)
     print(write_report(runs, config, args.out))
     print(f"runs.jsonl, robustness.md, .csv and .png written to {args.out}")

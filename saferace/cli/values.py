@@ -71,6 +71,17 @@ def track(text: str) -> str:
     )
 
 
+def fault(text: str) -> str:
+    """A sensor or actuator fault, ``NAME[:KEY=VALUE,...]`` (:mod:`saferace.faults`)."""
+    from saferace.faults.spec import FaultError, parse_fault
+
+    try:
+        parse_fault(text)
+    except FaultError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def labelled_folder(text: str) -> tuple[str, Path]:
     """``LABEL=FOLDER`` with a folder that exists."""
     label, _, folder = text.partition("=")

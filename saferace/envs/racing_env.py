@@ -118,7 +118,7 @@ class RacingEnv(gym.Env):
     place; the values drawn are in the reset info as ``look`` and ``car``.
 
     ## Version history
-    - v0: first release.
+    - v0: first release (``gym.make`` takes ``faults``: :mod:`saferace.faults`).
     """
 
     # gym.Env declares metadata an instance attribute: __init__ sets each env's render_fps.
