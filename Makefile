@@ -5,6 +5,8 @@ BIN := $(VENV)/bin
 TORCH_VERSION := 2.14.1
 TORCHVISION_VERSION := 0.29.1
 EXTRAS := dev,ray,minari,multi,sb3,docs,video
+#: Test processes, a core each (the suite's tests are single-threaded; each holds PyTorch).
+TEST_WORKERS ?= 2
 export MUJOCO_GL ?= egl
 
 .PHONY: setup demo demo-summary test test-slow lint docs bench clean
@@ -72,7 +74,7 @@ test: setup
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy saferace
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
-	$(BIN)/python -m pytest -q --durations=15
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=15
 
 test-slow: setup
 	bash scripts/install_chromium.sh

@@ -15,6 +15,11 @@ from saferace.track.random_track import write_random_track
 
 # The tests' exact comparisons hold on the CPU; a GPU machine runs them there too.
 os.environ[DEVICE_VARIABLE] = "cpu"
+# A worker of a parallel run (pytest -n, as `make test` runs) gets a core: PyTorch and
+# OpenMP on every core in each worker ran the suite slower than one worker.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[variable] = "1"
 # Eager networks: compiling one for the CPU takes 10-20 s (tests/test_cpu_compile.py does).
 os.environ[COMPILE_VARIABLE] = "0"
 #: The repository the tests run in: none of them may write into it.
