@@ -328,9 +328,11 @@ def honest_submission(tree: Path) -> Path:
 
 
 def copy_tree(destination: Path) -> Path:
+    """A copy of the checkout, its git history too: what records the commit (a perception
+    model's manifest, an eval row) reads it from there."""
     shutil.copytree(
         ROOT, destination,
-        ignore=shutil.ignore_patterns(".venv", ".git", "results", "site", "__pycache__"),
+        ignore=shutil.ignore_patterns(".venv", "results", "site", "__pycache__"),
     )  # fmt: skip
     return destination
 
