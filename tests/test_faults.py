@@ -38,7 +38,7 @@ def recorded() -> tuple[np.ndarray, np.ndarray]:
 
 def injected(faults: list[str], frames: np.ndarray, seed: int = 0) -> np.ndarray:
     """The frames the faulty camera gives out for ``frames``, one a control step."""
-    injector = FaultInjector(parse_faults(faults), DT_S, LOW, HIGH)
+    injector = FaultInjector(parse_faults(faults), LOW, HIGH)
     injector.reset(seed)
     return np.array([injector.frame(frame, step * DT_S) for step, frame in enumerate(frames)])
 
@@ -123,10 +123,10 @@ def test_flicker_scales_each_frame_by_one_gain_within_its_amplitude(recorded):
 
 def test_odometry_is_biased_on_speed_and_yaw_rate_and_noisy_on_all_three(recorded):
     _, velocities = recorded
-    biased = FaultInjector(parse_faults(["odometry:bias=0.05,noise=0"]), DT_S, LOW, HIGH)
+    biased = FaultInjector(parse_faults(["odometry:bias=0.05,noise=0"]), LOW, HIGH)
     out = np.array([biased.velocity(v, 1.0) for v in velocities])
     np.testing.assert_allclose(out, velocities * [1.05, 1.0, 1.05], rtol=1e-6)
-    noisy = FaultInjector(parse_faults(["odometry:bias=0,noise=0.1"]), DT_S, LOW, HIGH)
+    noisy = FaultInjector(parse_faults(["odometry:bias=0,noise=0.1"]), LOW, HIGH)
     noisy.reset(0)
     errors = np.array([noisy.velocity(v, 1.0) for v in velocities]) - velocities
     assert np.all(np.abs(errors.std(axis=0) - 0.1) < 0.04)

@@ -23,18 +23,16 @@ FAULT_SEED_SALT = 0x5AFE
 
 
 class FaultInjector:
-    """Applies ``faults`` to an episode of control steps ``control_dt_s`` long, commands
-    held to ``action_low .. action_high`` (see the module)."""
+    """Applies ``faults`` to an episode, commands held to ``action_low .. action_high``
+    (see the module)."""
 
     def __init__(
         self,
         faults: tuple[Fault, ...],
-        control_dt_s: float,
         action_low: np.ndarray,
         action_high: np.ndarray,
     ) -> None:
         self.faults = {fault.name: fault for fault in faults}
-        self.control_dt_s = control_dt_s
         self.action_low = np.asarray(action_low, np.float32)
         self.action_high = np.asarray(action_high, np.float32)
         latency = self.faults.get("latency")

@@ -51,18 +51,18 @@ class FaultError(SafeRaceError, ValueError):
 @dataclass(frozen=True)
 class FaultKind:
     """A fault's own keys: each with its values at severities 1, 2, 3 and its bounds
-    (``integer`` keys take whole numbers), and how long it lasts by default."""
+    (``integer`` keys take whole numbers); a ``duration`` among them is how long it lasts
+    at each severity (else: to the episode's end)."""
 
     description: str
     sizes: dict[str, tuple[float, float, float]]
     bounds: dict[str, tuple[float, float]]
     integer: tuple[str, ...] = ()
-    timed: bool = False  # lasts its severity's duration, not to the episode's end
 
 
 FAULT_KINDS: dict[str, FaultKind] = {
-    "blackout": FaultKind("black frames", {"duration": (0.5, 1.0, 2.0)}, {}, timed=True),
-    "frozen": FaultKind("the last frame repeated", {"duration": (0.5, 1.0, 2.0)}, {}, timed=True),
+    "blackout": FaultKind("black frames", {"duration": (0.5, 1.0, 2.0)}, {}),
+    "frozen": FaultKind("the last frame repeated", {"duration": (0.5, 1.0, 2.0)}, {}),
     "dropped": FaultKind(
         "frames lost, the last repeated",
         {"probability": (0.1, 0.2, 0.4)},
@@ -94,10 +94,6 @@ FAULT_KINDS: dict[str, FaultKind] = {
         "the command applied late", {"steps": (1, 2, 3)}, {"steps": (0, 100)}, integer=("steps",)
     ),
 }
-#: The faults on the camera's frames, the odometry's velocities and the actuators.
-CAMERA_FAULTS = ("blackout", "frozen", "dropped", "latency", "occlusion", "flicker")
-ODOMETRY_FAULTS = ("odometry",)
-ACTUATOR_FAULTS = ("steering", "delay")
 
 
 @dataclass(frozen=True)
@@ -166,10 +162,8 @@ def _fault(name: str, kind: FaultKind, given: dict[str, float], text: str) -> Fa
     level = int(severity) - 1
     values = {key: float(sizes[level]) for key, sizes in kind.sizes.items()}
     start_s = given.pop("start", 0.0)
-    duration_s = given.pop("duration", values.get("duration", math.inf))
+    duration_s = given.pop("duration", values.pop("duration", math.inf))
     values.update(given)
-    if kind.timed:
-        values["duration"] = duration_s
     if not (math.isfinite(start_s) and start_s >= 0.0):
         raise FaultError(f"fault {text!r}: start is seconds after the reset, >= 0")
     if not duration_s > 0.0:

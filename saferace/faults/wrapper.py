@@ -29,10 +29,8 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self, faults=[fault.spec() for fault in self.faults]
         )
         super().__init__(env)
-        base = env.unwrapped
         self.injector = FaultInjector(
             self.faults,
-            float(base.control_dt_s),  # type: ignore[attr-defined]
             env.action_space.low,  # type: ignore[attr-defined]
             env.action_space.high,  # type: ignore[attr-defined]
         )
