@@ -214,3 +214,9 @@ def test_a_fault_named_twice_is_refused_and_a_spec_makes_the_same_fault_again():
     blackout = parse_faults(["blackout:severity=3,start=3"])[0]
     assert (blackout.start_s, blackout.duration_s) == (3.0, 2.0)
     assert parse_faults(["dropped"])[0].duration_s == math.inf
+
+
+def test_the_command_line_help_names_every_fault():
+    from saferace.names import FAULTS_HELP
+
+    assert all(name in FAULTS_HELP for name in FAULT_KINDS)
