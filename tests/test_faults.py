@@ -107,6 +107,13 @@ def test_an_occlusion_blacks_a_square_of_the_fraction_asked_in_one_place(recorde
     assert (np.ptp(rows) + 1, np.ptp(columns) + 1) == (32, 32) and patch.sum() == 32 * 32
     assert np.all(given[:, patch] == 0)  # the same place every frame
     np.testing.assert_array_equal(given[:, ~patch], frames[:, ~patch])
+    corners = set()
+    for seed in range(5):  # placed at random per episode
+        rows, columns = np.nonzero(
+            np.all(injected(["occlusion:fraction=0.25"], frames[:1], seed)[0] == 0, axis=-1)
+        )
+        corners.add((rows.min(), columns.min()))
+    assert len(corners) > 1
 
 
 def test_flicker_scales_each_frame_by_one_gain_within_its_amplitude(recorded):
