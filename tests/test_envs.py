@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import pickle
 
 import gymnasium as gym
@@ -50,6 +51,27 @@ def test_env_checker_passes_behind_every_filter_family(task_id: str, kind: str):
     env = apply_filter(gym.make(task_id, track="lab", image_size=(32, 32)), FilterConfig(kind))
     check_env(env, skip_render_check=True)
     env.close()
+
+
+def test_closing_or_dropping_one_env_leaves_anothers_frames_intact():
+    """Each env renders in a GL context of its own, and MuJoCo frees a renderer's
+    framebuffer by its GL name in whichever context is current: an env closed, or collected
+    unclosed, while another's context was current deleted that env's framebuffer (its
+    frames garbage from then on; the env checker caught it as two different first steps)."""
+
+    def make() -> gym.Env:
+        return gym.make(TASK_IDS[0], track="lab", image_size=(32, 32))
+
+    kept, closed, dropped = make(), make(), make()
+    closed.reset(seed=0)
+    dropped.reset(seed=0)
+    before = kept.reset(seed=0)[0]["image"]  # kept's context is the current one
+    closed.close()
+    assert np.array_equal(kept.reset(seed=0)[0]["image"], before)
+    del dropped
+    gc.collect()
+    assert np.array_equal(kept.reset(seed=0)[0]["image"], before)
+    kept.close()
 
 
 def test_a_filters_record_keeps_its_clock_times_only_when_asked():

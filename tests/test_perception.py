@@ -13,10 +13,13 @@ import numpy as np
 import pytest
 
 import saferace  # noqa: F401  (registers the tasks)
+from saferace.cache import CACHE_VARIABLE
 from saferace.errors import SafeRaceError
+from saferace.eval.agents import RECKLESS_AGENT_NAMES
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.filters import apply_filter
 from saferace.experiments.safety_table import RECKLESS_TASKS, filter_label, run_table
+from saferace.learning import perception
 from saferace.learning.agent import (
     check_generic_image_shape,
     learned_agent,
@@ -29,6 +32,7 @@ from saferace.learning.perception import (
     RECIPES,
     build_perception_model,
     collect_all,
+    ensure_perception_model,
     generic_state_source,
     model_folder,
     recipe_named,
@@ -42,6 +46,7 @@ from saferace.learning.perception import (
 from saferace.learning.rounds import load_rounds
 from saferace.learning.training_data import network_data
 from saferace.learning.validation import predict_frames
+from saferace.names import TASKS
 from saferace.safety.uncertainty.conformal import (
     ConformalCalibration,
     conformal_quantile,
@@ -194,6 +199,34 @@ def test_the_default_recipe_trains_on_lanes_from_the_narrowest_to_a_circuit_s():
     assert np.median(radii) == pytest.approx(np.sqrt(2.5 * 40.0), rel=0.35)  # log-uniform
     assert track_size(recipe, 90001) != track_size(recipe, 90002)
     assert track_size(recipe, 90001) == track_size(recipe, 90001)
+
+
+def test_the_default_recipe_drives_every_driver_the_filter_judges_in_both_lane_tasks():
+    """The expert and every reckless driver (those the safety table puts behind the generic
+    model) in both lane tasks: a driver left out is a way of leaving the lane, and a task
+    left out a line, that the model never saw."""
+    recipe = RECIPES["default"]
+    assert sorted(recipe.drivers) == sorted(("expert", *RECKLESS_AGENT_NAMES))
+    assert sorted(recipe.tasks) == sorted(TASKS)
+
+
+def test_the_model_is_built_for_the_generic_source_only_and_only_once(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+):
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    builds: list[str] = []
+    monkeypatch.setattr(
+        perception, "build_perception_model", lambda recipe, workers: builds.append(recipe.name)
+    )
+    for source in (None, "oracle", "learned"):
+        ensure_perception_model(source)
+    assert builds == []
+    ensure_perception_model("generic:quick")
+    assert builds == ["quick"]
+    model_folder(TINY).mkdir(parents=True)
+    (model_folder(TINY) / MANIFEST_FILE).write_text("{}")
+    ensure_perception_model("generic:quick")
+    assert builds == ["quick"]
 
 
 def test_a_random_track_is_scaled_to_the_lane_width_asked_for(tmp_path: Path):

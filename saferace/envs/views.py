@@ -18,6 +18,19 @@ from saferace.envs.scene_look import SceneLook
 _LIVE_VIEWS: weakref.WeakSet[Views] = weakref.WeakSet()
 
 
+def _close_renderers(renderers: dict[str, mujoco.Renderer]) -> None:
+    """Close ``renderers``, each with its own GL context current. MuJoCo frees a context's
+    framebuffers and textures by their GL names in whichever context is current, and every
+    context numbers its own from 1: closed (or collected) from another env's context, they
+    deleted that env's framebuffer, whose frames read back garbage from then on."""
+    for renderer in renderers.values():
+        gl_context = getattr(renderer, "_gl_context", None)
+        if gl_context is not None:
+            gl_context.make_current()
+        renderer.close()
+    renderers.clear()
+
+
 def _close_live_views() -> None:
     for views in list(_LIVE_VIEWS):
         views.close()
@@ -51,6 +64,8 @@ class Views:
         self._car_geoms = _car_visual_geoms(model, cars)
         self._renderers: dict[str, mujoco.Renderer] = {}  # by purpose
         _LIVE_VIEWS.add(self)
+        # an env dropped unclosed: its renderers closed in their own contexts, not by the GC
+        weakref.finalize(self, _close_renderers, self._renderers).atexit = False
 
     def onboard(self, car: int = 0) -> np.ndarray:
         """Car ``car``'s onboard image (stereo: the two side by side in the channels)."""
@@ -83,9 +98,7 @@ class Views:
                 self.look.upload(renderer)
 
     def close(self) -> None:
-        for renderer in self._renderers.values():
-            renderer.close()
-        self._renderers.clear()
+        _close_renderers(self._renderers)
 
     def _show_cars_from(self, car: int) -> None:
         """Put car ``car``'s visual geoms in the group its onboard cameras hide, and every
