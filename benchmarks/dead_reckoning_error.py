@@ -37,8 +37,8 @@ from saferace.safety.uncertainty.dead_reckoning import (
     DeadReckoning,
     carried_states,
     centre_pose,
-    odometry_step,
 )
+from saferace.track.odometry import odometry_step
 from saferace.track.random_track import write_random_track
 
 AGENTS = ("expert", "drift", "weave", "speeding")

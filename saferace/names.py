@@ -26,6 +26,13 @@ FAULTS_HELP = (
     "occlusion, flicker, odometry, steering, delay, each with start=S, duration=S, severity=1-3 "
     "and its own sizes (blackout:start=3,duration=2 latency:steps=2)"
 )
+#: The ``info`` key under which a fault wrapper gives the pose its faulty odometry integrated
+#: (``saferace.faults``), what a filter carries its set by; without it, the true pose's.
+ODOMETRY_POSE_KEY = "odometry_pose"
+#: The attribute by which a task's wrapper declares how far off, as a fraction, its car's
+#: odometry may measure distance and turn (its datasheet's, never whether a fault acts): the
+#: filter carries its sets for it. Without one, the simulator's odometry is exact.
+ODOMETRY_ERROR_ATTRIBUTE = "odometry_scale_error"
 #: The opponent specs' form on the command line and in configs.
 OPPONENTS_HELP = (
     "other cars on track, POLICY[:FIELD=VALUE,...]: expert, racer, pure-pursuit, lane-changer, "

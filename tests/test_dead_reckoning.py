@@ -22,9 +22,9 @@ from saferace.safety.uncertainty.dead_reckoning import (
     DeadReckoning,
     car_pose,
     carried_states,
-    odometry_step,
 )
 from saferace.safety.uncertainty.state_sources import true_lane_state
+from saferace.track.odometry import odometry_step
 from saferace.track.random_track import write_random_track
 from saferace.track.track_io import write_track_csv
 from tests.track_shapes import paperclip

@@ -114,6 +114,17 @@ class FaultInjector:
         noise = self.rng.normal(0.0, odometry["noise"], 3)
         return (velocity * scale + noise).astype(velocity.dtype)
 
+    def odometry(self, step: np.ndarray, dt_s: float, time_s: float) -> np.ndarray:
+        """The body-frame move ``(dx, dy, dyaw)`` the faulty odometry measures over a
+        control step of ``dt_s`` ending at ``time_s``, the true move ``step``: the distance
+        and the turn off as :meth:`velocity` reads speed and yaw rate, each with the noise
+        of a velocity integrated over the step."""
+        odometry = self._acting("odometry", time_s)
+        if odometry is None:
+            return step
+        scale = np.array([1.0 + odometry["bias"], 1.0, 1.0 + odometry["bias"]])
+        return step * scale + self.rng.normal(0.0, odometry["noise"] * dt_s, 3)
+
     def command(self, action: np.ndarray, time_s: float) -> np.ndarray:
         """What the faulty actuators apply for ``action`` given at ``time_s``."""
         applied = np.asarray(action, np.float32)

@@ -5,7 +5,9 @@ driver (and any filter behind it) the faulty frames and velocities, and applies 
 commands through the faulty actuators (:mod:`.spec`, :mod:`.inject`).
 ``gym.make("saferace/CenterLine-v0", faults=[...])`` is the same task wrapped. ``info``
 says which faults act (``faults``, by name) and what the actuators applied
-(``applied_action``): for tables and plots, never for the agent or the filter.
+(``applied_action``): for tables and plots, never for the agent or the filter. It also
+gives the pose the car's odometry integrated from the start, faulty where the odometry
+is (:data:`~saferace.names.ODOMETRY_POSE_KEY`): what a filter carries its set by.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import numpy as np
 
 from saferace.faults.inject import FaultInjector
 from saferace.faults.spec import Fault, parse_faults
+from saferace.names import ODOMETRY_POSE_KEY
+from saferace.track.odometry import moved_by, odometry_step
 
 
 class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -34,8 +38,13 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
             env.action_space.low,  # type: ignore[attr-defined]
             env.action_space.high,  # type: ignore[attr-defined]
         )
+        odometry = next((fault for fault in self.faults if fault.name == "odometry"), None)
+        #: How far off, as a fraction, the odometry may measure distance and turn: its
+        #: fault's bias (:data:`~saferace.names.ODOMETRY_ERROR_ATTRIBUTE`), from the start.
+        self.odometry_scale_error = 0.0 if odometry is None else abs(float(odometry["bias"]))
         self._time_s = 0.0
         self._seeded = False
+        self._true_pose = self._odometry_pose = np.zeros(3)
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -45,12 +54,20 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
             seed = int(self.injector.rng.integers(2**31))
         self.injector.reset(seed)
         self._seeded = self._seeded or seed is not None
+        self._true_pose = self._odometry_pose = true_pose(info)
         return self._faulty(observation, info)
 
     def step(self, action: np.ndarray):  # type: ignore[no-untyped-def]  # gym.Wrapper's
         applied = self.injector.command(action, self._time_s)
         observation, reward, terminated, truncated, info = self.env.step(applied)
         info["applied_action"] = applied
+        pose = true_pose(info)
+        step = odometry_step(self._true_pose, pose)
+        dt_s = float(info["time_s"]) - self._time_s
+        self._odometry_pose = moved_by(
+            self._odometry_pose, self.injector.odometry(step, dt_s, float(info["time_s"]))
+        )
+        self._true_pose = pose
         observation, info = self._faulty(observation, info)
         return observation, reward, terminated, truncated, info
 
@@ -64,7 +81,13 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
             "velocity": self.injector.velocity(observation["velocity"], self._time_s),
         }
         info["faults"] = self.injector.active(self._time_s)
+        info[ODOMETRY_POSE_KEY] = self._odometry_pose.copy()
         return observation, info
+
+
+def true_pose(info: dict[str, Any]) -> np.ndarray:
+    """``(x, y, yaw)`` of the car in ``info``: the simulator's."""
+    return np.array([info["x_m"], info["y_m"], info["yaw_rad"]], dtype=float)
 
 
 def with_faults(env: gym.Env, faults: Iterable[str | Fault] | str | None) -> gym.Env:

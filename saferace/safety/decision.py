@@ -61,10 +61,13 @@ class SafetyDecision:
     the map where it takes it from there), ``state_lower`` and ``state_upper`` the interval
     it held the state to (``mean +- z std`` in the chance mode), ``state_true`` the
     simulator's at the same moment and ``covered`` whether the interval held it.
-    ``monitor_score`` is the out-of-distribution score (None without a monitor), ``alarm``
-    whether it passed its threshold; ``fallback`` is why the filter braked towards a speed
-    the interval fits at (one of :data:`FALLBACK_REASONS`, ``""``: it did not), ``mode``
-    what acted (one of :data:`MODES`).
+    ``monitor_score`` is the out-of-distribution score (None without a monitor), ``stale``
+    whether the frame was stale (repeated while the car moved, or blank), ``alarm``
+    whether the filter was in doubt of its state source (the monitor passed its threshold,
+    the frame was stale, or its interval contradicted the carried set); ``fallback`` is why
+    the filter braked towards a speed the interval fits at (one of
+    :data:`FALLBACK_REASONS`, ``""``: it did not), ``mode`` what acted (one of
+    :data:`MODES`).
     """
 
     nominal_action: list[float]
@@ -81,6 +84,7 @@ class SafetyDecision:
     slacks: dict[str, float]
     intervened: bool
     monitor_score: float | None
+    stale: bool
     alarm: bool
     fallback: str
     status: str

@@ -42,6 +42,7 @@ from saferace.safety.uncertainty.fallback import (
 )
 from saferace.safety.uncertainty.intervals import interval_points
 from saferace.safety.uncertainty.last_trusted import LastTrusted
+from saferace.safety.uncertainty.stale_frames import StaleFrames
 from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource, prefetch
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
@@ -91,18 +92,18 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     ``uncertainty="robust"`` replaces the chance constraints by barrier conditions that must
     hold at every point of the state's interval (its corners and centre, see
-    :func:`~saferace.safety.uncertainty.intervals.interval_points`; the measurement-robust
-    CBF of Dean et al. 2020 and Cosner et al. 2021: the margin grows with the interval's
-    width). The interval is the source's own (a conformal calibration) or ``mean +- z std``
-    of its samples; the curvature comes from the map (a network's is its worst output).
-    The filter carries a set by odometry from the start pose (:mod:`~saferace.safety.
-    uncertainty.dead_reckoning`) and holds the car over its meet with the interval, or over
-    the set alone while the source is in doubt (its monitor raises, or its interval misses
-    the set). Where no control satisfies them, the filter falls back (:mod:`~saferace.
-    safety.uncertainty.fallback`): it brakes towards a speed at which the interval fits
-    inside the lane (a stop where even its offsets do not fit), never above the map's speed
-    limit, steering the lane's curvature and towards the centre line from the interval's
-    centre, within the tyres' grip. Such steps count in ``fallbacks``.
+    :func:`~saferace.safety.uncertainty.intervals.interval_points`; the measurement-robust CBF
+    of Dean et al. 2020 and Cosner et al. 2021: the margin grows with the interval's width). The
+    interval is the source's own (a conformal calibration) or ``mean +- z std`` of its samples;
+    the curvature comes from the map (a network's is its worst output). The filter carries a set
+    by odometry from the start pose (:mod:`~saferace.safety.uncertainty.dead_reckoning`) and
+    holds the car over its meet with the interval, or over the set alone while the source is in
+    doubt (its monitor raises, its interval misses the set, or the frame is stale:
+    :mod:`~saferace.safety.uncertainty.stale_frames`). Where no control satisfies them, the
+    filter falls back (:mod:`~saferace.safety.uncertainty.fallback`): it brakes towards a speed
+    at which the interval fits inside the lane (a stop where even its offsets do not fit), never
+    above the map's speed limit, steering the lane's curvature and towards the centre line from
+    the interval's centre, within the tyres' grip. Such steps count in ``fallbacks``.
 
     Departures from the paper, each because the paper's form failed a measured case (the
     docs' safety-filter page gives the measurements):
@@ -121,22 +122,22 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
       curvature from the map (a state network judges it worst, and a wrong curvature turns
       the barriers' steering the wrong way).
 
-    Arguments: ``state_source`` (default: the oracle); ``model``: ``"kinematic"``,
-    ``"dynamic"`` or ``"dynamic-paper"``; ``lam``: the class-K gain (1/s) of every HOCBF
-    order, or one per order; ``lateral_decel_mps2``: saturate the first class-K function at
-    the stopping condition ``dh/dt >= -sqrt(2 a h)``; ``max_lateral_accel_mps2``: keep
-    ``v_x^2 tan(delta) / L`` inside the tyres' grip (the kinematic model assumes no
-    sliding); ``theta_max`` (rad) and ``eta`` as in the paper; ``k_err`` the slack weight;
-    ``action_std``: the spread assumed when the agent gives none, ``min_action_std`` its
-    floor; ``lane_margin_m``: added to the car's half width in the lane barriers (the
-    models are not exact); ``params``: vehicle parameters (default: identified ones).
-    ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`; ``slack_penalty``: the
-    QP's squared slack (the paper's) or the exact L1 one (:mod:`~saferace.safety.cbf.
-    exact_penalty`). In traffic a barrier per opponent joins the QP, where the car is kept
-    clear before the lane (:mod:`~saferace.safety.traffic.car_barriers`; where it cannot be,
-    it brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise on their
-    positions (else the truth, as ``s`` is). ``info["safety"]`` is the same for the same seed
-    and actions (the env checker's ask): its clock times are 0 unless ``record_timings``."""
+    Arguments: ``state_source`` (default: the oracle); ``model``: ``"kinematic"``, ``"dynamic"``
+    or ``"dynamic-paper"``; ``lam``: the class-K gain (1/s) of every HOCBF order, or one per
+    order; ``lateral_decel_mps2``: saturate the first class-K function at the stopping condition
+    ``dh/dt >= -sqrt(2 a h)``; ``max_lateral_accel_mps2``: keep ``v_x^2 tan(delta) / L`` inside
+    the tyres' grip (the kinematic model assumes no sliding); ``theta_max`` (rad) and ``eta`` as
+    in the paper; ``k_err`` the slack weight; ``action_std``: the spread assumed when the agent
+    gives none, ``min_action_std`` its floor; ``lane_margin_m``: added to the car's half width
+    in the lane barriers (the models are not exact); ``params``: vehicle parameters (default:
+    identified ones). ``uncertainty``: one of :data:`~saferace.names.UNCERTAINTY_MODES`;
+    ``slack_penalty``: the QP's squared slack (the paper's) or the exact L1 one
+    (:mod:`~saferace.safety.cbf.exact_penalty`). In traffic a barrier per opponent joins the QP,
+    where the car is kept clear before the lane (:mod:`~saferace.safety.traffic.car_barriers`;
+    where it cannot be, it brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise
+    on their positions (else the truth, as ``s`` is). ``info["safety"]`` is the same for the
+    same seed and actions (the env checker's ask): its clock times are 0 unless
+    ``record_timings``."""
 
     record_timings = False
 
@@ -229,7 +230,8 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.last_problem: FilterProblem | None = None  # for debugging and benchmarks
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
-        self.last_trusted = LastTrusted(self.track, base.reference)  # the robust mode's
+        self.last_trusted = LastTrusted.of_task(env)  # the robust mode's
+        self.stale_frames = StaleFrames()
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
@@ -239,6 +241,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         self.last_trusted.reset(info if self.robust else None)  # robust: the start pose's
+        self.stale_frames.reset()
         prefetch(self.state_source, observation)  # the agent's network runs beside it
         return observation, info
 
@@ -268,7 +271,8 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         u0 = np.clip(nominal, self.lower, self.upper)
         s_m = float(info["s_m"])
         curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
-        estimate = estimate_state(self.state_source, observation, info, self.z, curvature)
+        stale = self.stale_frames.in_step(observation, info)  # no measurement
+        estimate = estimate_state(self.state_source, observation, info, self.z, curvature, stale)
         interval = (estimate.lower, estimate.upper)
         judged = self.last_trusted.update(estimate.alarm, interval, info) if self.robust else None
         trusted, held = judged or (not estimate.alarm, None)  # the set certified over
@@ -477,15 +481,12 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return np.concatenate([reduce(per_point, axis=0), rows[barrier_rows:]])
 
     def _action_box(self, v_x: float, agent_accel: float) -> tuple[np.ndarray, np.ndarray]:
-        """The actuator box, less braking than stops the car within one control step, and
-        below ``creep_speed_mps`` an acceleration of at least ``min(agent_accel,
-        CREEP_ACCEL_MPS2)``.
-
-        The models hold for forward driving only, and a filter that brakes past standstill
-        would reverse the car (an infeasible lane constraint asks for braking every step).
-        With ``max_lateral_accel_mps2`` the steering is narrowed to
-        ``|tan delta| <= a_max L / v_x^2``.
-        """
+        """The actuator box, less braking than stops the car within one control step (the
+        models hold for forward driving only, and an infeasible lane constraint asks for
+        braking every step: past standstill it would reverse the car), below
+        ``creep_speed_mps`` an acceleration of at least ``min(agent_accel,
+        CREEP_ACCEL_MPS2)``, and with ``max_lateral_accel_mps2`` a steering of
+        ``|tan delta| <= a_max L / v_x^2``."""
         lower, upper = self.lower.copy(), self.upper.copy()
         lower[1] = max(lower[1], -max(v_x, 0.0) / self.control_dt_s)
         if self.creep_speed_mps > 0.0 and v_x < self.creep_speed_mps:

@@ -141,7 +141,12 @@ class PredictiveSafetyFilter(SafetyFilter):
         s_m = float(info["s_m"])
         curvature = self.track.centerline.curvature_scalar(s_m)
         estimate = estimate_state(
-            self.state_source, observation, info, self.z, curvature if self.map_curvature else None
+            self.state_source,
+            observation,
+            info,
+            self.z,
+            curvature if self.map_curvature else None,
+            self.stale_frames.in_step(observation, info),
         )
         velocity = observation["velocity"]
         v_x = float(velocity[0])

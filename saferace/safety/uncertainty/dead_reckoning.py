@@ -44,7 +44,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from saferace.names import ODOMETRY_POSE_KEY
 from saferace.track.frenet import wrap_angle
+from saferace.track.odometry import odometry_step
 
 if TYPE_CHECKING:
     from saferace.track.path import ClosedPath
@@ -65,26 +67,20 @@ NARROWING_WIDTHS = 2.0
 
 
 def car_pose(info: dict) -> np.ndarray:
-    """``(x, y, yaw)`` of the car in ``info``: only its change over a step is used, as the
-    car's odometry measures it (:func:`odometry_step`), never where it is on the map."""
-    return np.array([info["x_m"], info["y_m"], info["yaw_rad"]], dtype=float)
+    """``(x, y, yaw)`` of the car as its odometry integrates it: only its change over a step
+    is used (:func:`~saferace.track.odometry.odometry_step`), never where it is on the map.
+    A fault wrapper gives its faulty odometry's under :data:`~saferace.names.ODOMETRY_POSE_KEY`
+    (:mod:`saferace.faults`); without one the odometry is the simulator's, exact."""
+    pose = info.get(ODOMETRY_POSE_KEY)
+    if pose is None:
+        pose = (info["x_m"], info["y_m"], info["yaw_rad"])
+    return np.array(pose, dtype=float)
 
 
 def centre_pose(centerline: ClosedPath, s_m: float) -> np.ndarray:
     """``(x, y, theta)`` of the centre line at arc length ``s_m``: the map's."""
     x, y, dx, dy, _, _ = centerline.eval_scalar(s_m)
     return np.array([x, y, math.atan2(dy, dx)])
-
-
-def odometry_step(pose_from: np.ndarray, pose_to: np.ndarray) -> np.ndarray:
-    """``(dx, dy, dyaw)``: the move from ``pose_from`` to ``pose_to`` (each ``(x, y,
-    yaw)``) in the body frame at its start, as the car's odometry measures it."""
-    x0, y0, yaw0 = (float(v) for v in pose_from)
-    x1, y1, yaw1 = (float(v) for v in pose_to)
-    cos, sin = math.cos(yaw0), math.sin(yaw0)
-    dx, dy = x1 - x0, y1 - y0
-    dyaw = wrap_angle(yaw1 - yaw0)
-    return np.array([cos * dx + sin * dy, -sin * dx + cos * dy, dyaw])
 
 
 def carried_states(
@@ -105,6 +101,21 @@ def carried_states(
     y = y0 + math.cos(theta0) * e_y_m + np.sin(yaw) * dx + np.cos(yaw) * dy
     e_y = (y - y1) * math.cos(theta1) - (x - x1) * math.sin(theta1)
     return e_y, e_psi_rad + dyaw - wrap_angle(theta1 - theta0)
+
+
+def scale_growth(step: np.ndarray, e_psi_rad: np.ndarray, scale_error: float) -> np.ndarray:
+    """``[e_y (m), e_psi (rad)]`` a carried set grows by in a ``step`` measured up to the
+    fraction ``scale_error`` of the truth off (per box of a stack, its carried headings
+    ``e_psi_rad`` along the last axis). Measured ``1 - scale_error`` times the truth, the
+    truth is ``scale_error / (1 - scale_error)`` of the measure beyond it. The turn's error is
+    the heading's; a distance off moves the car along its heading, across the lane by at
+    most ``sin`` of its angle to the lane (at most its heading's plus the turn), and the
+    turn's error swings it by the distance driven."""
+    relative = scale_error / (1.0 - scale_error)
+    step_m, turn_rad = math.hypot(step[0], step[1]), abs(float(step[2]))
+    angle = np.minimum(np.abs(e_psi_rad).max(axis=-1) + turn_rad, 0.5 * math.pi)
+    across_m = relative * step_m * (np.sin(angle) + turn_rad)
+    return np.stack([across_m, np.full_like(across_m, relative * turn_rad)], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -131,11 +142,14 @@ class DeadReckoning:
             float(s_m),
         )
 
-    def carried(self, pose: np.ndarray, s_m: float, centerline: ClosedPath) -> DeadReckoning:
+    def carried(
+        self, pose: np.ndarray, s_m: float, centerline: ClosedPath, scale_error: float = 0.0
+    ) -> DeadReckoning:
         """The box with the car now at ``pose`` and ``s_m``: its corners carried by the
         step's odometry along the map's ``centerline`` (:func:`carried_states`), grown by
-        :data:`ERROR_PER_M` for the distance driven. A stack of boxes (``lower`` and
-        ``upper`` of shape ``(n, 2)``) is carried box by box."""
+        :data:`ERROR_PER_M` for the distance driven and for an odometry whose distance and
+        turn may be off by the fraction ``scale_error`` (:func:`scale_growth`). A stack of
+        boxes (``lower`` and ``upper`` of shape ``(n, 2)``) is carried box by box."""
         step = odometry_step(self.pose, pose)
         lower, upper = self.lower, self.upper
         e_y, e_psi = carried_states(
@@ -146,7 +160,7 @@ class DeadReckoning:
             centre_pose(centerline, s_m),
         )
         step_m = math.hypot(step[0], step[1])
-        growth = ERROR_PER_M * step_m
+        growth = ERROR_PER_M * step_m + scale_growth(step, e_psi, scale_error)
         return DeadReckoning(
             np.stack([e_y.min(axis=-1), e_psi.min(axis=-1)], axis=-1) - growth,
             np.stack([e_y.max(axis=-1), e_psi.max(axis=-1)], axis=-1) + growth,

@@ -33,8 +33,10 @@ def checked_action(
 class StateEstimate:
     """One step's belief of the lane state ``[e_y, e_psi, kappa]``: the source's samples
     (with their mean and standard deviation), the interval it holds the state to and
-    whether that is ``bounded``, the monitor's score (None without a monitor) and whether
-    it raised or the interval is unbounded (``alarm``: the source is in doubt)."""
+    whether that is ``bounded``, the monitor's score (None without a monitor), whether the
+    frame was ``stale`` (:mod:`~saferace.safety.uncertainty.stale_frames`) and whether the
+    monitor raised, the interval is unbounded or the frame stale (``alarm``: the source is
+    in doubt)."""
 
     samples: np.ndarray
     mean: np.ndarray
@@ -45,6 +47,7 @@ class StateEstimate:
     alarm: bool
     map_curvature: bool
     bounded: bool
+    stale: bool = False
 
     def fields(self, info: dict[str, Any], kappa_mean: float) -> dict[str, Any]:
         """The decision's record of the state: the simulator's truth, the belief and
@@ -60,6 +63,7 @@ class StateEstimate:
             "state_std": [*std[:2], 0.0 if self.map_curvature else std[2]],
             "state_lower": lower.tolist(),
             "state_upper": upper.tolist(),
+            "stale": self.stale,
             "covered": bool(
                 np.all(lower[checked] <= truth[checked])
                 and np.all(truth[checked] <= upper[checked])
@@ -73,9 +77,11 @@ def estimate_state(
     info: dict[str, Any],
     z: float,
     map_curvature_radpm: float | None,
+    stale: bool = False,
 ) -> StateEstimate:
     """``source``'s belief this step, its interval ``mean +- z std`` where it has no own
-    (its curvature pinned to ``map_curvature_radpm`` where given)."""
+    (its curvature pinned to ``map_curvature_radpm`` where given); a ``stale`` frame is
+    no measurement."""
     samples = np.atleast_2d(source.samples(observation, info))
     mean, std = samples.mean(axis=0), samples.std(axis=0)
     lower, upper = interval_about(source, samples, mean, std, z)
@@ -90,7 +96,8 @@ def estimate_state(
         lower,
         upper,
         score,
-        alarm or not bounded,  # an unbounded interval rules out no state at all
+        alarm or not bounded or stale,  # an unbounded interval rules out no state at all
         map_curvature_radpm is not None,
         bounded,
+        stale,
     )

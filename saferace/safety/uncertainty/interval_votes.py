@@ -69,10 +69,13 @@ class RecentIntervals:
         """None kept."""
         self.boxes = None
 
-    def carry(self, pose: np.ndarray, s_m: float, centerline: ClosedPath) -> None:
-        """Carry every kept interval to the car at ``pose`` and ``s_m``."""
+    def carry(
+        self, pose: np.ndarray, s_m: float, centerline: ClosedPath, scale_error: float = 0.0
+    ) -> None:
+        """Carry every kept interval to the car at ``pose`` and ``s_m``, by an odometry
+        up to the fraction ``scale_error`` off."""
         if self.boxes is not None:
-            self.boxes = self.boxes.carried(pose, s_m, centerline)
+            self.boxes = self.boxes.carried(pose, s_m, centerline, scale_error)
 
     def add(self, interval: tuple[np.ndarray, np.ndarray], pose: np.ndarray, s_m: float) -> None:
         """Keep a trusted frame's ``interval`` (the car at ``pose`` and ``s_m``, where the

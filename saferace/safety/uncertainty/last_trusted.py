@@ -17,10 +17,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from saferace.names import ODOMETRY_ERROR_ATTRIBUTE
 from saferace.safety.uncertainty.dead_reckoning import START_TOLERANCE, DeadReckoning, car_pose
 from saferace.safety.uncertainty.interval_votes import RecentIntervals
 
 if TYPE_CHECKING:
+    import gymnasium as gym
+
     from saferace.track.raceline import ReferenceLine
     from saferace.track.track import Track
 
@@ -50,13 +53,34 @@ def offset_with_heading(
 class LastTrusted:
     """The set of ``[e_y, e_psi]`` a filter on ``track`` carries forward from the car's
     start on the task's ``reference`` line: carried by odometry every step and narrowed by
-    every interval it trusts; and the recent trusted intervals, carried beside it."""
+    every interval it trusts; and the recent trusted intervals, carried beside it. Both are
+    carried for an odometry whose distance and turn may be off by the fraction
+    ``odometry_scale_error`` (:func:`~saferace.safety.uncertainty.dead_reckoning.
+    scale_growth`)."""
 
-    def __init__(self, track: Track, reference: ReferenceLine) -> None:
+    def __init__(
+        self, track: Track, reference: ReferenceLine, odometry_scale_error: float = 0.0
+    ) -> None:
+        if not 0.0 <= odometry_scale_error < 1.0:
+            raise ValueError(f"odometry_scale_error must be in [0, 1), got {odometry_scale_error}")
         self.track = track
         self.reference = reference
+        self.odometry_scale_error = odometry_scale_error
         self.reckoning: DeadReckoning | None = None
         self.recent = RecentIntervals()
+
+    @classmethod
+    def of_task(cls, env: gym.Env) -> LastTrusted:
+        """The set of ``env``'s task: its track and reference line, and the odometry's error
+        its wrappers declare (:data:`~saferace.names.ODOMETRY_ERROR_ATTRIBUTE`; none: the
+        simulator's, exact). A set carried for a smaller error than the car's odometry has
+        loses the car within seconds on bends (``tests/test_faulty_odometry.py``); one
+        carried for a larger one grows in heading on every bend, and stopped the weaving
+        driver for 22 s of 40 on Yas Marina."""
+        base = env.unwrapped
+        name = ODOMETRY_ERROR_ATTRIBUTE
+        error = float(env.get_wrapper_attr(name)) if env.has_wrapper_attr(name) else 0.0
+        return cls(base.track, base.reference, error)  # type: ignore[attr-defined]
 
     def reset(self, info: dict[str, Any] | None = None) -> None:
         """No set, or with ``info`` the start's (:meth:`start`); no recent interval."""
@@ -81,7 +105,8 @@ class LastTrusted:
         last = self.reckoning
         if last is None:
             return None
-        return last.carried(car_pose(info), float(info["s_m"]), self.track.centerline)
+        pose, s_m = car_pose(info), float(info["s_m"])
+        return last.carried(pose, s_m, self.track.centerline, self.odometry_scale_error)
 
     def update(
         self, alarm: bool, interval: tuple[np.ndarray, np.ndarray], info: dict[str, Any]
@@ -92,7 +117,7 @@ class LastTrusted:
         certifies over (:meth:`held`; None: none was started)."""
         carried = self.carried(info)
         pose, s_m = car_pose(info), float(info["s_m"])
-        self.recent.carry(pose, s_m, self.track.centerline)
+        self.recent.carry(pose, s_m, self.track.centerline, self.odometry_scale_error)
         trusted = not alarm and self.consistent(carried, interval)
         if trusted and cuts(carried, interval):
             self.recent.add(offset_with_heading(interval, carried), pose, s_m)
