@@ -69,7 +69,9 @@ class StaleFrames:
             self._changed, self._pose_at_change = image.copy(), np.asarray(odometry_pose)
             return False
         dx, dy, dyaw = odometry_step(self._pose_at_change, odometry_pose)
-        return math.hypot(dx, dy) > stale_distance_m(image.shape[1]) or abs(dyaw) > STALE_TURN_RAD
+        return bool(
+            math.hypot(dx, dy) > stale_distance_m(image.shape[1]) or abs(dyaw) > STALE_TURN_RAD
+        )
 
 
 def stale_distance_m(width_px: int) -> float:
