@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from saferace.errors import SafeRaceError
+from saferace.errors import ConfigError, SafeRaceError
 from saferace.eval.filters import FilterConfig
 from saferace.experiments import robustness
 from saferace.experiments.robustness import (
@@ -170,3 +170,18 @@ def test_tracks_and_shift_severities_score_the_filters_interval(tmp_path: Path, 
         share = 100 * run["covered_steps"] / run["scored_steps"]
         assert row[TRACK_COLUMNS.index("coverage [%] (95% band)")].startswith(f"{share:.1f} (")
         assert row[TRACK_COLUMNS.index("alarms [%]")] == pytest.approx(100 * run["alarm_rate"])
+
+
+def test_faults_act_in_every_run_and_a_folder_keeps_to_its_own(tmp_path: Path):
+    """A blackout for 1 s of the 2 s: the robust filter doubts its source on that half of
+    the steps (its frames are stale), and nowhere without it."""
+    safety = FilterConfig(kind="cbf", uncertainty="robust")
+    faulty = short("pure-pursuit", safety=safety, faults=("blackout:start=0.5,duration=1",))
+    runs = run_robustness(faulty, tmp_path / "faulty", progress=False)
+    assert all(run["alarm_rate"] == pytest.approx(0.5, abs=0.05) for run in runs)
+    clean = run_robustness(replace(faulty, faults=()), tmp_path / "clean", progress=False)
+    assert all(run["alarm_rate"] == 0.0 for run in clean)
+    with pytest.raises(SafeRaceError, match=r"other settings.*faults"):
+        run_robustness(faulty, tmp_path / "clean", progress=False)
+    with pytest.raises(ConfigError, match="strat"):
+        replace(faulty, faults=("blackout:strat=2",))

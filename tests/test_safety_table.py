@@ -120,6 +120,33 @@ def test_a_rerun_matches_kept_rows_by_the_track_s_content_and_the_table_s_settin
     assert len(driven) == 3 * first and {laps for _, laps in driven[-first:]} == {2}
 
 
+def test_every_run_drives_with_the_tables_faults_and_other_faults_run_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """(The driving and the tables are faked: only what each run is given is checked.)"""
+    given: list[dict] = []
+
+    def drive(run, seed: int, laps: int, env_kwargs: dict) -> dict:
+        given.append(env_kwargs)
+        summary = {"laps_completed": 0, "time_outside_lane_s": 0.0, "longest_standstill_s": 0.0}
+        return {"agent": run.agent, "task": run.task, "track_arg": run.track,
+                "filter": dataclasses.asdict(run.safety), "summary": summary}  # fmt: skip
+
+    monkeypatch.setattr(safety_table, "table_row", drive)
+    for name in ("write_tables", "write_comparison", "plot_reckless_paths", "plot_failures"):
+        monkeypatch.setattr(safety_table, name, lambda *args, **kwargs: None)
+    options = dict(laps=1, max_seconds=3.0, progress=False, state_source=None)
+    run_table(["lab"], tmp_path, faults=("blackout:start=1", "latency:steps=2"), **options)
+    assert len(given) == 16
+    assert all(kwargs["faults"] == ["blackout:start=1", "latency:steps=2"] for kwargs in given)
+    run_table(["lab"], tmp_path, faults=("frozen",), **options)
+    assert len(given) == 32 and given[-1]["faults"] == ["frozen"]
+    run_table(["lab"], tmp_path, **options)
+    assert len(given) == 48 and "faults" not in given[-1]
+    refused = run_cli("safety-table", "--faults", "blackout:strat=2", "--out", str(tmp_path))
+    assert refused.returncode == 2 and "strat" in refused.stderr
+
+
 @pytest.mark.slow  # 15 s: workers' rows equal the serial ones in the benchmark's tests
 def test_table_over_two_workers_gives_the_serial_rows(tmp_path: Path):
     options = dict(laps=1, max_seconds=1.0, progress=False)

@@ -23,6 +23,7 @@ from saferace.names import (
     DEFAULT_FILTER_MODELS,
     DEFAULT_GAINS,
     DEFAULT_STATE_NOISE,
+    FAULTS_HELP,
     GAIN_NAMES,
     GENERIC_SOURCE,
     MC_SAMPLES,
@@ -113,6 +114,9 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the filters to run every agent behind, compared in filter_comparison.md: the CBF "
         "with the squared slack (the paper's) or the exact l1 one, and the predictive filter",
     )
+    table.add_argument(
+        "--faults", nargs="+", type=values.fault, metavar="NAME[:KEY=VALUE,...]", help=FAULTS_HELP
+    )
     add_parallel_arguments(table)
     add_device_argument(table)
     table.set_defaults(command=_safety_table)
@@ -182,6 +186,7 @@ def _safety_table(args: argparse.Namespace) -> int:
         workers=args.workers,
         ray_address=args.ray,
         random_tracks=tuple(args.random_tracks),
+        faults=tuple(args.faults or ()),
     )
     print((args.out / "safety_table.md").read_text())
     print(

@@ -84,6 +84,8 @@ def run_robustness(
             {k: v for k, v in config.as_dict().items() if k not in ("tracks", "presets", "seeds")}
         )
     )
+    if not config.faults:  # as runs from before faults were an option read back
+        del settings["faults"]
     path = out_dir / RUNS_FILE
     done = read_jsonl(path) if path.exists() else []
     for row in done:
@@ -135,6 +137,7 @@ def drive_once(
         stereo=config.stereo,
         randomize=preset,
         physics_randomize=preset if config.physics else None,
+        faults=list(config.faults),
     )
     try:
         monitor = _state_monitor(config, env, seed)
@@ -390,6 +393,8 @@ def write_report(runs: list[dict], config: RobustnessConfig, out_dir: str | Path
     if by_track:
         table += "\n\nBy track:\n\n" + markdown_table(TRACK_COLUMNS, by_track)
         write_csv(out_dir / "by_track.csv", TRACK_COLUMNS, by_track)
+    if config.faults:
+        table = f"With the faults {', '.join(config.faults)}:\n\n{table}"
     (out_dir / "robustness.md").write_text(table + "\n")
     write_csv(out_dir / "robustness.csv", TABLE_COLUMNS, rows)
     plot_robustness(runs, config.presets, out_dir / "robustness.png")

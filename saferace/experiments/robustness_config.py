@@ -8,7 +8,8 @@ from dataclasses import asdict, dataclass, field
 from saferace.config import COUNT, IMAGE_SIZE, NON_NEGATIVE, POSITIVE, check_bounds, setting
 from saferace.errors import ConfigError
 from saferace.eval.filter_config import FilterConfig
-from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, TASKS, VEHICLE_MODELS
+from saferace.faults.spec import FaultError, parse_faults
+from saferace.names import DEFAULT_EXPERT_MODEL, FAULTS_HELP, MC_SAMPLES, TASKS, VEHICLE_MODELS
 
 AGENT_HELP = "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY"
 
@@ -40,6 +41,7 @@ class RobustnessConfig:
         60.0, "end a run after this much simulated time", bounds=POSITIVE
     )
     physics: bool = setting(False, "the car varies with the same preset too")
+    faults: tuple[str, ...] = setting((), FAULTS_HELP, metavar="NAME[:KEY=VALUE,...]")
     safety: FilterConfig = field(default_factory=FilterConfig)
     monitor_state_source: str | None = setting(
         None,
@@ -59,6 +61,10 @@ class RobustnessConfig:
         for name in ("tracks", "presets", "seeds"):
             if not getattr(self, name):
                 raise ConfigError(name, "must name at least one")
+        try:
+            parse_faults(self.faults)
+        except FaultError as exc:
+            raise ConfigError("faults", str(exc)) from exc
         source = self.monitor_state_source
         if source is not None and not source.startswith("learned:"):
             raise ConfigError("monitor_state_source", f"must be learned:CHECKPOINT, got {source}")

@@ -128,15 +128,20 @@ def run_table(
     ray_address: str | None = None,
     random_tracks: tuple[int, ...] = (),
     filters: tuple[str, ...] = ("cbf",),
+    faults: tuple[str, ...] = (),
 ) -> list[dict]:
     """Run what is not in ``out_dir/runs.jsonl`` yet (over ``workers`` processes or Ray
     tasks, see :func:`~saferace.eval.parallel.run_jobs`) on ``tracks`` and a random track
     per seed of ``random_tracks`` (written to ``out_dir/tracks``) behind each of
-    ``filters``; write the tables, the filters' comparison and the plots; all rows."""
+    ``filters``, every run with the sensor ``faults`` (:mod:`saferace.faults`); write the
+    tables, the filters' comparison and the plots; all rows."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
-    env_kwargs = {"max_steps": max_steps_for(max_seconds)}
+    env_kwargs = {
+        "max_steps": max_steps_for(max_seconds),
+        **({"faults": list(faults)} if faults else {}),
+    }
     made_of = {track: Track.load(track).fingerprint for track in tracks}
     settings = {"laps": laps, "seed": seed, **env_kwargs}
     runs_file = out_dir / "runs.jsonl"
@@ -223,8 +228,9 @@ def run_key(agent: str, task: str, track: str, safety: FilterConfig) -> tuple:
 def resume_key(key: tuple, track_fingerprint: str, settings: dict) -> tuple:
     """What a rerun matches a kept row by: the run's :func:`run_key`, its track's content
     (a CSV edited under the same name is a new track) and the table's laps, seed and step
-    limit (a rerun with ``--laps 3`` into a folder of 1-lap rows kept those)."""
-    return (*key, track_fingerprint, *sorted(settings.items()))
+    limit and faults (a rerun with ``--laps 3`` into a folder of 1-lap rows kept those)."""
+    hashable = {name: tuple(v) if isinstance(v, list) else v for name, v in settings.items()}
+    return (*key, track_fingerprint, *sorted(hashable.items()))
 
 
 def _row_key(row: dict) -> tuple:
