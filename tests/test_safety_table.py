@@ -88,61 +88,59 @@ def test_table_command_writes_tables_and_resumes(tmp_path: Path):
     assert sorted(map(measured, again), key=str) == sorted(map(measured, rows), key=str)
 
 
+def faked_driving(monkeypatch: pytest.MonkeyPatch) -> list[tuple]:
+    """Each run's driving and the tables faked: the list of ``(track file name, laps,
+    env_kwargs)`` the runs were given, one per run driven."""
+    driven: list[tuple] = []
+
+    def drive(run, seed: int, laps: int, env_kwargs: dict) -> dict:
+        driven.append((Path(run.track).name, laps, env_kwargs))
+        summary = {"laps_completed": 0, "time_outside_lane_s": 0.0, "longest_standstill_s": 0.0}
+        return {"agent": run.agent, "task": run.task, "track_arg": run.track,
+                "filter": dataclasses.asdict(run.safety), "summary": summary}  # fmt: skip
+
+    monkeypatch.setattr(safety_table, "table_row", drive)
+    for name in ("write_tables", "write_comparison", "plot_reckless_paths", "plot_failures"):
+        monkeypatch.setattr(safety_table, name, lambda *args, **kwargs: None)
+    return driven
+
+
 def test_a_rerun_matches_kept_rows_by_the_track_s_content_and_the_table_s_settings(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
     """A rerun into the same folder skipped every run whose agent, task, track name and
     filter it found: the rows of a CSV since edited, or of another ``--laps``, were kept.
     (The driving and the tables are faked: only which runs run is checked.)"""
-    driven: list[tuple] = []
-
-    def drive(run, seed: int, laps: int, env_kwargs: dict) -> dict:
-        driven.append((Path(run.track).name, laps))
-        summary = {"laps_completed": 0, "time_outside_lane_s": 0.0, "longest_standstill_s": 0.0}
-        return {"agent": run.agent, "task": run.task, "track_arg": run.track,
-                "filter": dataclasses.asdict(run.safety), "summary": summary}  # fmt: skip
-
-    monkeypatch.setattr(safety_table, "table_row", drive)
-    for name in ("write_tables", "write_comparison", "plot_reckless_paths", "plot_failures"):
-        monkeypatch.setattr(safety_table, name, lambda *args, **kwargs: None)
+    driven = faked_driving(monkeypatch)
     track = tmp_path / "mine.csv"
     write_track_csv(track, *paperclip(legs_apart_m=6.0, straight_m=10.0), 0.5, 0.5)
     options = dict(max_seconds=3.0, progress=False, state_source=None)
     run_table([str(track)], tmp_path / "out", laps=1, **options)
     first = len(driven)
-    assert first == 16 and {laps for _, laps in driven} == {1}
+    assert first == 16 and {laps for _, laps, _ in driven} == {1}
     run_table([str(track)], tmp_path / "out", laps=1, **options)
     assert len(driven) == first  # all kept
     write_track_csv(track, *paperclip(legs_apart_m=6.0, straight_m=10.0), 0.5, 0.6)
     run_table([str(track)], tmp_path / "out", laps=1, **options)
     assert len(driven) == 2 * first  # the same name, another lane: every run again
     run_table([str(track)], tmp_path / "out", laps=2, **options)
-    assert len(driven) == 3 * first and {laps for _, laps in driven[-first:]} == {2}
+    assert len(driven) == 3 * first and {laps for _, laps, _ in driven[-first:]} == {2}
 
 
 def test_every_run_drives_with_the_tables_faults_and_other_faults_run_again(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
     """(The driving and the tables are faked: only what each run is given is checked.)"""
-    given: list[dict] = []
-
-    def drive(run, seed: int, laps: int, env_kwargs: dict) -> dict:
-        given.append(env_kwargs)
-        summary = {"laps_completed": 0, "time_outside_lane_s": 0.0, "longest_standstill_s": 0.0}
-        return {"agent": run.agent, "task": run.task, "track_arg": run.track,
-                "filter": dataclasses.asdict(run.safety), "summary": summary}  # fmt: skip
-
-    monkeypatch.setattr(safety_table, "table_row", drive)
-    for name in ("write_tables", "write_comparison", "plot_reckless_paths", "plot_failures"):
-        monkeypatch.setattr(safety_table, name, lambda *args, **kwargs: None)
+    driven = faked_driving(monkeypatch)
     options = dict(laps=1, max_seconds=3.0, progress=False, state_source=None)
     run_table(["lab"], tmp_path, faults=("blackout:start=1", "latency:steps=2"), **options)
+    given = [env_kwargs for _, _, env_kwargs in driven]
     assert len(given) == 16
     assert all(kwargs["faults"] == ["blackout:start=1", "latency:steps=2"] for kwargs in given)
     run_table(["lab"], tmp_path, faults=("frozen",), **options)
-    assert len(given) == 32 and given[-1]["faults"] == ["frozen"]
+    assert len(driven) == 32 and driven[-1][2]["faults"] == ["frozen"]
     run_table(["lab"], tmp_path, **options)
-    assert len(given) == 48 and "faults" not in given[-1]
+    assert len(driven) == 48 and "faults" not in driven[-1][2]
     refused = run_cli("safety-table", "--faults", "blackout:strat=2", "--out", str(tmp_path))
     assert refused.returncode == 2 and "strat" in refused.stderr
 
