@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import pickle
+import weakref
 
 import gymnasium as gym
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import saferace  # noqa: F401  - registers the tasks
+from saferace.envs import views
 from saferace.errors import SafeRaceError
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.names import FILTER_KINDS, TRAFFIC_TASK_IDS
@@ -68,9 +70,12 @@ def test_closing_or_dropping_one_env_leaves_anothers_frames_intact():
     before = kept.reset(seed=0)[0]["image"]  # kept's context is the current one
     closed.close()
     assert np.array_equal(kept.reset(seed=0)[0]["image"], before)
+    dropped_views = weakref.ref(dropped.unwrapped._views)
     del dropped
     gc.collect()
+    assert dropped_views() is None  # collected: its renderers are queued to close
     assert np.array_equal(kept.reset(seed=0)[0]["image"], before)
+    assert not views._DROPPED  # and closed, at the render's start
     kept.close()
 
 

@@ -25,6 +25,7 @@ from saferace.experiments.safety_table import (
     run_table,
     table_rows,
 )
+from saferace.faults.spec import parse_faults
 from saferace.learning.checkpoint import is_calibrated
 from saferace.names import ROBUST_GAINS
 from saferace.safety.cbf.filter import GAIN_PRESETS
@@ -134,11 +135,15 @@ def test_every_run_drives_with_the_tables_faults_and_other_faults_run_again(
     driven = faked_driving(monkeypatch)
     options = dict(laps=1, max_seconds=3.0, progress=False, state_source=None)
     run_table(["lab"], tmp_path, faults=("blackout:start=1", "latency:steps=2"), **options)
-    given = [env_kwargs for _, _, env_kwargs in driven]
-    assert len(given) == 16
-    assert all(kwargs["faults"] == ["blackout:start=1", "latency:steps=2"] for kwargs in given)
+    asked = parse_faults(("blackout:start=1", "latency:steps=2"))
+    assert len(driven) == 16
+    assert all(set(parse_faults(kwargs["faults"])) == set(asked) for _, _, kwargs in driven)
+    run_table(
+        ["lab"], tmp_path, faults=("latency:steps=2,severity=2", "blackout:start=1.0"), **options
+    )
+    assert len(driven) == 16  # the same faults, written another way: nothing runs again
     run_table(["lab"], tmp_path, faults=("frozen",), **options)
-    assert len(driven) == 32 and driven[-1][2]["faults"] == ["frozen"]
+    assert len(driven) == 32 and parse_faults(driven[-1][2]["faults"]) == parse_faults("frozen")
     run_table(["lab"], tmp_path, **options)
     assert len(driven) == 48 and "faults" not in driven[-1][2]
     refused = run_cli("safety-table", "--faults", "blackout:strat=2", "--out", str(tmp_path))

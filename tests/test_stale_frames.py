@@ -20,6 +20,12 @@ from saferace.safety.uncertainty.stale_frames import (
     StaleFrames,
     stale_distance_m,
 )
+from saferace.safety.uncertainty.state_sources import (
+    NoisyOracleStateSource,
+    OracleStateSource,
+    SpreadScaledStateSource,
+    reads_image,
+)
 from saferace.track.track_io import write_track_csv
 from tests.test_dead_reckoning import DoubtingSource
 from tests.track_shapes import paperclip
@@ -130,3 +136,14 @@ def test_the_filter_records_a_stale_frame_and_doubts_its_source_there():
     assert all(record["stale"] is True and record["alarm"] for record in late)
     json.dumps(late)  # as eval rows and recordings keep it
     assert {record["mode"] for record in late} <= {"propagated", "stopping"}
+
+
+def test_only_a_source_that_reads_the_frame_sees_it_go_stale():
+    noisy = NoisyOracleStateSource()
+    assert not reads_image(OracleStateSource()) and not reads_image(noisy)
+    assert not reads_image(SpreadScaledStateSource(noisy, (2.0, 2.0, 1.0)))  # wrapped truth
+    assert reads_image(DoubtingSource())  # any other source: a network's
+    black = {"image": np.zeros((64, 64, 3), np.uint8)}
+    pose = {"x_m": 0.0, "y_m": 0.0, "yaw_rad": 0.0}
+    assert not StaleFrames.of_source(noisy).in_step(black, pose)
+    assert StaleFrames.of_source(DoubtingSource()).in_step(black, pose)

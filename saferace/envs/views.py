@@ -31,9 +31,21 @@ def _close_renderers(renderers: dict[str, mujoco.Renderer]) -> None:
     renderers.clear()
 
 
+#: The renderers of envs collected unclosed, closed at the next safe point
+#: (:func:`_close_dropped`): the collector may run inside another env's render, after its
+#: context was made current and before it draws, where closing them would leave none current.
+_DROPPED: list[dict[str, mujoco.Renderer]] = []
+
+
+def _close_dropped() -> None:
+    while _DROPPED:
+        _close_renderers(_DROPPED.pop())
+
+
 def _close_live_views() -> None:
     for views in list(_LIVE_VIEWS):
         views.close()
+    _close_dropped()
 
 
 @functools.cache
@@ -64,11 +76,12 @@ class Views:
         self._car_geoms = _car_visual_geoms(model, cars)
         self._renderers: dict[str, mujoco.Renderer] = {}  # by purpose
         _LIVE_VIEWS.add(self)
-        # an env dropped unclosed: its renderers closed in their own contexts, not by the GC
-        weakref.finalize(self, _close_renderers, self._renderers).atexit = False
+        # an env dropped unclosed: its renderers queued, closed in their own contexts later
+        weakref.finalize(self, _DROPPED.append, self._renderers).atexit = False
 
     def onboard(self, car: int = 0) -> np.ndarray:
         """Car ``car``'s onboard image (stereo: the two side by side in the channels)."""
+        _close_dropped()
         renderer = self._renderer("onboard", self.image_size)
         if car:
             self._show_cars_from(car)
@@ -87,6 +100,7 @@ class Views:
 
     def chase(self, size: tuple[int, int]) -> np.ndarray:
         """The ego car's chase view of ``size`` (H, W)."""
+        _close_dropped()
         renderer = self._renderer("chase", size)
         renderer.update_scene(self.data, camera="chase_camera")
         return renderer.render()

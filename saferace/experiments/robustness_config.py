@@ -62,9 +62,10 @@ class RobustnessConfig:
             if not getattr(self, name):
                 raise ConfigError(name, "must name at least one")
         try:
-            parse_faults(self.faults)
+            faults = sorted(fault.spec() for fault in parse_faults(self.faults))
         except FaultError as exc:
             raise ConfigError("faults", str(exc)) from exc
+        object.__setattr__(self, "faults", tuple(faults))  # as written out: one key per run
         source = self.monitor_state_source
         if source is not None and not source.startswith("learned:"):
             raise ConfigError("monitor_state_source", f"must be learned:CHECKPOINT, got {source}")

@@ -51,6 +51,7 @@ class FaultInjector:
             [np.zeros(2, np.float32)] * (int(delay["steps"]) if delay else 0)
         )
         self._patch_corner = self.rng.random(2)  # the occlusion's place, per episode
+        self._noise = np.zeros(3)  # the odometry's noise this step, of [v_x, v_y, r]
 
     def active(self, time_s: float) -> list[str]:
         """The faults acting at ``time_s`` after the reset, by name."""
@@ -111,19 +112,19 @@ class FaultInjector:
         if odometry is None:
             return velocity
         scale = np.array([1.0 + odometry["bias"], 1.0, 1.0 + odometry["bias"]])
-        noise = self.rng.normal(0.0, odometry["noise"], 3)
-        return (velocity * scale + noise).astype(velocity.dtype)
+        self._noise = self.rng.normal(0.0, odometry["noise"], 3)
+        return (velocity * scale + self._noise).astype(velocity.dtype)
 
     def odometry(self, step: np.ndarray, dt_s: float, time_s: float) -> np.ndarray:
         """The body-frame move ``(dx, dy, dyaw)`` the faulty odometry measures over a
-        control step of ``dt_s`` ending at ``time_s``, the true move ``step``: the distance
-        and the turn off as :meth:`velocity` reads speed and yaw rate, each with the noise
-        of a velocity integrated over the step."""
+        control step of ``dt_s`` ending at ``time_s``, the true move ``step``: off as
+        :meth:`velocity` (called first, for the same step) read the speed and the yaw rate,
+        its noise integrated over the step: one sensor, read twice."""
         odometry = self._acting("odometry", time_s)
         if odometry is None:
             return step
         scale = np.array([1.0 + odometry["bias"], 1.0, 1.0 + odometry["bias"]])
-        return step * scale + self.rng.normal(0.0, odometry["noise"] * dt_s, 3)
+        return step * scale + self._noise * dt_s
 
     def command(self, action: np.ndarray, time_s: float) -> np.ndarray:
         """What the faulty actuators apply for ``action`` given at ``time_s``."""

@@ -54,32 +54,33 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
             seed = int(self.injector.rng.integers(2**31))
         self.injector.reset(seed)
         self._seeded = self._seeded or seed is not None
-        self._true_pose = self._odometry_pose = true_pose(info)
+        self._odometry_pose = true_pose(info)
         return self._faulty(observation, info)
 
     def step(self, action: np.ndarray):  # type: ignore[no-untyped-def]  # gym.Wrapper's
         applied = self.injector.command(action, self._time_s)
         observation, reward, terminated, truncated, info = self.env.step(applied)
         info["applied_action"] = applied
-        pose = true_pose(info)
-        step = odometry_step(self._true_pose, pose)
-        dt_s = float(info["time_s"]) - self._time_s
-        self._odometry_pose = moved_by(
-            self._odometry_pose, self.injector.odometry(step, dt_s, float(info["time_s"]))
-        )
-        self._true_pose = pose
-        observation, info = self._faulty(observation, info)
+        observation, info = self._faulty(observation, info, stepped=True)
         return observation, reward, terminated, truncated, info
 
     def _faulty(
-        self, observation: dict[str, np.ndarray], info: dict[str, Any]
+        self, observation: dict[str, np.ndarray], info: dict[str, Any], stepped: bool = False
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        self._time_s = float(info["time_s"])
+        """The faulty sensors' observation and ``info`` of a reset, or of a step (``stepped``:
+        the odometry carried over it)."""
+        time_s = float(info["time_s"])
         observation = {
             **observation,
-            "image": self.injector.frame(observation["image"], self._time_s),
-            "velocity": self.injector.velocity(observation["velocity"], self._time_s),
+            "image": self.injector.frame(observation["image"], time_s),
+            "velocity": self.injector.velocity(observation["velocity"], time_s),
         }
+        pose = true_pose(info)
+        if stepped:
+            step = odometry_step(self._true_pose, pose)
+            measured = self.injector.odometry(step, time_s - self._time_s, time_s)
+            self._odometry_pose = moved_by(self._odometry_pose, measured)
+        self._true_pose, self._time_s = pose, time_s
         info["faults"] = self.injector.active(self._time_s)
         info[ODOMETRY_POSE_KEY] = self._odometry_pose.copy()
         return observation, info

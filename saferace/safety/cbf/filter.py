@@ -231,7 +231,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._observation: dict[str, np.ndarray] | None = None
         self._info: dict[str, Any] | None = None
         self.last_trusted = LastTrusted.of_task(env)  # the robust mode's
-        self.stale_frames = StaleFrames()
+        self.stale_frames = StaleFrames.of_source(self.state_source)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)

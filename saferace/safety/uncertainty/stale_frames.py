@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from saferace.safety.uncertainty.dead_reckoning import car_pose
+from saferace.safety.uncertainty.state_sources import StateSource, reads_image
 from saferace.track.odometry import odometry_step
 
 #: How far the odometry may move the car under one unchanged image of
@@ -45,10 +46,19 @@ def blank(image: np.ndarray) -> bool:
 
 
 class StaleFrames:
-    """Tells, frame by frame, whether a camera's frame is stale (see the module)."""
+    """Tells, frame by frame, whether a camera's frame is stale (see the module); where it
+    does not ``apply`` (the state source reads no frame), never."""
 
-    def __init__(self) -> None:
+    def __init__(self, apply: bool = True) -> None:
+        self.apply = apply
         self.reset()
+
+    @classmethod
+    def of_source(cls, source: StateSource) -> StaleFrames:
+        """The detector of a filter fed by ``source``: it applies where the source reads the
+        frame (:func:`~saferace.safety.uncertainty.state_sources.reads_image`); the truth
+        does not go stale in a blackout."""
+        return cls(reads_image(source))
 
     def reset(self) -> None:
         """Forget the last frame (a new episode)."""
@@ -57,7 +67,7 @@ class StaleFrames:
 
     def in_step(self, observation: dict[str, np.ndarray], info: dict[str, Any]) -> bool:
         """Whether a task's step (``observation``, ``info``) brought a stale frame."""
-        return self.stale(observation["image"], car_pose(info))
+        return self.apply and self.stale(observation["image"], car_pose(info))
 
     def stale(self, image: np.ndarray, odometry_pose: np.ndarray) -> bool:
         """Whether ``image``, seen with the car at ``odometry_pose`` (``(x, y, yaw)`` as its

@@ -42,8 +42,20 @@ def true_lane_state(info: dict[str, Any]) -> np.ndarray:
     return np.array([info[name] for name in LANE_STATE_NAMES], dtype=float)
 
 
+def reads_image(source: StateSource) -> bool:
+    """Whether ``source`` (or the source it wraps, its ``source``) reads the camera's frame,
+    as a network does, rather than the simulator's state, as the oracles do (their
+    ``reads_image`` is False): a stale frame is no measurement only for one that reads it."""
+    inner = getattr(source, "source", None)
+    if inner is not None:
+        return reads_image(inner)
+    return bool(getattr(source, "reads_image", True))
+
+
 class OracleStateSource:
     """The simulator's ground truth: one exact sample."""
+
+    reads_image = False
 
     def reset(self, seed: int | None = None) -> None:
         """Nothing to reset: the truth has no state."""
@@ -60,6 +72,8 @@ class NoisyOracleStateSource:
     so the truth looks like one more sample. (Samples centred on the truth would make their
     mean almost exact, and no filter would need the spread.)
     """
+
+    reads_image = False
 
     def __init__(
         self,
