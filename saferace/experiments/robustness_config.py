@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 from saferace.config import COUNT, IMAGE_SIZE, NON_NEGATIVE, POSITIVE, check_bounds, setting
 from saferace.errors import ConfigError
 from saferace.eval.filter_config import FilterConfig
-from saferace.faults.spec import FaultError, parse_faults
+from saferace.faults.spec import FaultError, canonical_faults
 from saferace.names import DEFAULT_EXPERT_MODEL, FAULTS_HELP, MC_SAMPLES, TASKS, VEHICLE_MODELS
 
 AGENT_HELP = "expert, pure-pursuit, drift, weave, speeding, learned:CHECKPOINT or MODULE:FACTORY"
@@ -62,10 +62,10 @@ class RobustnessConfig:
             if not getattr(self, name):
                 raise ConfigError(name, "must name at least one")
         try:
-            faults = sorted(fault.spec() for fault in parse_faults(self.faults))
+            faults = canonical_faults(self.faults)
         except FaultError as exc:
             raise ConfigError("faults", str(exc)) from exc
-        object.__setattr__(self, "faults", tuple(faults))  # as written out: one key per run
+        object.__setattr__(self, "faults", faults)  # as written out: one key per run
         source = self.monitor_state_source
         if source is not None and not source.startswith("learned:"):
             raise ConfigError("monitor_state_source", f"must be learned:CHECKPOINT, got {source}")

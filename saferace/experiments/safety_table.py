@@ -34,7 +34,7 @@ from saferace.eval.runner import (
 )
 from saferace.eval.tables import markdown_table, or_dash, write_csv
 from saferace.experiments.filter_comparison import plot_failures, write_comparison
-from saferace.faults.spec import parse_faults
+from saferace.faults.spec import canonical_faults
 from saferace.learning.checkpoint import is_calibrated
 from saferace.names import AUTO, DEFAULT_GAINS, ROBUST_GAINS, SQUARED_SLACK, TASKS
 from saferace.names import RANDOM_TRACK_RADIUS_M as RANDOM_TRACK_RADIUS_M  # size of test tracks
@@ -141,7 +141,7 @@ def run_table(
     tracks = [*tracks, *write_random_tracks(out_dir / "tracks", random_tracks)]
     env_kwargs = {
         "max_steps": max_steps_for(max_seconds),
-        **({"faults": sorted(fault.spec() for fault in parse_faults(faults))} if faults else {}),
+        **({"faults": list(canonical_faults(faults))} if faults else {}),
     }
     made_of = {track: Track.load(track).fingerprint for track in tracks}
     settings = {"laps": laps, "seed": seed, **env_kwargs}

@@ -189,3 +189,9 @@ def parse_faults(texts: Iterable[str | Fault] | str | None) -> tuple[Fault, ...]
     if twice:
         raise FaultError(f"fault(s) {', '.join(twice)} named twice: give each once")
     return faults
+
+
+def canonical_faults(texts: Iterable[str | Fault] | str | None) -> tuple[str, ...]:
+    """The faults of ``texts`` written one way (every key, sorted by name): the same faults
+    written otherwise are the same strings, what a resumed table matches its runs by."""
+    return tuple(sorted(fault.spec() for fault in parse_faults(texts)))

@@ -160,7 +160,9 @@ class DeadReckoning:
             centre_pose(centerline, s_m),
         )
         step_m = math.hypot(step[0], step[1])
-        growth = ERROR_PER_M * step_m + scale_growth(step, e_psi, scale_error)
+        growth = ERROR_PER_M * step_m
+        if scale_error:  # an exact odometry's steps (every fault-free task's) grow no more
+            growth = growth + scale_growth(step, e_psi, scale_error)
         return DeadReckoning(
             np.stack([e_y.min(axis=-1), e_psi.min(axis=-1)], axis=-1) - growth,
             np.stack([e_y.max(axis=-1), e_psi.max(axis=-1)], axis=-1) + growth,
