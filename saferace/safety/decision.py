@@ -67,7 +67,9 @@ class SafetyDecision:
     the frame was stale, or its interval contradicted the carried set); ``fallback`` is why
     the filter braked towards a speed the interval fits at (one of
     :data:`FALLBACK_REASONS`, ``""``: it did not), ``mode`` what acted (one of
-    :data:`MODES`).
+    :data:`MODES`). The actions are the wheels' angles: the command sent was the filtered
+    one less ``steering_offset_rad``, the offset the filter judged the steering's centre to
+    be off by (:mod:`~saferace.safety.uncertainty.steering_trim`).
     """
 
     nominal_action: list[float]
@@ -93,6 +95,7 @@ class SafetyDecision:
     filter_time_s: float
     n_samples: int
     mode: str
+    steering_offset_rad: float = 0.0
 
     def as_dict(self, timed: bool = True) -> dict[str, Any]:
         """The decision's fields; ``timed=False``: its wall-clock times 0, so that the same

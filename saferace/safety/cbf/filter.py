@@ -11,7 +11,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from saferace.names import SLACK_PENALTIES, SQUARED_SLACK, UNCERTAINTY_MODES
+from saferace.names import SQUARED_SLACK
+from saferace.safety.cbf.arguments import check_filter_arguments
 from saferace.safety.cbf.barriers import (
     BARRIER_NAMES,
     BarrierContext,
@@ -44,6 +45,7 @@ from saferace.safety.uncertainty.intervals import interval_points
 from saferace.safety.uncertainty.last_trusted import LastTrusted
 from saferace.safety.uncertainty.stale_frames import StaleFrames
 from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource, prefetch
+from saferace.safety.uncertainty.steering_trim import SteeringTrim
 from saferace.safety.vehicle_params import VehicleParams, load_params
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
@@ -135,9 +137,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     (:mod:`~saferace.safety.cbf.exact_penalty`). In traffic a barrier per opponent joins the QP,
     where the car is kept clear before the lane (:mod:`~saferace.safety.traffic.car_barriers`;
     where it cannot be, it brakes in the lane: fallback ``"car"``); ``opponent_noise_m``: noise
-    on their positions (else the truth, as ``s`` is). ``info["safety"]`` is the same for the
-    same seed and actions (the env checker's ask): its clock times are 0 unless
-    ``record_timings``."""
+    on their positions (else the truth, as ``s`` is). ``estimate_steering_offset``: judge and
+    undo the steering's centre offset (:mod:`~saferace.safety.uncertainty.steering_trim`);
+    the decision's actions are the wheels', ``steering_offset_rad`` less than the command
+    sent. ``info["safety"]`` is the same for the same seed and actions (the env checker's
+    ask): its clock times are 0 unless ``record_timings``."""
 
     record_timings = False
 
@@ -165,27 +169,15 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         uncertainty: str = "chance",
         slack_penalty: str = SQUARED_SLACK,
         opponent_noise_m: float = 0.0,
+        estimate_steering_offset: bool = True,
     ) -> None:
         record_args(self, locals())
+        check_filter_arguments(locals())
         super().__init__(env)
-        if uncertainty not in UNCERTAINTY_MODES:
-            raise ValueError(f"uncertainty must be one of {UNCERTAINTY_MODES}, got {uncertainty!r}")
-        if slack_penalty not in SLACK_PENALTIES:
-            raise ValueError(f"slack_penalty must be in {SLACK_PENALTIES}, got {slack_penalty!r}")
         self.solve = solve_filter_qp if slack_penalty == SQUARED_SLACK else solve_filter_qp_l1
         gains = class_k_gains(lam)
-        for name, value in (
-            ("lateral_decel_mps2", lateral_decel_mps2),
-            ("max_lateral_accel_mps2", max_lateral_accel_mps2),
-        ):
-            if value is not None and value <= 0.0:
-                raise ValueError(f"{name} must be positive or None, got {value}")
         self.lateral_decel_mps2 = math.inf if lateral_decel_mps2 is None else lateral_decel_mps2
         self.max_lateral_accel_mps2 = max_lateral_accel_mps2
-        if not 0.0 < theta_max < math.pi / 2:
-            raise ValueError(f"need 0 < theta_max < pi/2, got {theta_max}")
-        if min(action_std) <= 0.0 or min(min_action_std) <= 0.0:
-            raise ValueError("action_std and min_action_std must be positive")
         self.state_source = state_source if state_source is not None else OracleStateSource()
         self.model_name = model
         self.symbolic = symbolic_model(model)  # raises on an unknown model name
@@ -204,23 +196,15 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.upper = np.asarray(action_space.high, dtype=float)
         base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
         self.control_dt_s = float(base.control_dt_s)
-        if lane_margin_m < 0.0:
-            raise ValueError(f"lane_margin_m must be non-negative, got {lane_margin_m}")
         self.half_width_m = float(base.car_half_width_m) + lane_margin_m
         self.robust = uncertainty == "robust"
         self.map_curvature = map_curvature or self.robust
-        if linearisation_passes < 1:
-            raise ValueError(f"linearisation_passes must be at least 1, got {linearisation_passes}")
         self.linearisation_passes = linearisation_passes
-        if creep_speed_mps < 0.0:
-            raise ValueError(f"creep_speed_mps must be non-negative, got {creep_speed_mps}")
         self.creep_speed_mps = creep_speed_mps
         self.track = base.track
         self.map = FilterMap(
             self.track, base.reference, width_preview_s, speed_limit_factor, self.speed_gain
         )
-        if opponent_noise_m < 0.0:
-            raise ValueError(f"opponent_noise_m must be non-negative, got {opponent_noise_m}")
         self.opponent_noise_m = opponent_noise_m
         self.opponents = tuple(base.traffic.names) if base.traffic is not None else ()
         self._noise_rng = np.random.default_rng()
@@ -232,6 +216,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._info: dict[str, Any] | None = None
         self.last_trusted = LastTrusted.of_task(env)  # the robust mode's
         self.stale_frames = StaleFrames.of_source(self.state_source)
+        self.steering_trim = SteeringTrim(
+            self.wheelbase_m, self.control_dt_s, params.steer_time_constant_s,
+            base.params.max_steer_rate_radps, applied=estimate_steering_offset,
+        )  # fmt: skip
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
@@ -240,6 +228,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._noise_rng = np.random.default_rng([seed, 1])
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
+        self.steering_trim.reset()
         self.last_trusted.reset(info if self.robust else None)  # robust: the start pose's
         self.stale_frames.reset()
         prefetch(self.state_source, observation)  # the agent's network runs beside it
@@ -249,10 +238,12 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if self._info is None:
             raise gym.error.ResetNeeded("call reset() before step()")
         mean, std = nominal_parts(action)
-        decision = self.certify(self._observation, self._info, mean, std)
-        observation, reward, terminated, truncated, info = self.env.step(
-            np.asarray(decision.filtered_action, dtype=np.float32)
-        )
+        trim = np.array([self.steering_trim.offset_rad, 0.0])
+        decision = self.certify(self._observation, self._info, mean + trim, std)  # the wheels'
+        command = np.clip(np.asarray(decision.filtered_action) - trim, self.lower, self.upper)
+        observation, reward, terminated, truncated, info = self.env.step(command.astype(np.float32))
+        self.steering_trim.update(float(command[0]), observation["velocity"])
+        decision = dataclasses.replace(decision, steering_offset_rad=float(trim[0]))
         info = {**info, "safety": decision.as_dict(timed=self.record_timings)}
         self._observation, self._info = observation, info
         prefetch(self.state_source, observation)
@@ -486,8 +477,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         braking every step: past standstill it would reverse the car), below
         ``creep_speed_mps`` an acceleration of at least ``min(agent_accel,
         CREEP_ACCEL_MPS2)``, and with ``max_lateral_accel_mps2`` a steering of
-        ``|tan delta| <= a_max L / v_x^2``."""
+        ``|tan delta| <= a_max L / v_x^2``; the wheels' angles a steering offset leaves."""
         lower, upper = self.lower.copy(), self.upper.copy()
+        offset = self.steering_trim.offset_rad  # the wheels' reach: the commands' less it
+        lower[0], upper[0] = lower[0] + max(offset, 0.0), upper[0] + min(offset, 0.0)
         lower[1] = max(lower[1], -max(v_x, 0.0) / self.control_dt_s)
         if self.creep_speed_mps > 0.0 and v_x < self.creep_speed_mps:
             lower[1] = max(lower[1], min(agent_accel, CREEP_ACCEL_MPS2))
