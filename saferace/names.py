@@ -21,6 +21,9 @@ TRAFFIC_TASK_IDS = {"Overtake": "saferace/Overtake-v0"}
 #: Every task a driver can be run, collected or trained on.
 DRIVING_TASKS: tuple[str, ...] = (*TASKS, *TRAFFIC_TASK_IDS)
 #: The sensor and actuator faults' form on the command line (``saferace.faults``).
+#: The drivers of ``saferace faults``: the reckless ones and the expert (a learned driver
+#: joins them as ``learned:CHECKPOINT``).
+FAULT_TABLE_DRIVERS = ("drift", "weave", "speeding", "expert")
 FAULTS_HELP = (
     "sensor and actuator faults, seeded by the episode: blackout, frozen, dropped, latency, "
     "occlusion, flicker, odometry, steering, delay, each with start=S, duration=S, severity=1-3 "

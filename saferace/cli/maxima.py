@@ -44,6 +44,7 @@ MAXIMA: dict[str, float] = {
     "--random-tracks": 2**32 - 1,  # the seeds of the tracks drawn
     "--runs": 1000,  # runs replayed
     "--samples": 1000,  # state samples or MC passes per frame
+    "--seconds": 86400.0,  # a day of simulated time per run
     "--seed": 2**32 - 1,  # numpy's and gymnasium's seeds are 32-bit
     "--seeds": 2**32 - 1,
     "--smooth-rms-m": 1.0,  # m a spline may move the centre line's points

@@ -1,4 +1,4 @@
-"""Safety commands: ``safety-table``, ``robustness`` and ``shift-sweep``."""
+"""Safety commands: ``safety-table``, ``faults``, ``robustness`` and ``shift-sweep``."""
 
 from __future__ import annotations
 
@@ -121,6 +121,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     add_device_argument(table)
     table.set_defaults(command=_safety_table)
 
+    register_faults(commands)
+
     from saferace.experiments.robustness_config import RobustnessConfig
 
     robust = commands.add_parser(
@@ -159,6 +161,45 @@ def register(commands: argparse._SubParsersAction) -> None:
     sweep.add_argument("--out", type=Path, required=True, help="folder for the table and plot")
     add_device_argument(sweep)
     sweep.set_defaults(command=_shift_sweep)
+
+
+def register_faults(commands: argparse._SubParsersAction) -> None:
+    """``saferace faults``: every fault at each severity, each driver, without and behind the
+    default filter (:mod:`saferace.experiments.fault_table`)."""
+    from saferace.experiments.fault_table_config import FaultTableConfig
+
+    table = commands.add_parser(
+        "faults",
+        help="every sensor and actuator fault at each severity, each driver, without and "
+        "behind the default filter, as a table",
+        epilog=example(
+            "saferace faults --tracks technical circuit.csv --out results/faults",
+            "saferace faults --tracks lab --faults blackout frozen --severities 3 "
+            "--drivers drift expert learned:lab.pt",
+        ),
+    )
+    add_config_options(table, FaultTableConfig())
+    table.add_argument(
+        "--out", type=Path, default=Path("results/faults"), help="folder of the table and runs"
+    )
+    add_parallel_arguments(table)
+    add_device_argument(table)
+    table.set_defaults(command=_faults)
+
+
+def _faults(args: argparse.Namespace) -> int:
+    from saferace.eval.agents import check_agent_spec
+    from saferace.experiments.fault_table import run_fault_table
+    from saferace.experiments.fault_table_config import FaultTableConfig
+
+    config = config_from_args(FaultTableConfig(), args)
+    for driver in config.drivers:
+        check_agent_spec(driver)
+    ensure_generic_model(config.state_source, args.workers)
+    run_fault_table(config, args.out, workers=args.workers, ray_address=args.ray)
+    print((args.out / "faults.md").read_text())
+    print(f"faults.md, faults.csv, faults.png and runs.jsonl written to {args.out}")
+    return 0
 
 
 def _safety_table(args: argparse.Namespace) -> int:

@@ -8,8 +8,10 @@ drifting driver outside ``lab``'s lane for 35 s of 40. The car's own motion give
 offset away: within the tyres' grip, the kinematic bicycle's yaw rate
 ``r = v_x tan(delta) / L`` says which angle the wheels hold, and its difference to the
 angle the commands would have set (through the servo's rate limit and lag) is the offset.
-On the four built-in tracks' fault-free drives the two matched to 0.0019 rad (one standard
-deviation, no step beyond 0.0053) up to 4 m/s^2, in bends down to 2 m radius. A wrong
+Over 4,676 steps of four drivers behind the filter on the four built-in tracks, with and
+without an offset, the two matched to 0.002 rad (one standard deviation, 0.0005 on
+average) up to 7 m/s^2, in bends of any radius; beyond, the tyres slide (0.02 rad short
+above 9 m/s^2). A wrong
 speed scale (a biased odometry) drops out of the ratio ``r / v_x``; noise averages out.
 Offsets within :data:`DEADBAND_RAD` are left alone: the lane margin the filter keeps
 covers them, and a fault-free car's commands pass untouched.
@@ -23,15 +25,14 @@ import numpy as np
 
 #: Steps below this speed (m/s) say nothing: the yaw rate vanishes with it.
 MIN_SPEED_MPS = 1.0
-#: Steps on a path bent more than this (1/m), or turning harder than this (m/s^2), are
-#: skipped: the tyres slip there, and the kinematic bicycle over-promises the turn.
-MAX_PATH_CURVATURE_RADPM = 0.5
-MAX_LATERAL_ACCEL_MPS2 = 4.0
+#: Steps turning harder than this (m/s^2) are skipped: the tyres slide there, and the
+#: kinematic bicycle over-promises the turn.
+MAX_LATERAL_ACCEL_MPS2 = 7.0
 #: Steps over which the wheels turned more than this (rad) are skipped: the car's yaw
 #: follows the wheels a moment late (the first step of a 0.1 rad turn read 0.054).
 MAX_WHEELS_TURN_RAD = 0.02
-#: The estimate's memory (s): an offset found within about half a second of driving.
-TIME_CONSTANT_S = 0.5
+#: The estimate's memory (s): an offset found within about a quarter of a second of driving.
+TIME_CONSTANT_S = 0.25
 #: An estimate this small (rad) is not applied: inside the lane margin, and the bicycle's
 #: mismatch on a fault-free car stays below it.
 DEADBAND_RAD = 0.01
@@ -74,8 +75,6 @@ class SteeringTrim:
         self._wheels_rad += turn_rad
         v_x, yaw_rate = float(velocity[0]), float(velocity[2])
         if abs(turn_rad) > MAX_WHEELS_TURN_RAD or v_x < MIN_SPEED_MPS:
-            return
-        if abs(yaw_rate / v_x) > MAX_PATH_CURVATURE_RADPM:
             return
         if abs(v_x * yaw_rate) > MAX_LATERAL_ACCEL_MPS2:
             return
