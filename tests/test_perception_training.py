@@ -1,0 +1,79 @@
+"""What the generic perception model trains and calibrates on: distinct tracks apart from
+each other, mirrored frames, and a calibration that scores the lateral offset as well as the
+heading (each the survivor of a mutation run, ``docs/results/tests.md``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from saferace.cache import CACHE_VARIABLE
+from saferace.learning import perception
+from saferace.learning.calibration import CALIBRATED_OUTPUTS
+from saferace.learning.checkpoint import CONFORMAL_KEY, load_checkpoint
+from saferace.learning.perception import RECIPES, inside_frames, rounds_folder, write_tracks
+from saferace.learning.rounds import FrameSet
+from saferace.learning.training_data import network_data
+from saferace.learning.validation import predict_frames
+from saferace.safety.uncertainty.conformal import normalised_scores
+
+
+@pytest.mark.parametrize("name", sorted(RECIPES))
+def test_a_recipe_trains_and_calibrates_on_distinct_tracks_none_in_both(name: str):
+    """A seed named twice is one track driven twice (fewer tracks than the recipe says); a
+    calibration track the network trained on voids the calibration's guarantee."""
+    recipe = RECIPES[name]
+    train, calibration = recipe.train_track_seeds, recipe.calibration_track_seeds
+    assert len(set(train)) == len(train) >= 3
+    assert len(set(calibration)) == len(calibration) >= 2
+    assert not set(train) & set(calibration)
+
+
+def test_every_recipe_trains_its_network_on_mirrored_frames_too(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+):
+    """Mirroring adds each frame with left and right swapped: a random track runs one way
+    round, and without it the network would see most of a track's bends turn one way."""
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    mirrored: list[bool] = []
+
+    def train(frames, config, progress, resume, mirror):  # type: ignore[no-untyped-def]
+        mirrored.append(mirror)
+        return None, None, {}
+
+    monkeypatch.setattr(perception, "train_networks", train)
+    monkeypatch.setattr(perception, "load_rounds", lambda folders: folders)
+    monkeypatch.setattr(perception, "targets_of", lambda recipe, frames: frames)
+    monkeypatch.setattr(perception, "save_checkpoint", lambda *arguments: None)
+    for recipe in RECIPES.values():
+        perception.train_state_network(recipe, [], progress=False)
+    assert mirrored == [True] * len(RECIPES)
+
+
+def test_the_calibration_scores_each_frame_by_its_offset_and_its_heading(quick_perception: Path):
+    """A calibration frame's score is its larger error of the two outputs the filter reads,
+    each in its own spread: scored on one alone, the other's interval would be whatever
+    that one's scale gives it."""
+    recipe = RECIPES["quick"]
+    loaded = load_checkpoint(perception.build_perception_model(recipe, progress=False))
+    parts = [
+        inside_frames(recipe, rounds_folder(recipe, track), track)
+        for track in write_tracks(recipe, "calibration")
+    ]
+    frames = FrameSet(
+        {name: np.concatenate([part[name] for part in parts]) for name in parts[0].arrays}, []
+    )
+    prediction = predict_frames(loaded.state, network_data(frames)["state"], 1)
+    outputs = len(CALIBRATED_OUTPUTS)
+    assert outputs == 2  # e_y and e_psi
+    scores = normalised_scores(
+        prediction.mean[:, :outputs], prediction.std[:, :outputs], frames["state"][:, :outputs]
+    )
+    recorded = np.asarray(loaded.metadata[CONFORMAL_KEY]["scores"])
+    np.testing.assert_allclose(recorded, np.sort(scores), rtol=1e-5)
+    heading_only = normalised_scores(
+        prediction.mean[:, 1:2], prediction.std[:, 1:2], frames["state"][:, 1:2]
+    )
+    assert not np.allclose(np.sort(heading_only), recorded, rtol=1e-5)  # the offset counts
