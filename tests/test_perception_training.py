@@ -77,3 +77,26 @@ def test_the_calibration_scores_each_frame_by_its_offset_and_its_heading(quick_p
         prediction.mean[:, 1:2], prediction.std[:, 1:2], frames["state"][:, 1:2]
     )
     assert not np.allclose(np.sort(heading_only), recorded, rtol=1e-5)  # the offset counts
+
+
+def test_the_reckless_drivers_collect_behind_the_filter_and_the_expert_without(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+):
+    """Unfiltered, a reckless driver leaves its lane within a second and its frames show the
+    grass; behind the filter it weaves and drifts inside the lane, the frames the network
+    must read; the expert needs no filter."""
+    monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
+    configs = []
+
+    def collect(folder, config, progress):  # type: ignore[no-untyped-def]
+        configs.append(config)
+        return type("Round", (), {"frame_count": 1})()
+
+    monkeypatch.setattr(perception, "collect_round", collect)
+    recipe = RECIPES["default"]
+    perception.collect_track(recipe, tmp_path / "train_90001.csv", "train", 0)
+    kinds = {config.agent: config.safety.kind for config in configs}
+    assert kinds == {
+        "expert": "none",
+        **{driver: "cbf" for driver in recipe.drivers if driver != "expert"},
+    }
