@@ -84,7 +84,8 @@ def test_the_reckless_drivers_collect_behind_the_filter_and_the_expert_without(
 ):
     """Unfiltered, a reckless driver leaves its lane within a second and its frames show the
     grass; behind the filter it weaves and drifts inside the lane, the frames the network
-    must read; the expert needs no filter."""
+    must read; the expert needs no filter. Each drive of a track has a seed of its own (its
+    look and steering noise drawn apart from the others')."""
     monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path))
     configs = []
 
@@ -100,3 +101,4 @@ def test_the_reckless_drivers_collect_behind_the_filter_and_the_expert_without(
         "expert": "none",
         **{driver: "cbf" for driver in recipe.drivers if driver != "expert"},
     }
+    assert len({config.seeds for config in configs}) == len(configs) == len(recipe.drivers)
