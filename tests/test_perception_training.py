@@ -102,3 +102,16 @@ def test_the_reckless_drivers_collect_behind_the_filter_and_the_expert_without(
         **{driver: "cbf" for driver in recipe.drivers if driver != "expert"},
     }
     assert len({config.seeds for config in configs}) == len(configs) == len(recipe.drivers)
+
+
+@pytest.mark.parametrize("part", ["train", "calibration"])
+def test_every_track_is_driven_in_each_task_and_look_of_its_part(part: str):
+    """Each track shows the network both lane tasks and (training) both looks, the drivers
+    taking turns; a track driven in one task alone would teach a line by its track."""
+    recipe = RECIPES["default"]
+    looks = recipe.looks if part == "train" else recipe.calibration_looks
+    for track_index in range(4):
+        drives = recipe.drives(part, track_index)
+        assert [driver for driver, _, _ in drives] == list(recipe.drivers)
+        assert {task for _, task, _ in drives} == set(recipe.tasks)
+        assert {look for _, _, look in drives} == set(looks)
