@@ -92,6 +92,7 @@ TARGETS: dict[str, list[str]] = {
     # table behind it (20 s a mutant, and the table's own module has its tests)
     "saferace/learning/perception.py": [
         "tests/test_perception.py::not safety_table",
+        "tests/test_perception_training.py",
         "tests/test_track_calibration.py",
     ],
     "saferace/safety/model_code.py": ["tests/test_compiled_stages.py"],
