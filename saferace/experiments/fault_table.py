@@ -339,7 +339,8 @@ def plot_time_outside(lines: list[list], path: Path) -> None:
         image = ax.imshow(outside, cmap="Reds", vmin=0.0, vmax=peak, aspect="auto")
         for (i, j), value in np.ndenumerate(outside):
             words = f"{value:.1f}" + (f"\n{left[i, j]} left" if left[i, j] else "")
-            ax.text(j, i, words, ha="center", va="center", fontsize=7)
+            shade = "white" if value > 0.6 * peak else "black"  # legible on dark red
+            ax.text(j, i, words, ha="center", va="center", fontsize=7, color=shade)
         ax.set_xticks(range(len(drivers)), drivers)
         ax.set_yticks(range(len(faults)), [f"{name} {severity}" for name, severity in faults])
         title = "no filter" if safety == filter_words(FilterConfig()) else safety
