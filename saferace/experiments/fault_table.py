@@ -29,11 +29,11 @@ from saferace.eval.filters import FilterConfig
 from saferace.eval.leaderboard import filter_words, row_filter
 from saferace.eval.metrics import thinning_stride
 from saferace.eval.parallel import run_jobs
-from saferace.eval.runner import append_jsonl, evaluate, max_steps_for, read_jsonl
+from saferace.eval.runner import append_jsonl, max_steps_for, read_jsonl
 from saferace.eval.tables import markdown_table, or_dash, write_csv
 from saferace.experiments.fault_table_config import FaultTableConfig
-from saferace.experiments.safety_table import RECKLESS_TASKS
-from saferace.faults.spec import FAULT_KINDS, FaultError, parse_fault
+from saferace.experiments.safety_table import RECKLESS_TASKS, Run, table_row
+from saferace.faults.spec import parse_fault
 from saferace.progress import Progress
 from saferace.track.random_track import write_random_tracks
 from saferace.track.track import Track
@@ -64,10 +64,8 @@ class FaultRun:
 
 def table_faults(names: list[str], severities: list[int]) -> list[str]:
     """Each fault of ``names`` at each of ``severities``, starting at :data:`FAULT_START_S`,
-    as the full string that makes it (every key written out)."""
-    unknown = sorted(set(names) - set(FAULT_KINDS))
-    if unknown:
-        raise FaultError(f"unknown fault(s) {', '.join(unknown)}: use {', '.join(FAULT_KINDS)}")
+    as the full string that makes it (every key written out; an unknown name raises
+    :class:`~saferace.faults.spec.FaultError`)."""
     return [
         parse_fault(f"{name}:severity={severity},start={FAULT_START_S:g}").spec()
         for name in names
@@ -155,19 +153,11 @@ def run_fault_table(
 
 
 def fault_row(run: FaultRun, seed: int, max_steps: int | None) -> dict:
-    """The result row of one run of the table."""
+    """The result row of one run of the table: the safety table's run of its driver, for
+    ``max_steps`` with its fault."""
     faults = {"faults": [run.fault]} if run.fault else {}
-    (row,) = evaluate(
-        run.driver,
-        run.task,
-        run.track,
-        [seed],
-        laps=UNLIMITED_LAPS,
-        progress=False,
-        env_kwargs={"max_steps": max_steps, **faults},
-        safety=run.safety,
-    )
-    return row
+    as_table_run = Run(run.driver, run.task, run.track, run.safety)
+    return table_row(as_table_run, seed, UNLIMITED_LAPS, {"max_steps": max_steps, **faults})
 
 
 def distance_m(row: dict, lap_length_m: float) -> float:
