@@ -50,11 +50,11 @@ def test_an_interrupted_benchmark_continues_to_the_same_submission(tmp_path: Pat
     real_drive = benchmark.drive_run
     calls = []
 
-    def interrupted(agent, spec, suite, mc_samples=10):
+    def interrupted(agent, spec, suite, mc_samples=10, faults=()):
         calls.append(spec)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        return real_drive(agent, spec, suite, mc_samples)
+        return real_drive(agent, spec, suite, mc_samples, faults)
 
     monkeypatch.setattr(benchmark, "drive_run", interrupted)
     with pytest.raises(KeyboardInterrupt):
@@ -62,9 +62,9 @@ def test_an_interrupted_benchmark_continues_to_the_same_submission(tmp_path: Pat
     assert not (tmp_path / "cut.json").exists()
     driven = []
 
-    def counted(agent, spec, suite, mc_samples=10):
+    def counted(agent, spec, suite, mc_samples=10, faults=()):
         driven.append(spec)
-        return real_drive(agent, spec, suite, mc_samples)
+        return real_drive(agent, spec, suite, mc_samples, faults)
 
     monkeypatch.setattr(benchmark, "drive_run", counted)
     resumed = run_benchmark("pure-pursuit", tmp_path / "cut.json", progress=False, runs=LAB_RUNS)
@@ -205,3 +205,46 @@ def test_a_runs_line_counts_its_collisions_in_good_english(count: int, words: st
         "at_fault_collisions": count,
     }
     assert benchmark.run_words(row).endswith(f", longest standstill -, {words}")
+
+
+BENT = ("steering:offset=0.07",)  # the servo's centre 4 degrees off, from the start
+
+
+def test_a_benchmark_under_faults_drives_verifies_and_ranks_with_them(
+    submission: dict, tmp_path: Path
+):
+    from saferace.experiments.verify import choose_runs, verify_submission
+
+    bent = run_benchmark(
+        "pure-pursuit", tmp_path / "bent.json", progress=False, runs=LAB_RUNS[:1], faults=BENT
+    )
+    [faulted] = bent["rows"]
+    keys = [row["key"] for row in submission["rows"]]
+    clean = submission["rows"][keys.index(faulted["key"])]
+    assert faulted["mean_abs_deviation_m"] > clean["mean_abs_deviation_m"] + 0.02  # it bites
+    replay = bent["replay"]
+    assert replay["faults"] == ["steering:severity=2,start=0,duration=inf,offset=0.07"]
+    assert replay["agent_sha256"] != submission["replay"]["agent_sha256"]
+    with pytest.raises(SafeRaceError, match="use another --out"):
+        run_benchmark("pure-pursuit", tmp_path / "bent.json", progress=False, runs=LAB_RUNS[:1])
+    whole = json.loads(json.dumps(submission))  # the fault-free rows stand in for the others
+    for row in whole["rows"]:
+        row["agent_sha256"] = replay["agent_sha256"]
+    whole["rows"][keys.index(faulted["key"])] = faulted
+    whole["replay"] = replay
+    whole.update(benchmark.totals(whole["rows"], load_suite()))
+    path = tmp_path / "whole.json"
+    path.write_text(json.dumps(whole))
+    seed = next(seed for seed in range(1000) if choose_runs(keys, 1, seed) == [faulted["key"]])
+    records = tmp_path / "records"
+    assert verify_submission(path, runs=1, seed=seed, progress=False, records=records).passed
+    rows = leaderboard_rows([whole, submission])
+    assert [(row[0], row[2]) for row in rows] == [(1, "v2"), (1, f"v2 under {replay['faults'][0]}")]
+    whole["replay"] = {**replay, "faults": []}  # the faults taken out of the record
+    path.write_text(json.dumps(whole))
+    with pytest.raises(SafeRaceError, match="replay faults must be a list of one or more"):
+        verify_submission(path, runs=1, seed=seed, progress=False, records=records)
+    whole["replay"].pop("faults")
+    path.write_text(json.dumps(whole))
+    with pytest.raises(SafeRaceError, match="does not hash to its agent_sha256"):
+        verify_submission(path, runs=1, seed=seed, progress=False, records=records)

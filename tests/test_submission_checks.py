@@ -17,11 +17,11 @@ from saferace.experiments.benchmark import (
     TRAJECTORY_POINTS,
     RunSpec,
     load_suite,
-    replay_record,
     scored,
     totals,
 )
 from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
+from saferace.experiments.replay_record import replay_record
 from saferace.experiments.submission_checks import CONTROL_DT_S, check_submission
 from saferace.experiments.verify import (
     choose_runs,
@@ -273,6 +273,19 @@ REFUSALS = {
     "compiling named in words": (
         lambda d: d["replay"].update(compiled="false"),
         "replay or versions has fields of the wrong type",
+    ),
+    "faults written otherwise than a benchmark writes them": (
+        lambda d: d["replay"].update(faults=["steering:offset=0.07"]),
+        "replay faults ['steering:offset=0.07'] are not as written: "
+        "['steering:severity=2,start=0,duration=inf,offset=0.07']",
+    ),
+    "a fault the suite does not know": (
+        lambda d: d["replay"].update(faults=["smoke"]),
+        "replay faults: unknown fault 'smoke' in 'smoke'",
+    ),
+    "faults as one string": (
+        lambda d: d["replay"].update(faults="latency:steps=2"),
+        "replay faults must be a list of one or more faults",
     ),
     "a replay of another agent": (
         lambda d: d["replay"].update(agent="expert"),

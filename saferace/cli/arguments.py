@@ -63,7 +63,12 @@ def add_episode_arguments(parser: argparse.ArgumentParser, default_agent: str) -
     group.add_argument(
         "--opponents", nargs="+", metavar="POLICY[:FIELD=VALUE,...]", help=OPPONENTS_HELP
     )
-    group.add_argument(
+    add_faults_argument(group)
+
+
+def add_faults_argument(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--faults``: sensor and actuator faults, each ``NAME[:KEY=VALUE,...]``."""
+    parser.add_argument(
         "--faults", nargs="+", type=values.fault, metavar="NAME[:KEY=VALUE,...]", help=FAULTS_HELP
     )
 

@@ -11,6 +11,7 @@ from saferace.cli.arguments import (
     AGENT_HELP,
     add_device_argument,
     add_episode_arguments,
+    add_faults_argument,
     add_filter_arguments,
     add_num_envs_argument,
     add_parallel_arguments,
@@ -112,6 +113,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         epilog=example(
             "saferace benchmark --agent pure-pursuit --out submissions/pure_pursuit.json",
             "saferace benchmark --agent learned:lab_mono.pt --workers 2 --out learned.json",
+            "saferace benchmark --agent drift --faults steering:offset=0.04 --out drift_bent.json",
         ),
     )
     bench.add_argument("--agent", required=True, help=AGENT_HELP)
@@ -123,6 +125,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         default=MC_SAMPLES,
         help="MC-dropout samples of a learned agent",
     )
+    add_faults_argument(bench)
     add_device_argument(bench)
     bench.set_defaults(command=_benchmark)
 
@@ -303,6 +306,7 @@ def _benchmark(args: argparse.Namespace) -> int:
         workers=args.workers,
         mc_samples=args.mc_samples,
         ray_address=args.ray,
+        faults=args.faults or (),
     )
     score = "-" if result["score"] is None else f"{result['score']:.1f}"
     with_filter = result["score_with_filter"]

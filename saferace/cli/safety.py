@@ -9,6 +9,7 @@ from saferace.cli import example, values
 from saferace.cli.arguments import (
     TRACK_HELP,
     add_device_argument,
+    add_faults_argument,
     add_filter_arguments,
     add_parallel_arguments,
     ensure_generic_model,
@@ -23,7 +24,6 @@ from saferace.names import (
     DEFAULT_FILTER_MODELS,
     DEFAULT_GAINS,
     DEFAULT_STATE_NOISE,
-    FAULTS_HELP,
     GAIN_NAMES,
     GENERIC_SOURCE,
     MC_SAMPLES,
@@ -114,9 +114,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="the filters to run every agent behind, compared in filter_comparison.md: the CBF "
         "with the squared slack (the paper's) or the exact l1 one, and the predictive filter",
     )
-    table.add_argument(
-        "--faults", nargs="+", type=values.fault, metavar="NAME[:KEY=VALUE,...]", help=FAULTS_HELP
-    )
+    add_faults_argument(table)
     add_parallel_arguments(table)
     add_device_argument(table)
     table.set_defaults(command=_safety_table)

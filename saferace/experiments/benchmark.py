@@ -33,11 +33,15 @@ the CARLA leaderboard's infraction penalties), its speed measured against the ex
 the track; it also counts ``overtakes``, the opponents it passed and stayed ahead of. The agent's
 **score** covers both sets; beside it, the traffic score and the at-fault collisions.
 Submissions are checked and scored under the version they were made for, while it ships.
+
+A submission may drive the protocol under sensor and actuator faults (``--faults``, see
+:mod:`saferace.faults`): every run with the same faults, named in its replay record and
+its agent hash, so that it is verified with them and ranked only beside submissions of
+the same faults.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -52,13 +56,12 @@ import numpy as np
 
 from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
-from saferace.eval.agents import agent_files, make_agent
+from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.metrics import thinned_trajectory
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     append_jsonl,
-    file_sha256,
     git_revision,
     make_task_env,
     max_steps_for,
@@ -67,6 +70,7 @@ from saferace.eval.runner import (
     run_episode,
     standstill_words,
 )
+from saferace.experiments.replay_record import replay_faults, replay_record
 from saferace.progress import Progress
 from saferace.track import Track
 from saferace.version import __version__
@@ -229,20 +233,19 @@ def load_suite(version: int = SUITE_VERSION) -> Suite:
     )
 
 
-def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> dict:
-    """The row of one run: its metrics and score (see the module docstring)."""
+def drive_run(
+    agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10, faults: tuple[str, ...] = ()
+) -> dict:
+    """The row of one run under ``faults``: its metrics and score (see the module
+    docstring)."""
     track_argument = suite.track_argument(spec.track)
     length_m = Track.load(track_argument).length_m
     start_s_m = suite.start_fraction(spec) * length_m
     laps = suite.laps_of(spec)
-    traffic = (
-        {}
-        if spec.opponents is None
-        else {
-            "opponents": list(suite.traffic_set().opponents[spec.opponents]),
-            "terminate_on_collision": False,
-        }
-    )
+    env_kwargs: dict = {"faults": list(faults)} if faults else {}
+    if spec.opponents is not None:
+        env_kwargs["opponents"] = list(suite.traffic_set().opponents[spec.opponents])
+        env_kwargs["terminate_on_collision"] = False
     env = make_task_env(
         spec.task,
         track_argument,
@@ -251,7 +254,7 @@ def drive_run(agent: str, spec: RunSpec, suite: Suite, mc_samples: int = 10) -> 
         spec.seed,
         max_steps=max_steps_for(suite.max_seconds_of(spec)),
         start_s_m=start_s_m,
-        **traffic,
+        **env_kwargs,
     )
     progress_m = [0.0]
     try:
@@ -334,15 +337,16 @@ def run_benchmark(
     suite: Suite | None = None,
     runs: Iterable[RunSpec] | None = None,
     ray_address: str | None = None,
+    faults: Iterable[str] = (),
 ) -> dict:
     """Run the protocol's runs missing from ``OUT.runs.jsonl`` (over ``workers``
     processes, or as Ray tasks with ``ray_address``: ``"local"`` starts a Ray instance on
-    this machine), then write the submission ``out``; the submission."""
+    this machine) under ``faults``, then write the submission ``out``; the submission."""
     suite = suite or load_suite()
     out = Path(out)
     journal = out.with_name(out.name + ".runs.jsonl")
     done = read_jsonl(journal) if journal.exists() else []
-    replay = replay_record(agent, mc_samples)
+    replay = replay_record(agent, mc_samples, faults)
     for row in done:
         if row.get("agent") != agent or row.get("suite_version") != suite.version:
             raise SafeRaceError(
@@ -369,7 +373,7 @@ def run_benchmark(
     with Progress(len(missing), f"benchmark {agent}", "run", enabled=progress) as bar:
         run_jobs(
             drive_run,
-            [(agent, spec, suite, mc_samples) for spec in missing],
+            [(agent, spec, suite, mc_samples, replay_faults(replay)) for spec in missing],
             lambda job, row: keep(_keyed(row, replay, job[1])),
             workers=workers,
             ray_address=ray_address,
@@ -393,52 +397,6 @@ def _keyed(row: dict, replay: dict, spec: RunSpec) -> dict:
         "agent_sha256": replay["agent_sha256"],
         **row,
     }
-
-
-def replay_record(agent: str, mc_samples: int) -> dict:
-    """What ``saferace verify`` needs to drive ``agent`` again: its spec, its settings, the
-    sha256 of every file it loads and one hash of them all (the page's agent hash), the
-    device its networks ran on and whether they ran compiled for the CPU (agents with
-    files), and the sha256 of the car's identified parameters."""
-    files = {}
-    for path in agent_files(agent):
-        if not path.is_file():
-            raise SafeRaceError(f"agent {agent!r} loads {path}, which is not there")
-        files[str(path)] = file_sha256(path)
-    identity = json.dumps(
-        {"agent": agent, "mc_samples": mc_samples, "files": files}, sort_keys=True
-    )
-    return {
-        "agent": agent,
-        "mc_samples": mc_samples,
-        "files_sha256": files,
-        "agent_sha256": hashlib.sha256(identity.encode()).hexdigest(),
-        "device": _network_device() if files else None,
-        "compiled": _networks_compiled() if files else None,
-        "vehicle_params_sha256": vehicle_params_sha256(),
-    }
-
-
-def _network_device() -> str:
-    """Where this process's networks run (see ``saferace.learning.device``)."""
-    from saferace.learning.device import resolve_device
-
-    return str(resolve_device())
-
-
-def _networks_compiled() -> bool:
-    """Whether this process's networks run compiled (``saferace.learning.cpu_compile``)."""
-    from saferace.learning.cpu_compile import compile_enabled
-    from saferace.learning.device import resolve_device
-
-    return compile_enabled(resolve_device())
-
-
-def vehicle_params_sha256() -> str:
-    """The sha256 of the car's identified parameters, which the expert and the filter use."""
-    from saferace.safety.vehicle_params import PARAMS_FILE
-
-    return file_sha256(PARAMS_FILE)
 
 
 def totals(rows: list[dict], suite: Suite) -> dict:

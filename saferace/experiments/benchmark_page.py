@@ -4,7 +4,8 @@ The page is self-contained (a group can publish the file alone): the table sorts
 column with a click (a few lines of inline JavaScript), and each track's driven paths of
 every agent (unfiltered, first seed, every task and set of opponents) are embedded as PNG
 images. Submissions of an older suite version keep their own scores and
-rank among their own version, below the newer.
+rank among their own version, below the newer; submissions driven under sensor faults rank
+among those of the same faults.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from saferace.eval.metrics import longest_standstill
 from saferace.experiments.benchmark import Suite
+from saferace.experiments.replay_record import replay_faults
 
 COLUMNS = (
     "rank",
@@ -49,16 +51,22 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
     empty for a suite without traffic runs. Beside completion and the time outside the
     lane, the longest any run stood still while the driver asked to move, without and with
     the filter: read from the rows, scoring nothing, and empty (``-``) for a submission
-    whose rows predate it."""
+    whose rows predate it. A submission driven under faults ranks among those of the same
+    faults and version alone."""
     ordered = sorted(
         submissions,
-        key=lambda s: (-s["suite_version"], -(s["score"] if s["score"] is not None else -1)),
+        key=lambda s: (
+            -s["suite_version"],
+            replay_faults(s["replay"]),
+            -(s["score"] if s["score"] is not None else -1),
+        ),
     )
     rows = []
-    rank, version = 0, None
+    rank, board = 0, None
     for entry in ordered:
-        rank = 1 if entry["suite_version"] != version else rank + 1
-        version = entry["suite_version"]
+        faults = replay_faults(entry["replay"])
+        rank = 1 if (entry["suite_version"], faults) != board else rank + 1
+        board = (entry["suite_version"], faults)
         plain = [row for row in entry["rows"] if row["filter"] == "none"]
         filtered = [row for row in entry["rows"] if row["filter"] != "none"]
         ratios = [row["lap_time_ratio"] for row in plain if row.get("lap_time_ratio") is not None]
@@ -68,7 +76,7 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
             [
                 rank,
                 entry["agent"],
-                f"v{entry['suite_version']}",
+                suite_words(entry["suite_version"], faults),
                 entry["replay"]["agent_sha256"][:12],
                 f"{len(record['replayed'])} of {record['total_runs']}" if record else "no",
                 entry["score"],
@@ -87,6 +95,11 @@ def leaderboard_rows(submissions: list[dict]) -> list[list]:
             ]
         )
     return rows
+
+
+def suite_words(version: int, faults: tuple[str, ...]) -> str:
+    """The board a submission ranks on: its suite version, and the faults it drove under."""
+    return f"v{version}" + (f" under {' '.join(faults)}" if faults else "")
 
 
 def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:

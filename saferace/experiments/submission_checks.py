@@ -49,6 +49,7 @@ from saferace.experiments.benchmark import (
     scored,
     totals,
 )
+from saferace.faults.spec import FaultError, canonical_faults
 from saferace.track import Track
 
 SUBMISSION_FIELDS = (
@@ -194,6 +195,20 @@ def _check_replay(data: dict, source: str) -> None:
         raise SafeRaceError(
             f"{source}: agent {data['agent']!r} but replay agent {replay['agent']!r}"
         )
+    _check_faults(replay, source)
+
+
+def _check_faults(replay: dict, source: str) -> None:
+    """The faults a submission drove under: a list of fault strings, written one way."""
+    faults = replay.get("faults", [])
+    if not isinstance(faults, list) or (not faults and "faults" in replay):
+        raise SafeRaceError(f"{source}: replay faults must be a list of one or more faults")
+    try:
+        written = list(canonical_faults(faults))
+    except FaultError as error:
+        raise SafeRaceError(f"{source}: replay faults: {error}") from None
+    if written != faults:
+        raise SafeRaceError(f"{source}: replay faults {faults} are not as written: {written}")
 
 
 def _run_spec(row: dict, index: int, source: str) -> RunSpec:

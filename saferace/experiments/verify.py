@@ -27,10 +27,9 @@ from saferace.experiments.benchmark import (
     RunSpec,
     drive_run,
     load_suite,
-    replay_record,
     run_words,
-    vehicle_params_sha256,
 )
+from saferace.experiments.replay_record import replay_faults, replay_record, vehicle_params_sha256
 from saferace.experiments.submission_checks import read_submission
 from saferace.learning.device import use_device
 from saferace.names import COMPILE_VARIABLE, VERIFY_RUNS
@@ -121,7 +120,7 @@ def check_agent_files(replay: dict, source: str) -> None:
                 f"{source}: the agent's file {path} changed since the runs (sha256 "
                 f"{digest[:12]} recorded, {file_sha256(path)[:12]} now)"
             )
-    now = replay_record(replay["agent"], replay["mc_samples"])
+    now = replay_record(replay["agent"], replay["mc_samples"], replay_faults(replay))
     if now["agent_sha256"] != replay["agent_sha256"]:
         raise SafeRaceError(
             f"{source}: the replay record does not hash to its agent_sha256 "
@@ -244,8 +243,10 @@ def _replay(
         notes += ("the car's identified parameters differ from the submission's: the "
                   "expert's and the filter's runs will not replay",)  # fmt: skip
     replayed: dict[str, dict] = {}
+    faults = replay_faults(replay)
     jobs = [
-        (replay["agent"], RunSpec.of_row(rows[key]), suite, replay["mc_samples"]) for key in chosen
+        (replay["agent"], RunSpec.of_row(rows[key]), suite, replay["mc_samples"], faults)
+        for key in chosen
     ]
 
     def replayed_words(spec: RunSpec) -> str:
