@@ -12,6 +12,7 @@ from cli_helpers import run_cli
 
 from saferace.envs.drivetrain import DrivetrainParams
 from saferace.errors import SafeRaceError
+from saferace.eval.runner import file_sha256
 from saferace.experiments.benchmark import (
     TRAFFIC_MEASUREMENTS,
     TRAJECTORY_POINTS,
@@ -582,6 +583,19 @@ def test_verify_refuses_an_agent_file_swapped_after_the_runs(
 def test_a_benchmark_of_an_agent_whose_file_is_missing_is_refused(tmp_path: Path):
     with pytest.raises(SafeRaceError, match=r"loads .*missing\.pt, which is not there"):
         replay_record(f"learned:{tmp_path / 'missing.pt'}", 10)
+
+
+def test_an_agent_module_in_the_current_folder_is_found_as_the_console_script_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    import sys
+
+    module = tmp_path / "folder_agent.py"
+    module.write_text("def make(env):\n    return None\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", ".", str(tmp_path))])
+    replay = replay_record("folder_agent:make", 10)  # the console script has no "" on its path
+    assert replay["files_sha256"] == {str(module): file_sha256(module)}
 
 
 def test_first_difference_holds_each_measurement_to_its_tolerance(honest: dict):

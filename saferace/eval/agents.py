@@ -92,6 +92,7 @@ def agent_files(spec: str) -> list[Path]:
     if kind in AGENT_KINDS:
         return [Path(argument)]
     module_name = kind
+    search_current_folder()
     try:
         found = importlib.util.find_spec(module_name)
     except (ImportError, ValueError):
@@ -101,13 +102,18 @@ def agent_files(spec: str) -> list[Path]:
     return [Path(found.origin)]
 
 
-def load_entry_point(path: str) -> Callable:
-    """The object named by ``MODULE:NAME``; the module is found in the current folder too,
-    as ``python -m`` finds it (the ``saferace`` console script alone would not)."""
-    module_name, _, name = path.partition(":")
+def search_current_folder() -> None:
+    """Find modules in the current folder too, as ``python -m`` does (the ``saferace``
+    console script alone would not): where users write their agents."""
     here = os.getcwd()
     if here not in sys.path and "" not in sys.path:
         sys.path.append(here)
+
+
+def load_entry_point(path: str) -> Callable:
+    """The object named by ``MODULE:NAME``, its module found in the current folder too."""
+    module_name, _, name = path.partition(":")
+    search_current_folder()
     try:
         return getattr(importlib.import_module(module_name), name)
     except (ImportError, AttributeError) as exc:
