@@ -36,6 +36,9 @@ ODOMETRY_POSE_KEY = "odometry_pose"
 #: odometry may measure distance and turn (its datasheet's, never whether a fault acts): the
 #: filter carries its sets for it. Without one, the simulator's odometry is exact.
 ODOMETRY_ERROR_ATTRIBUTE = "odometry_scale_error"
+#: The attribute by which a task's wrappers declare the most control steps its actuators
+#: may apply a command late (the delay fault's; none: at once).
+ACTUATION_DELAY_ATTRIBUTE = "actuation_delay_steps"
 #: The opponent specs' form on the command line and in configs.
 OPPONENTS_HELP = (
     "other cars on track, POLICY[:FIELD=VALUE,...]: expert, racer, pure-pursuit, lane-changer, "

@@ -97,9 +97,9 @@ def test_steps_that_say_nothing_are_skipped():
 
 def test_an_estimate_within_the_deadband_or_not_applied_is_not_undone():
     judge = trim()
-    judge.estimate_rad = 0.8 * DEADBAND_RAD
+    judge.servo.estimate_rad = 0.8 * DEADBAND_RAD
     assert judge.offset_rad == 0.0
-    judge.estimate_rad = 2.0 * DEADBAND_RAD
+    judge.servo.estimate_rad = 2.0 * DEADBAND_RAD
     assert judge.offset_rad == 2.0 * DEADBAND_RAD
     judge.applied = False
     assert judge.offset_rad == 0.0

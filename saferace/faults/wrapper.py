@@ -42,6 +42,10 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
         #: How far off, as a fraction, the odometry may measure distance and turn: its
         #: fault's bias (:data:`~saferace.names.ODOMETRY_ERROR_ATTRIBUTE`), from the start.
         self.odometry_scale_error = 0.0 if odometry is None else abs(float(odometry["bias"]))
+        delay = next((fault for fault in self.faults if fault.name == "delay"), None)
+        #: The most control steps the actuators may apply a command late: the delay fault's
+        #: (:data:`~saferace.names.ACTUATION_DELAY_ATTRIBUTE`), from the start.
+        self.actuation_delay_steps = 0 if delay is None else int(delay["steps"])
         self._time_s = 0.0
         self._seeded = False
         self._true_pose = self._odometry_pose = np.zeros(3)

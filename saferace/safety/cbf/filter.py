@@ -43,6 +43,7 @@ from saferace.safety.uncertainty.fallback import (
 )
 from saferace.safety.uncertainty.intervals import interval_points
 from saferace.safety.uncertainty.last_trusted import LastTrusted
+from saferace.safety.uncertainty.pending_commands import PendingCommands
 from saferace.safety.uncertainty.stale_frames import StaleFrames
 from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource, prefetch
 from saferace.safety.uncertainty.steering_trim import SteeringTrim
@@ -140,8 +141,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     on their positions (else the truth, as ``s`` is). ``estimate_steering_offset``: judge and
     undo the steering's centre offset (:mod:`~saferace.safety.uncertainty.steering_trim`);
     the decision's actions are the wheels', ``steering_offset_rad`` less than the command
-    sent. ``info["safety"]`` is the same for the same seed and actions (the env checker's
-    ask): its clock times are 0 unless ``record_timings``."""
+    sent, certified where late commands meet the car
+    (:mod:`~saferace.safety.uncertainty.pending_commands`). ``info["safety"]`` is the same for
+    the same seed and actions (the env checker's ask): its clock times are 0 unless
+    ``record_timings``."""
 
     record_timings = False
 
@@ -216,9 +219,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._info: dict[str, Any] | None = None
         self.last_trusted = LastTrusted.of_task(env)  # the robust mode's
         self.stale_frames = StaleFrames.of_source(self.state_source)
+        self.pending = PendingCommands.of_task(env, self.control_dt_s, self.wheelbase_m)
         self.steering_trim = SteeringTrim(
             self.wheelbase_m, self.control_dt_s, params.steer_time_constant_s,
-            base.params.max_steer_rate_radps, applied=estimate_steering_offset,
+            base.params.max_steer_rate_radps, estimate_steering_offset,
+            self.pending.max_delay_steps,
         )  # fmt: skip
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -229,6 +234,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
         self.steering_trim.reset()
+        self.pending.reset()
         self.last_trusted.reset(info if self.robust else None)  # robust: the start pose's
         self.stale_frames.reset()
         prefetch(self.state_source, observation)  # the agent's network runs beside it
@@ -243,6 +249,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         command = np.clip(np.asarray(decision.filtered_action) - trim, self.lower, self.upper)
         observation, reward, terminated, truncated, info = self.env.step(command.astype(np.float32))
         self.steering_trim.update(float(command[0]), observation["velocity"])
+        self.pending.record(*map(float, command + trim))  # as the wheels take it
         decision = dataclasses.replace(decision, steering_offset_rad=float(trim[0]))
         info = {**info, "safety": decision.as_dict(timed=self.record_timings)}
         self._observation, self._info = observation, info
@@ -271,6 +278,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         if held is not None:
             lower, upper = held.interval(float(estimate.lower[2]))  # the map's curvature
             estimate = dataclasses.replace(estimate, lower=lower, upper=upper, bounded=True)
+        velocity = observation["velocity"]
+        if self.robust and estimate.bounded:  # where and how fast a late command meets it
+            delay_steps = self.steering_trim.delay_steps
+            estimate, velocity, s_m = self.pending.meet(estimate, velocity, s_m, delay_steps)
         samples, state_lower, state_upper = estimate.samples, estimate.lower, estimate.upper
         score, alarm = estimate.monitor_score, not trusted
         doubt = alarm and reckoned is None  # nothing holds the state: stop
@@ -282,12 +293,12 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             lane = samples if chance else estimate.mean[None]
             if self.map_curvature:
                 lane = np.column_stack([lane[:, :2], np.full(len(lane), state_lower[2])])
-        v_x = float(observation["velocity"][0])
+        v_x = float(velocity[0])
         context = self.map.barrier_context(
             s_m, v_x, self.half_width_m, self.theta_max, self.lam, self.lateral_decel_mps2
         )
         speed = self.map.speed_constraint(s_m, v_x, lane[:, 0])
-        states = lane_model_states(self.symbolic, lane, observation["velocity"])
+        states = lane_model_states(self.symbolic, lane, velocity)
         cars = car_barriers.opponent_predictions(
             info.get("opponents", ()), self.track, s_m, self.opponent_noise_m, self._noise_rng
         )
@@ -433,16 +444,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             if covariance is not None:  # measured speed, the samples' lowest limit: no spread
                 covariance = np.concatenate([covariance, np.zeros((1, 3, 3))])
         problem = FilterProblem(
-            u_mean=nominal,
-            u_std=spread,
-            a=a_mean,
-            b=b_mean,
-            lower=lower,
-            upper=upper,
-            k_err=self.k_err,
-            covariance=covariance,
-            z=self.z if chance else 0.0,
-        )
+            u_mean=nominal, u_std=spread, a=a_mean, b=b_mean, lower=lower, upper=upper,
+            k_err=self.k_err, covariance=covariance, z=self.z if chance else 0.0,
+        )  # fmt: skip
         return problem, statistics, h
 
     def _fallback_box(

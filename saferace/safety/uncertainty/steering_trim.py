@@ -15,11 +15,22 @@ above 9 m/s^2). A wrong
 speed scale (a biased odometry) drops out of the ratio ``r / v_x``; noise averages out.
 Offsets within :data:`DEADBAND_RAD` are left alone: the lane margin the filter keeps
 covers them, and a fault-free car's commands pass untouched.
+
+Actuators that may apply commands up to ``max_delay_steps`` steps late (a declared bound,
+:mod:`~saferace.safety.uncertainty.pending_commands`) would fool this: the servo modelled
+without the delay turns the wheels early, and on the expert swinging under a 150 ms delay
+the estimate made up a 0.03 rad offset, steering the car out of Monza's lane. So a servo is
+modelled for every delay up to the bound, each with its own offset, and the delay is the
+one whose angles the yaw rate follows best (the least spread of the differences, over
+:data:`DELAY_TIME_CONSTANT_S`); a delay is taken over another only where it fits clearly
+better, so a car that steers steadily, which tells delays apart not at all, keeps the one
+it has.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -36,13 +47,55 @@ TIME_CONSTANT_S = 0.25
 #: An estimate this small (rad) is not applied: inside the lane margin, and the bicycle's
 #: mismatch on a fault-free car stays below it.
 DEADBAND_RAD = 0.01
+#: The memory (s) over which delays are compared.
+DELAY_TIME_CONSTANT_S = 0.5
+#: Another delay is taken where the spread of its differences is below this share of the
+#: present one's, and by at least :data:`MIN_SPREAD_GAIN_RAD2`.
+SPREAD_RATIO = 0.5
+MIN_SPREAD_GAIN_RAD2 = 1e-5
+
+
+class ServoModel:
+    """Where the commands alone set the wheels, for commands applied ``delay_steps`` late,
+    with the offset the yaw rate gives on top and how well it follows them."""
+
+    def __init__(self, delay_steps: int) -> None:
+        self.delay_steps = delay_steps
+        self.estimate_rad = 0.0
+        self.samples = 0
+        self.target_rad = self.wheels_rad = 0.0
+        self.turn_rad = 0.0
+        self.mean_rad = self.square_rad2 = 0.0  # of the differences, for the spread
+
+    def slew(self, command_rad: float, max_slew_rad: float, follow: float) -> None:
+        step = command_rad - self.target_rad
+        self.target_rad += min(max(step, -max_slew_rad), max_slew_rad)
+        self.turn_rad = follow * (self.target_rad - self.wheels_rad)
+        self.wheels_rad += self.turn_rad
+
+    def compare(self, steered_rad: float, weight: float) -> None:
+        difference = steered_rad - self.wheels_rad
+        self.mean_rad += weight * (difference - self.mean_rad)
+        self.square_rad2 += weight * (difference**2 - self.square_rad2)
+
+    @property
+    def spread_rad2(self) -> float:
+        return max(self.square_rad2 - self.mean_rad**2, 0.0)
+
+    def learn(self, steered_rad: float, rate: float) -> None:
+        if abs(self.turn_rad) > MAX_WHEELS_TURN_RAD:
+            return
+        self.samples += 1
+        weight = max(1.0 / self.samples, rate)
+        self.estimate_rad += weight * (steered_rad - self.wheels_rad - self.estimate_rad)
 
 
 class SteeringTrim:
     """The offset ``offset_rad`` (positive: the wheels left of the command) of a car with
     ``wheelbase_m`` commanded every ``control_dt_s`` through a servo slewing at most
-    ``max_steer_rate_radps`` and lagging by ``steer_time_constant_s``; :meth:`update` after
-    each step with the command sent and the velocities measured at its end. Not
+    ``max_steer_rate_radps`` and lagging by ``steer_time_constant_s``, and the delay
+    ``delay_steps`` (up to ``max_delay_steps``) with which its commands act; :meth:`update`
+    after each step with the command sent and the velocities measured at its end. Not
     ``applied``: estimated (``estimate_rad``) but never compensated (``offset_rad`` 0)."""
 
     def __init__(
@@ -52,36 +105,65 @@ class SteeringTrim:
         steer_time_constant_s: float,
         max_steer_rate_radps: float,
         applied: bool = True,
+        max_delay_steps: int = 0,
     ) -> None:
         self.wheelbase_m = wheelbase_m
         self.max_slew_rad = max_steer_rate_radps * control_dt_s
         self.follow = 1.0 - math.exp(-control_dt_s / steer_time_constant_s)
         self.rate = control_dt_s / TIME_CONSTANT_S
+        self.delay_rate = control_dt_s / DELAY_TIME_CONSTANT_S
         self.applied = applied
+        self.max_delay_steps = max_delay_steps
         self.reset()
 
     def reset(self) -> None:
-        """Forget the estimate; the servo centred (as a task's reset leaves it)."""
-        self.estimate_rad = 0.0
-        self.samples = 0
-        self._target_rad = self._wheels_rad = 0.0  # where the commands alone set them
+        """Forget the estimates; the servo centred (as a task's reset leaves it), no delay."""
+        self.servos = [ServoModel(delay) for delay in range(self.max_delay_steps + 1)]
+        self.servo = self.servos[0]
+        self.sent: deque[float] = deque([0.0] * self.max_delay_steps)
+        self.compared = 0
+
+    @property
+    def estimate_rad(self) -> float:
+        return self.servo.estimate_rad
+
+    @property
+    def samples(self) -> int:
+        """The steps the present delay's estimate has taken in."""
+        return self.servo.samples
+
+    @property
+    def delay_steps(self) -> int:
+        """The steps late the commands act, as the yaw rate says (0 without a bound)."""
+        return self.servo.delay_steps
 
     def update(self, command_rad: float, velocity: np.ndarray) -> None:
         """Take a step commanded ``command_rad`` that ended at ``velocity``
-        (``[v_x, v_y, r]``) into the estimate, where it says anything (see the module)."""
-        slew = command_rad - self._target_rad
-        self._target_rad += min(max(slew, -self.max_slew_rad), self.max_slew_rad)
-        turn_rad = self.follow * (self._target_rad - self._wheels_rad)
-        self._wheels_rad += turn_rad
+        (``[v_x, v_y, r]``) into the estimates, where it says anything (see the module)."""
+        self.sent.append(command_rad)
+        for servo in self.servos:
+            servo.slew(self.sent[-1 - servo.delay_steps], self.max_slew_rad, self.follow)
+        self.sent.popleft()
         v_x, yaw_rate = float(velocity[0]), float(velocity[2])
-        if abs(turn_rad) > MAX_WHEELS_TURN_RAD or v_x < MIN_SPEED_MPS:
-            return
-        if abs(v_x * yaw_rate) > MAX_LATERAL_ACCEL_MPS2:
+        if v_x < MIN_SPEED_MPS or abs(v_x * yaw_rate) > MAX_LATERAL_ACCEL_MPS2:
             return
         steered_rad = math.atan(self.wheelbase_m * yaw_rate / v_x)
-        self.samples += 1
-        weight = max(1.0 / self.samples, self.rate)
-        self.estimate_rad += weight * (steered_rad - self._wheels_rad - self.estimate_rad)
+        for servo in self.servos:
+            servo.learn(steered_rad, self.rate)
+        if len(self.servos) > 1:
+            self._compare(steered_rad)
+
+    def _compare(self, steered_rad: float) -> None:
+        self.compared += 1
+        weight = max(1.0 / self.compared, self.delay_rate)
+        for servo in self.servos:
+            servo.compare(steered_rad, weight)
+        best = min(self.servos, key=lambda servo: servo.spread_rad2)
+        present = self.servo.spread_rad2
+        if best.spread_rad2 < SPREAD_RATIO * present and present - best.spread_rad2 > (
+            MIN_SPREAD_GAIN_RAD2
+        ):
+            self.servo = best
 
     @property
     def offset_rad(self) -> float:
