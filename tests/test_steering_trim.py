@@ -145,3 +145,10 @@ def test_a_car_stopped_blind_stops_inside_its_lane_only_with_the_offset_undone(e
     else:
         assert outside_steps > 50 and infos[-1]["outside_lane"]
         assert all(decision["steering_offset_rad"] == 0.0 for decision in decisions)
+
+
+def test_an_offset_that_sets_in_is_taken_within_a_few_steps_not_the_memory():
+    estimates = estimates_along_drive("technical", ["steering:start=3,offset=0.04"], seconds=3.5)
+    onset = round(3.0 / CONTROL_DT_S)
+    assert np.all(np.abs(estimates[:onset]) < DEADBAND_RAD)
+    assert estimates[onset + 4] == pytest.approx(0.04, abs=0.006)  # 0.2 s on, not 0.03 by then

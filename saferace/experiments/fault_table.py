@@ -298,6 +298,12 @@ def write_table(lines: list[list], out_dir: Path) -> None:
     write_csv(out_dir / "faults.csv", COLUMNS, lines)
 
 
+def driver_label(driver: str) -> str:
+    """A driver's name on a plot: a checkpoint or module by its file's name alone."""
+    kind, _, argument = driver.partition(":")
+    return f"{kind}:\n{Path(argument).name}" if argument else driver
+
+
 def plot_time_outside(lines: list[list], path: Path) -> None:
     """Time outside the lane (summed over tracks, with the runs that left the track), a row
     per fault and severity, a column per driver: a panel per filter."""
@@ -331,7 +337,7 @@ def plot_time_outside(lines: list[list], path: Path) -> None:
             words = f"{value:.1f}" + (f"\n{left[i, j]} left" if left[i, j] else "")
             shade = "white" if value > 0.6 * peak else "black"  # legible on dark red
             ax.text(j, i, words, ha="center", va="center", fontsize=7, color=shade)
-        ax.set_xticks(range(len(drivers)), drivers)
+        ax.set_xticks(range(len(drivers)), [driver_label(driver) for driver in drivers])
         ax.set_yticks(range(len(faults)), [f"{name} {severity}" for name, severity in faults])
         title = "no filter" if safety == filter_words(FilterConfig()) else safety
         ax.set_title(textwrap.fill(title, 28), fontsize=9)
