@@ -91,9 +91,11 @@ def test_a_table_measures_the_faults_against_the_fault_free_run_and_resumes(
     assert len(rows) == 6
     assert {row["fault"] for row in rows} == {"", *table_faults(["blackout", "steering"], [3])}
     table = (tmp_path / "faults.md").read_text()
-    assert "| blackout |" in table and "| steering |" in table
+    assert all(f" {name} |" in table for name in ("blackout", "steering", "fault-free"))
     csv_lines = (tmp_path / "faults.csv").read_text().splitlines()
-    assert len(csv_lines) == 1 + 4  # the faulty runs, fault-free ones measure them
+    assert len(csv_lines) == 1 + 6  # every run, the fault-free ones beside the faults
+    free = [line for line in csv_lines if ",fault-free,-," in line]
+    assert len(free) == 2 and all(",100.0," in line for line in free)  # its own measure
     assert (tmp_path / "faults.png").stat().st_size > 0
     again = run_fault_table(config, tmp_path, progress=False)  # nothing to run
     assert again == rows

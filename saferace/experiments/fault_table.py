@@ -184,6 +184,8 @@ def drive_on_s(row: dict, fault: str) -> float | None:
     return math.inf if len(driving) == 0 else max(0.0, float(times_s[driving[0]]) - cleared_s)
 
 
+#: How the table names a run without faults.
+NO_FAULT = "fault-free"
 COLUMNS = [
     "track",
     "driver",
@@ -200,9 +202,9 @@ COLUMNS = [
 
 
 def table_lines(rows: list[dict], lengths: dict[str, float]) -> list[list]:
-    """One table line per faulty run: its measures, progress against the same driver's
-    fault-free run on the same track behind the same filter (fault-free runs are not
-    lines of their own)."""
+    """One table line per run (fault-free ones as :data:`NO_FAULT`, so that the table shows
+    what the faults change): its measures, progress against the same driver's fault-free
+    run on the same track behind the same filter."""
     free = {
         (row["track_arg"], row["agent"], filter_words_of(row)): row
         for row in rows
@@ -210,20 +212,18 @@ def table_lines(rows: list[dict], lengths: dict[str, float]) -> list[list]:
     }
     lines = []
     for row in rows:
-        if not row["fault"]:
-            continue
-        fault, summary = parse_fault(row["fault"]), row["summary"]
+        fault, summary = parse_fault(row["fault"]) if row["fault"] else None, row["summary"]
         baseline = free[(row["track_arg"], row["agent"], filter_words_of(row))]
         length = lengths[row["track_arg"]]
         reference = distance_m(baseline, length)
         rate = summary.get("intervention_rate")
-        drive_on = drive_on_s(row, row["fault"])
+        drive_on = drive_on_s(row, row["fault"]) if fault else None
         lines.append(
             [
                 row["track"],
                 row["agent"],
-                fault.name,
-                fault.severity,
+                NO_FAULT if fault is None else fault.name,
+                "-" if fault is None else fault.severity,
                 filter_words_of(row),
                 summary["time_outside_lane_s"],
                 "yes" if row["terminated"] else "no",
@@ -338,7 +338,10 @@ def plot_time_outside(lines: list[list], path: Path) -> None:
             shade = "white" if value > 0.6 * peak else "black"  # legible on dark red
             ax.text(j, i, words, ha="center", va="center", fontsize=7, color=shade)
         ax.set_xticks(range(len(drivers)), [driver_label(driver) for driver in drivers])
-        ax.set_yticks(range(len(faults)), [f"{name} {severity}" for name, severity in faults])
+        ax.set_yticks(
+            range(len(faults)),
+            [name if name == NO_FAULT else f"{name} {severity}" for name, severity in faults],
+        )
         title = "no filter" if safety == filter_words(FilterConfig()) else safety
         ax.set_title(textwrap.fill(title, 28), fontsize=9)
     figure.colorbar(image, ax=axes[0].tolist(), label="time outside the lane [s]")
