@@ -73,21 +73,28 @@ class ServoModel:
         self.mean_rad = self.square_rad2 = 0.0  # of the differences, for the spread
 
     def slew(self, command_rad: float, max_slew_rad: float, follow: float) -> None:
+        """One step of the servo towards ``command_rad`` (the one that acts now): its target
+        slews by at most ``max_slew_rad``, the wheels follow it by the share ``follow``."""
         step = command_rad - self.target_rad
         self.target_rad += min(max(step, -max_slew_rad), max_slew_rad)
         self.turn_rad = follow * (self.target_rad - self.wheels_rad)
         self.wheels_rad += self.turn_rad
 
     def compare(self, steered_rad: float, weight: float) -> None:
+        """Take the angle the yaw rate says the wheels held into the spread of the
+        differences, with ``weight``."""
         difference = steered_rad - self.wheels_rad
         self.mean_rad += weight * (difference - self.mean_rad)
         self.square_rad2 += weight * (difference**2 - self.square_rad2)
 
     @property
     def spread_rad2(self) -> float:
+        """How far the yaw rate strays from these wheels, about its mean offset (rad^2)."""
         return max(self.square_rad2 - self.mean_rad**2, 0.0)
 
     def learn(self, steered_rad: float, rate: float) -> None:
+        """Take a step the wheels held still in into the offset: a mean of the steps, then
+        a memory of ``rate`` per step; restarted where the offset changed."""
         if abs(self.turn_rad) > MAX_WHEELS_TURN_RAD:
             return
         surprising = abs(steered_rad - self.wheels_rad - self.estimate_rad) > RESTART_RAD
