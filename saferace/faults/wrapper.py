@@ -95,6 +95,14 @@ def true_pose(info: dict[str, Any]) -> np.ndarray:
     return np.array([info["x_m"], info["y_m"], info["yaw_rad"]], dtype=float)
 
 
+def declared(env: gym.Env, name: str) -> float:
+    """What ``env``'s wrappers declare of its sensors and actuators under ``name`` (the
+    datasheet values :data:`~saferace.names.ODOMETRY_ERROR_ATTRIBUTE` and
+    :data:`~saferace.names.ACTUATION_DELAY_ATTRIBUTE`); 0 where none declares it: the
+    simulator's sensors are exact and its actuators act at once."""
+    return float(env.get_wrapper_attr(name)) if env.has_wrapper_attr(name) else 0.0
+
+
 def with_faults(env: gym.Env, faults: Iterable[str | Fault] | str | None) -> gym.Env:
     """``env`` wrapped in :class:`SensorFaults` where ``faults`` names any."""
     parsed = parse_faults(faults)

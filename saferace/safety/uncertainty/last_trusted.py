@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from saferace.faults.wrapper import declared
 from saferace.names import ODOMETRY_ERROR_ATTRIBUTE
 from saferace.safety.uncertainty.dead_reckoning import START_TOLERANCE, DeadReckoning, car_pose
 from saferace.safety.uncertainty.interval_votes import RecentIntervals
@@ -78,8 +79,7 @@ class LastTrusted:
         carried for a larger one grows in heading on every bend, and stopped the weaving
         driver for 22 s of 40 on Yas Marina."""
         base = env.unwrapped
-        name = ODOMETRY_ERROR_ATTRIBUTE
-        error = float(env.get_wrapper_attr(name)) if env.has_wrapper_attr(name) else 0.0
+        error = declared(env, ODOMETRY_ERROR_ATTRIBUTE)
         return cls(base.track, base.reference, error)  # type: ignore[attr-defined]
 
     def reset(self, info: dict[str, Any] | None = None) -> None:

@@ -28,6 +28,7 @@ from collections.abc import Callable
 import gymnasium as gym
 import numpy as np
 
+from saferace.faults.wrapper import declared
 from saferace.names import ACTUATION_DELAY_ATTRIBUTE
 from saferace.safety.uncertainty.estimate import StateEstimate
 
@@ -55,8 +56,7 @@ class PendingCommands:
     def of_task(cls, env: gym.Env, control_dt_s: float, wheelbase_m: float) -> PendingCommands:
         """The pipe of ``env``'s actuators, as long as its wrappers declare (none: the
         simulator's, which applies every command at once), on its track."""
-        name = ACTUATION_DELAY_ATTRIBUTE
-        steps = int(env.get_wrapper_attr(name)) if env.has_wrapper_attr(name) else 0
+        steps = int(declared(env, ACTUATION_DELAY_ATTRIBUTE))
         track = env.unwrapped.track  # type: ignore[attr-defined]  # a SafeRace task
         return cls(steps, control_dt_s, wheelbase_m, track.centerline.curvature_scalar)
 
