@@ -39,6 +39,9 @@ ODOMETRY_ERROR_ATTRIBUTE = "odometry_scale_error"
 #: The attribute by which a task's wrappers declare the most control steps its actuators
 #: may apply a command late (the delay fault's; none: at once).
 ACTUATION_DELAY_ATTRIBUTE = "actuation_delay_steps"
+#: The attribute by which a task's wrappers declare the most control steps its camera's
+#: frames may arrive late (the latency fault's; none: each frame is its step's).
+CAMERA_LATENCY_ATTRIBUTE = "camera_latency_steps"
 #: The opponent specs' form on the command line and in configs.
 OPPONENTS_HELP = (
     "other cars on track, POLICY[:FIELD=VALUE,...]: expert, racer, pure-pursuit, lane-changer, "

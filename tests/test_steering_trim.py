@@ -152,3 +152,31 @@ def test_an_offset_that_sets_in_is_taken_within_a_few_steps_not_the_memory():
     onset = round(3.0 / CONTROL_DT_S)
     assert np.all(np.abs(estimates[:onset]) < DEADBAND_RAD)
     assert estimates[onset + 4] == pytest.approx(0.04, abs=0.006)  # 0.2 s on, not 0.03 by then
+
+
+def test_an_onset_is_told_on_steps_that_slide_or_turn_the_wheels():
+    """The speeding driver at 7 m/s on a 0.7 m lane, its servo 0.07 rad off from 3 s (the
+    fault table's trace): the first step's yaw lags the wheels, the second slides beyond the
+    grip and the filter's countersteer turns the wheels on the third. None is a clean
+    measure, but neither slip nor lag turns the car further than its wheels: the estimate
+    restarts on the second (it read 0.007 until two clean steps later, the car outside)."""
+    judge = trim()
+    for _ in range(40):
+        judge.update(0.0, np.array([7.05, 0.0, 0.0]))
+    judge.update(0.0, np.array([7.05, 0.09, 0.80]))
+    judge.update(-0.008, np.array([7.04, 0.13, 1.17]))  # 8.2 m/s^2
+    assert judge.estimate_rad == pytest.approx(0.07, abs=0.012)
+
+
+def test_tyres_sliding_short_of_the_wheels_restart_nothing():
+    """Beyond the grip the car turns less than its wheels: a yaw rate short of them is no
+    new offset, however far short."""
+    judge = trim()
+    command = 0.1
+    for _ in range(40):  # settled in a bend at 3 m/s, inside the grip
+        judge.update(command, np.array([3.0, 0.0, 3.0 * np.tan(command) / judge.wheelbase_m]))
+    settled = judge.estimate_rad
+    for _ in range(20):  # at 7 m/s the yaw rate of 0.06 rad where the wheels hold 0.1
+        judge.update(command, np.array([7.0, 0.0, 7.0 * np.tan(0.06) / judge.wheelbase_m]))
+    assert judge.servo.surprises == 0
+    assert judge.estimate_rad == settled

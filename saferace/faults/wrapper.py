@@ -46,6 +46,10 @@ class SensorFaults(gym.Wrapper, gym.utils.RecordConstructorArgs):
         #: The most control steps the actuators may apply a command late: the delay fault's
         #: (:data:`~saferace.names.ACTUATION_DELAY_ATTRIBUTE`), from the start.
         self.actuation_delay_steps = 0 if delay is None else int(delay["steps"])
+        latency = next((fault for fault in self.faults if fault.name == "latency"), None)
+        #: The most control steps the camera's frames may arrive late: the latency fault's
+        #: (:data:`~saferace.names.CAMERA_LATENCY_ATTRIBUTE`), from the start.
+        self.camera_latency_steps = 0 if latency is None else int(latency["steps"])
         self._time_s = 0.0
         self._seeded = False
         self._true_pose = self._odometry_pose = np.zeros(3)
@@ -97,9 +101,10 @@ def true_pose(info: dict[str, Any]) -> np.ndarray:
 
 def declared(env: gym.Env, name: str) -> float:
     """What ``env``'s wrappers declare of its sensors and actuators under ``name`` (the
-    datasheet values :data:`~saferace.names.ODOMETRY_ERROR_ATTRIBUTE` and
-    :data:`~saferace.names.ACTUATION_DELAY_ATTRIBUTE`); 0 where none declares it: the
-    simulator's sensors are exact and its actuators act at once."""
+    datasheet values :data:`~saferace.names.ODOMETRY_ERROR_ATTRIBUTE`,
+    :data:`~saferace.names.ACTUATION_DELAY_ATTRIBUTE` and
+    :data:`~saferace.names.CAMERA_LATENCY_ATTRIBUTE`); 0 where none declares it: the
+    simulator's sensors are exact, its frames on time and its actuators act at once."""
     return float(env.get_wrapper_attr(name)) if env.has_wrapper_attr(name) else 0.0
 
 

@@ -43,6 +43,7 @@ from saferace.safety.uncertainty.fallback import (
 )
 from saferace.safety.uncertainty.intervals import interval_points
 from saferace.safety.uncertainty.last_trusted import LastTrusted
+from saferace.safety.uncertainty.late_frames import LateFrames
 from saferace.safety.uncertainty.pending_commands import PendingCommands
 from saferace.safety.uncertainty.stale_frames import StaleFrames
 from saferace.safety.uncertainty.state_sources import OracleStateSource, StateSource, prefetch
@@ -102,7 +103,8 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     by odometry from the start pose (:mod:`~saferace.safety.uncertainty.dead_reckoning`) and
     holds the car over its meet with the interval, or over the set alone while the source is in
     doubt (its monitor raises, its interval misses the set, or the frame is stale:
-    :mod:`~saferace.safety.uncertainty.stale_frames`). Where no control satisfies them, the
+    :mod:`~saferace.safety.uncertainty.stale_frames`); a frame that may be late is carried to
+    now (:mod:`~saferace.safety.uncertainty.late_frames`). Where no control satisfies them, the
     filter falls back (:mod:`~saferace.safety.uncertainty.fallback`): it brakes towards a speed
     at which the interval fits inside the lane (a stop where even its offsets do not fit), never
     above the map's speed limit, steering the lane's curvature and towards the centre line from
@@ -219,6 +221,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self._info: dict[str, Any] | None = None
         self.last_trusted = LastTrusted.of_task(env)  # the robust mode's
         self.stale_frames = StaleFrames.of_source(self.state_source)
+        self.late_frames = LateFrames.of_task(env, self.state_source)
         self.pending = PendingCommands.of_task(env, self.control_dt_s, self.wheelbase_m)
         self.steering_trim = SteeringTrim(
             self.wheelbase_m, self.control_dt_s, params.steer_time_constant_s,
@@ -233,10 +236,9 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self._noise_rng = np.random.default_rng([seed, 1])
         self.interventions = self.failures = self.fallbacks = self.steps = 0
         self._observation, self._info = observation, info
-        self.steering_trim.reset()
-        self.pending.reset()
+        for part in (self.steering_trim, self.pending, self.stale_frames, self.late_frames):
+            part.reset()
         self.last_trusted.reset(info if self.robust else None)  # robust: the start pose's
-        self.stale_frames.reset()
         prefetch(self.state_source, observation)  # the agent's network runs beside it
         return observation, info
 
@@ -271,6 +273,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         curvature = self.track.centerline.curvature_scalar(s_m) if self.map_curvature else None
         stale = self.stale_frames.in_step(observation, info)  # no measurement
         estimate = estimate_state(self.state_source, observation, info, self.z, curvature, stale)
+        estimate = self.late_frames.caught_up(estimate, info, self.last_trusted)
         interval = (estimate.lower, estimate.upper)
         judged = self.last_trusted.update(estimate.alarm, interval, info) if self.robust else None
         trusted, held = judged or (not estimate.alarm, None)  # the set certified over

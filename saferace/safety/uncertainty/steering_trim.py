@@ -92,18 +92,35 @@ class ServoModel:
         """How far the yaw rate strays from these wheels, about its mean offset (rad^2)."""
         return max(self.square_rad2 - self.mean_rad**2, 0.0)
 
-    def learn(self, steered_rad: float, rate: float) -> None:
-        """Take a step the wheels held still in into the offset: a mean of the steps, then
-        a memory of ``rate`` per step; restarted where the offset changed."""
-        if abs(self.turn_rad) > MAX_WHEELS_TURN_RAD:
-            return
-        surprising = abs(steered_rad - self.wheels_rad - self.estimate_rad) > RESTART_RAD
-        self.surprises = self.surprises + 1 if surprising else 0
-        if self.surprises == 2:  # the offset changed: the steps from this one on
-            self.samples = 0  # (the first, its yaw a moment behind the wheels, left out)
-        self.samples += 1
-        weight = max(1.0 / self.samples, rate)
-        self.estimate_rad += weight * (steered_rad - self.wheels_rad - self.estimate_rad)
+    def learn(self, steered_rad: float, rate: float, sliding: bool) -> None:
+        """Take a step into the offset where the wheels held still in it and the tyres did
+        not slide (``sliding``): a mean of the steps, then a memory of ``rate`` per step;
+        restarted where the offset changed. A step that turned the wheels or slid still
+        tells a change where neither explains it (:meth:`surprising`): a restart there takes
+        its difference for a start, which the next clean step replaces."""
+        clean = not sliding and abs(self.turn_rad) <= MAX_WHEELS_TURN_RAD
+        difference = steered_rad - self.wheels_rad
+        if self.surprising(difference, steered_rad, sliding):
+            self.surprises += 1
+            if self.surprises == 2:  # the offset changed: the steps from this one on
+                self.samples = 0  # (the first, its yaw a moment behind the wheels, left out)
+                self.estimate_rad = difference
+        elif clean:
+            self.surprises = 0
+        if clean:
+            self.samples += 1
+            weight = max(1.0 / self.samples, rate)
+            self.estimate_rad += weight * (difference - self.estimate_rad)
+
+    def surprising(self, difference_rad: float, steered_rad: float, sliding: bool) -> bool:
+        """Whether a step's ``difference_rad`` (the yaw rate's angle ``steered_rad`` less the
+        modelled wheels) is more than :data:`RESTART_RAD` off the estimate beyond what the
+        step explains: the yaw follows a turn of the wheels late, by up to the turn, and
+        sliding tyres turn the car less than the wheels say, never more."""
+        surprise = difference_rad - self.estimate_rad
+        if sliding and surprise * steered_rad <= 0.0:
+            return False
+        return abs(surprise) > RESTART_RAD + abs(self.turn_rad)
 
 
 class SteeringTrim:
@@ -161,12 +178,13 @@ class SteeringTrim:
             servo.slew(self.sent[-1 - servo.delay_steps], self.max_slew_rad, self.follow)
         self.sent.popleft()
         v_x, yaw_rate = float(velocity[0]), float(velocity[2])
-        if v_x < MIN_SPEED_MPS or abs(v_x * yaw_rate) > MAX_LATERAL_ACCEL_MPS2:
+        if v_x < MIN_SPEED_MPS:
             return
+        sliding = abs(v_x * yaw_rate) > MAX_LATERAL_ACCEL_MPS2
         steered_rad = math.atan(self.wheelbase_m * yaw_rate / v_x)
         for servo in self.servos:
-            servo.learn(steered_rad, self.rate)
-        if len(self.servos) > 1:
+            servo.learn(steered_rad, self.rate, sliding)
+        if len(self.servos) > 1 and not sliding:
             self._compare(steered_rad)
 
     def _compare(self, steered_rad: float) -> None:
