@@ -121,12 +121,13 @@ def add_filter_arguments(
     )
     group.add_argument(
         "--state-source",
-        metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
+        metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT|MODULE:FACTORY",
         help="what feeds the filter the lane state: the truth, noisy truth (--state-noise, "
         f"default {DEFAULT_STATE_NOISE[0]} {DEFAULT_STATE_NOISE[1]}), the generic perception "
         "model (built once by saferace perception, recipe default or "
-        f"{'|'.join(PERCEPTION_RECIPES)}), or a checkpoint's state network (default: "
-        f"{perceived_default} with a filter)",
+        f"{'|'.join(PERCEPTION_RECIPES)}), a checkpoint's state network, or a perception "
+        "method of your own (FACTORY(setup) in MODULE, from the current folder too; see "
+        f"saferace.safety.uncertainty.perception) (default: {perceived_default} with a filter)",
     )
     parser.set_defaults(perceived_default=perceived_default)
     group.add_argument(
@@ -154,8 +155,8 @@ def filter_config(args: argparse.Namespace):
     learned = is_perceived(source)
     if not learned and source not in ("oracle", "noisy"):
         raise SafeRaceError(
-            f"unknown --state-source {source!r}: use oracle, noisy, generic[:RECIPE] or "
-            "learned:CHECKPOINT"
+            f"unknown --state-source {source!r}: use oracle, noisy, generic[:RECIPE], "
+            "learned:CHECKPOINT or MODULE:FACTORY"
         )
     noise = args.state_noise
     if source == "noisy" and noise is None:
@@ -226,9 +227,12 @@ def ensure_generic_model(source: str | None, workers: int = 1) -> None:
 
 
 def is_perceived(source: str) -> bool:
-    """Whether ``source`` names a state network: ``learned:CHECKPOINT`` or
-    ``generic[:RECIPE]`` (an unknown recipe raises)."""
+    """Whether ``source`` names a perception: a state network (``learned:CHECKPOINT`` or
+    ``generic[:RECIPE]``, an unknown recipe raises) or a user's perception method
+    (``MODULE:FACTORY``, :mod:`saferace.safety.uncertainty.perception`)."""
     kind, _, argument = source.partition(":")
+    if kind not in (GENERIC_SOURCE, "learned") and kind and argument:
+        return True
     if kind == GENERIC_SOURCE:
         if argument and argument not in PERCEPTION_RECIPES:
             raise SafeRaceError(

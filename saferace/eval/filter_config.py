@@ -100,7 +100,7 @@ class FilterConfig:
     state_source: str | None = setting(
         None,
         "what feeds the filter the lane state",
-        metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT",
+        metavar="oracle|noisy|generic[:RECIPE]|learned:CKPT|MODULE:FACTORY",
     )
     own_track_calibration: bool = setting(
         False,
@@ -222,11 +222,12 @@ class FilterConfig:
                 "samples", f"must be at least 1 (2 for noisy state), got {self.samples}"
             )
         if self.state_source is not None:
-            kind = self.state_source.split(":", 1)[0]
-            if kind not in STATE_SOURCE_FACTORIES:
+            kind, _, factory = self.state_source.partition(":")
+            if kind not in STATE_SOURCE_FACTORIES and not (kind and factory):
                 raise ConfigError(
                     "state_source",
-                    "must be oracle, noisy, generic[:RECIPE] or learned:CHECKPOINT, got "
+                    "must be oracle, noisy, generic[:RECIPE], learned:CHECKPOINT or "
+                    f"MODULE:FACTORY (a perception method of your own), got "
                     f"{self.state_source!r}",
                 )
             if self.state_noise is not None:

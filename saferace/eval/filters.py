@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 from gymnasium import spaces
@@ -18,11 +18,13 @@ from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.predictive.filter import PredictiveSafetyFilter
 from saferace.safety.uncertainty.adaptive import AdaptiveConformalStateSource
 from saferace.safety.uncertainty.intervals import ConformalStateSource, IntervalStateSource
+from saferace.safety.uncertainty.perception import PerceptionSetup, PerceptionStateSource
 from saferace.safety.uncertainty.state_fusion import OdometryFusedStateSource
 from saferace.safety.uncertainty.state_sources import (
     NoisyOracleStateSource,
     OracleStateSource,
     SpreadScaledStateSource,
+    StateSource,
 )
 
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
@@ -39,7 +41,10 @@ def apply_filter(
     if config.kind == "none":
         return env
     base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
-    if config.state_source is not None:
+    source: StateSource
+    if config.state_source is not None and not ours(config.state_source):
+        source = users_state_source(config.state_source, env, seed)
+    elif config.state_source is not None:
         kind, _, argument = config.state_source.partition(":")
         if not argument and kind not in OPTIONAL_ARGUMENT_SOURCES:
             raise ConfigError(
@@ -78,7 +83,7 @@ def apply_filter(
         )
     if config.fuse_odometry:
         source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
-    shared = {
+    shared: dict[str, Any] = {
         "state_source": source,
         "model": config.model,
         "eta": config.eta,
@@ -98,3 +103,19 @@ def apply_filter(
         )
     wrapped.record_timings = timed
     return wrapped
+
+
+def ours(state_source: str) -> bool:
+    """Whether ``state_source`` names one of SafeRace's sources (else ``MODULE:FACTORY``)."""
+    return state_source.partition(":")[0] in STATE_SOURCE_FACTORIES
+
+
+def users_state_source(spec: str, env: gym.Env, seed: int | None) -> PerceptionStateSource:
+    """The perception method ``MODULE:FACTORY`` makes (from the current folder too), handed
+    the :class:`~saferace.safety.uncertainty.perception.PerceptionSetup` of ``env``'s task."""
+    base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
+    observation_space = env.observation_space
+    assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
+    image_shape = tuple(observation_space["image"].shape or ())
+    setup = PerceptionSetup(image_shape, float(base.control_dt_s), base.track, seed)
+    return PerceptionStateSource(load_entry_point(spec)(setup), base.track)

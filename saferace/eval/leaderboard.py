@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from saferace.eval.filter_config import FilterConfig
+from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, FilterConfig
 from saferace.eval.metrics import longest_standstill
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.names import DEFAULT_FILTER_MODELS, DEFAULT_GAINS, NOISY_SAMPLES
@@ -91,9 +91,10 @@ def filter_words(config: FilterConfig) -> str:
 def state_source_words(config: FilterConfig) -> str:
     """What fed the filter the lane state, in words: ``none`` (no filter), ``true state``
     (the oracle), ``noisy`` (the oracle plus noise), ``perceived`` (a state network, its
-    checkpoint in brackets) or ``perceived, generic`` (the generic perception model, a
-    recipe other than the default in brackets); ``+ odometry`` when fused, and the samples
-    when not the default."""
+    checkpoint in brackets), ``perceived, generic`` (the generic perception model, a
+    recipe other than the default in brackets) or ``perceived by MODULE:FACTORY`` (a user's
+    perception method, one estimate a step); ``+ odometry`` when fused, and the samples
+    when not the default (where they count)."""
     if config.kind == "none":
         return "none"
     if not config.uncertain_state:
@@ -104,6 +105,8 @@ def state_source_words(config: FilterConfig) -> str:
         assert config.state_noise is not None  # neither learned nor the truth: noisy
         e_y, e_psi = config.state_noise
         details.append(f"sd {e_y:g} m, {e_psi:g} rad")
+    elif config.state_source.partition(":")[0] not in STATE_SOURCE_FACTORIES:
+        return f"perceived by {config.state_source}"
     else:
         kind, _, argument = config.state_source.partition(":")
         words = "perceived" if kind == "learned" else "perceived, generic"
