@@ -17,6 +17,7 @@ from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig, apply_filter
 from saferace.eval.leaderboard import state_source_words
 from saferace.eval.runner import make_task_env, max_steps_for, run_episode
+from saferace.names import ADAPTIVE_FEEDBACK
 from saferace.safety.uncertainty.perception import (
     Perception,
     PerceptionSetup,
@@ -94,7 +95,9 @@ def test_a_method_is_handed_its_own_copy_of_the_frame_and_the_odometry_only():
     [
         ([0.0], [-1.0, -1.0], [1.0, 1.0], "mean must be 2 numbers"),
         ([0.0, np.nan], [-1.0, -1.0], [1.0, 1.0], "mean must be 2 numbers"),
-        ([0.0, 0.0], [1.0, -1.0], [0.5, 1.0], "exceeds its upper"),
+        ([0.0, np.inf], [-1.0, -1.0], [1.0, np.inf], "mean must be finite"),
+        ([0.0, 0.0], [1.0, -1.0], [0.5, 1.0], "must lie within"),
+        ([2.0, 0.0], [-1.0, -1.0], [1.0, 1.0], "must lie within"),
     ],
 )
 def test_a_malformed_perception_is_refused_in_one_line(mean, lower, upper, message: str):
@@ -114,6 +117,22 @@ def test_what_is_no_perception_method_is_refused():
     with pytest.raises(SafeRaceError, match="must return a Perception"):
         source.samples(observation, info)
     env.close()
+
+
+@pytest.mark.parametrize(
+    "chance_option",
+    [
+        {"uncertainty": "chance"},
+        {"probabilistic": False, "uncertainty": "robust"},
+        {"spread_scale": (2.0, 2.0, 2.0), "uncertainty": "robust"},
+        {"fuse_odometry": True, "uncertainty": "robust"},
+        {"adaptive": ADAPTIVE_FEEDBACK[0]},
+    ],
+)
+def test_a_perception_of_ones_own_feeds_the_robust_filter_alone(chance_option: dict):
+    """One estimate a step: no samples for chance constraints, to widen, fuse or adapt."""
+    with pytest.raises(ConfigError, match="not for a perception method of your own"):
+        FilterConfig(kind="cbf", state_source=EXAMPLE, **chance_option)
 
 
 def test_a_state_source_is_ours_or_module_factory(in_examples):

@@ -207,7 +207,8 @@ def _safety_table(args: argparse.Namespace) -> int:
     source = None if args.state_source == "none" else args.state_source
     if source is not None and not is_perceived(source):
         raise SafeRaceError(
-            f"--state-source must be generic[:RECIPE], learned:CHECKPOINT or none, got {source}"
+            "--state-source must be generic[:RECIPE], learned:CHECKPOINT, MODULE:FACTORY or "
+            f"none, got {source}"
         )
     ensure_generic_model(source, args.workers)
     run_table(

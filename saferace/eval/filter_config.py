@@ -234,6 +234,8 @@ class FilterConfig:
                 raise ConfigError(
                     "state_noise", "is for the noisy oracle, not a learned state source"
                 )
+            if kind not in STATE_SOURCE_FACTORIES:
+                self._check_own_perception()
         if self.adaptive is not None and (
             self.adaptive not in FEEDBACK_KINDS or self.state_source is None
         ):
@@ -256,6 +258,25 @@ class FilterConfig:
     def uncertain_state(self) -> bool:
         """Whether the filter sees an estimate (noisy or learned) rather than the truth."""
         return self.state_source is not None or self.state_noise is not None
+
+    def _check_own_perception(self) -> None:
+        """A perception method of the user's gives one estimate and its interval a step: it
+        feeds the robust filter alone, as it is (no samples to take chance constraints on,
+        to widen, fuse or adapt)."""
+        chance_options = {
+            "uncertainty": self.uncertainty != "robust",
+            "probabilistic": not self.probabilistic,
+            "spread_scale": self.spread_scale is not None,
+            "fuse_odometry": self.fuse_odometry,
+            "adaptive": self.adaptive is not None,
+        }
+        for name, asked in chance_options.items():
+            if asked:
+                raise ConfigError(
+                    name,
+                    f"is not for a perception method of your own ({self.state_source}): it "
+                    "feeds the robust filter its estimate and interval as they are",
+                )
 
     @property
     def label(self) -> str:

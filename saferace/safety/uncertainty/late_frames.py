@@ -12,12 +12,14 @@ the odometry of the last ``k`` steps and the map
 (:meth:`~saferace.safety.uncertainty.dead_reckoning.DeadReckoning.carried`, with the
 odometry's declared error), and the car lies in the hull over every ``k`` from 0 to the
 bound: a latency that is fixed, random or none is covered alike. Without a declared
-latency nothing changes.
+latency nothing changes. The interval is what the robust mode certifies over; the chance
+constraints take the source's samples as they are.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections import deque
 from typing import TYPE_CHECKING, Any
 
@@ -82,16 +84,21 @@ class LateFrames:
         interval = (estimate.lower, estimate.upper)
         if not np.all(np.isfinite(interval[0][:2]) & np.isfinite(interval[1][:2])):
             return estimate  # no bound to carry
-        lower, upper = (np.array(bound, dtype=float) for bound in interval)
-        seen = list(self.seen)
-        for start in range(len(seen) - 1):
-            pose, s_m, then = seen[start]
+        boxes = None  # the frame's box as taken at each earlier step, carried together
+        for (pose, s_m, then), (next_pose, next_s_m, _) in itertools.pairwise(self.seen):
             met = then is not None and then.meets(*interval)
-            box = DeadReckoning.trusted(
-                *(offset_with_heading(interval, then) if met else interval), pose, s_m
-            )
-            for pose, s_m, _ in seen[start + 1 :]:
-                box = box.carried(pose, s_m, self.centerline, self.odometry_scale_error)
-            lower[:2] = np.minimum(lower[:2], box.lower)
-            upper[:2] = np.maximum(upper[:2], box.upper)
+            box_lower, box_upper = offset_with_heading(interval, then if met else None)
+            if boxes is None:
+                boxes = DeadReckoning(box_lower[None], box_upper[None], pose, s_m)
+            else:
+                boxes = dataclasses.replace(
+                    boxes,
+                    lower=np.vstack([boxes.lower, box_lower]),
+                    upper=np.vstack([boxes.upper, box_upper]),
+                )
+            boxes = boxes.carried(next_pose, next_s_m, self.centerline, self.odometry_scale_error)
+        lower, upper = (np.array(bound, dtype=float) for bound in interval)
+        if boxes is not None:
+            lower[:2] = np.minimum(lower[:2], boxes.lower.min(axis=0))
+            upper[:2] = np.maximum(upper[:2], boxes.upper.max(axis=0))
         return dataclasses.replace(estimate, lower=lower, upper=upper)

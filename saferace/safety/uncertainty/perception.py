@@ -59,10 +59,12 @@ class Perception:
                     f"{getattr(self, name)!r}"
                 )
             object.__setattr__(self, name, value)
-        if np.any(self.lower > self.upper):
+        if not np.isfinite(self.mean).all():
+            raise SafeRaceError(f"a perception's mean must be finite, got {self.mean.tolist()}")
+        if np.any(self.lower > self.mean) or np.any(self.mean > self.upper):
             raise SafeRaceError(
-                f"a perception's lower {self.lower.tolist()} exceeds its upper "
-                f"{self.upper.tolist()}"
+                f"a perception's mean {self.mean.tolist()} must lie within its lower "
+                f"{self.lower.tolist()} and upper {self.upper.tolist()}"
             )
 
 

@@ -47,7 +47,8 @@ TIME_CONSTANT_S = 0.25
 #: An estimate this small (rad) is not applied: inside the lane margin, and the bicycle's
 #: mismatch on a fault-free car stays below it.
 DEADBAND_RAD = 0.01
-#: Two steps in a row this far (rad) from the estimate restart it: an offset that sets in is
+#: Two steps in a row this far (rad) from the estimate, beyond the step's turn of the wheels
+#: (:meth:`ServoModel.surprising`), restart it: an offset that sets in is
 #: taken from the steps since (their mean), not found over the memory's quarter second,
 #: in which a 0.07 rad offset at 7 m/s took the expert out of a 0.7 m lane. Seven times the
 #: spread of the yaw rate about the modelled wheels on a fault-free car.
