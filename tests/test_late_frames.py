@@ -123,3 +123,27 @@ def test_an_unbounded_interval_is_left_as_it_is():
     )
     assert late.caught_up(unbounded, info, None) is unbounded
     env.close()
+
+
+@pytest.mark.parametrize(
+    ("faults", "widths"),
+    [([], 1.0), (["blackout"], 1.0), (["latency:steps=2"], 2.0), (["delay:steps=1"], 2.0)],
+)
+def test_a_late_loop_is_certified_over_the_intervals_as_the_set_keeps_them(
+    faults: list[str], widths: float
+):
+    """With frames or commands declared late, the box certified over meets the set with a
+    trusted interval widened to twice its width about its centre; on time, the bare one."""
+    env = gym.make("saferace/CenterLine-v0", track="lab", image_size=(16, 16), faults=faults)
+    trusted = LastTrusted.of_task(env)
+    assert trusted.certified_widths == widths
+    _, info = env.reset(seed=0)
+    trusted.reset(info)
+    state = true_lane_state(info)
+    half = np.array([0.004, 0.0004, 0.0])  # inside the start's set (+-0.01 m, +-0.002 rad)
+    _, held = trusted.update(False, (state - half, state + half), info)
+    assert held is not None
+    assert held.upper - held.lower == pytest.approx(2.0 * widths * half[:2])
+    with pytest.raises(ValueError, match="certified_widths"):
+        LastTrusted(trusted.track, trusted.reference, certified_widths=0.5)
+    env.close()

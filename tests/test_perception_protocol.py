@@ -87,6 +87,11 @@ def test_a_method_is_handed_its_own_copy_of_the_frame_and_the_odometry_only():
     lower, upper = source.interval(samples)
     assert lower.tolist() == [-0.5, -0.5, kappa] and upper.tolist() == [0.5, 0.5, kappa]
     assert source.monitor(samples) == (None, False)
+    spy.perceive = lambda image, velocity: Perception(  # type: ignore[method-assign]
+        np.zeros(2), np.full(2, -np.inf), np.full(2, np.inf), in_doubt=True
+    )
+    samples = source.samples(observation, info)
+    assert source.monitor(samples) == (None, True)  # its doubt is the filter's alarm
     env.close()
 
 
