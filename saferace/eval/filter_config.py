@@ -39,6 +39,12 @@ STATE_SOURCE_FACTORIES = {
 OPTIONAL_ARGUMENT_SOURCES = ("generic",)
 
 
+def users_perception(state_source: str) -> bool:
+    """Whether ``state_source`` names a user's perception method, ``MODULE:FACTORY``
+    (:mod:`saferace.safety.uncertainty.perception`), not one of :data:`STATE_SOURCE_FACTORIES`."""
+    return state_source.partition(":")[0] not in STATE_SOURCE_FACTORIES
+
+
 @dataclass(frozen=True)
 class FilterConfig:
     """Which filter wraps the agent and what state it sees.
@@ -223,7 +229,7 @@ class FilterConfig:
             )
         if self.state_source is not None:
             kind, _, factory = self.state_source.partition(":")
-            if kind not in STATE_SOURCE_FACTORIES and not (kind and factory):
+            if users_perception(self.state_source) and not (kind and factory):
                 raise ConfigError(
                     "state_source",
                     "must be oracle, noisy, generic[:RECIPE], learned:CHECKPOINT or "
@@ -234,7 +240,7 @@ class FilterConfig:
                 raise ConfigError(
                     "state_noise", "is for the noisy oracle, not a learned state source"
                 )
-            if kind not in STATE_SOURCE_FACTORIES:
+            if users_perception(self.state_source):
                 self._check_own_perception()
         if self.adaptive is not None and (
             self.adaptive not in FEEDBACK_KINDS or self.state_source is None

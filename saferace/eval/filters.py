@@ -13,6 +13,7 @@ from saferace.eval.filter_config import (
     OPTIONAL_ARGUMENT_SOURCES,
     STATE_SOURCE_FACTORIES,
     FilterConfig,
+    users_perception,
 )
 from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
 from saferace.safety.predictive.filter import PredictiveSafetyFilter
@@ -42,7 +43,7 @@ def apply_filter(
         return env
     base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
     source: StateSource
-    if config.state_source is not None and not ours(config.state_source):
+    if config.state_source is not None and users_perception(config.state_source):
         source = users_state_source(config.state_source, env, seed)
     elif config.state_source is not None:
         kind, _, argument = config.state_source.partition(":")
@@ -51,9 +52,7 @@ def apply_filter(
                 "state_source", f"{kind!r} names no checkpoint: use {kind}:CHECKPOINT"
             )
         factory = load_entry_point(STATE_SOURCE_FACTORIES[kind])
-        observation_space = env.observation_space
-        assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
-        image_shape = observation_space["image"].shape
+        image_shape = image_shape_of(env)
         own_track = {"track": base.track} if config.own_track_calibration else {}
         source = factory(argument, image_shape, n_samples=config.samples, seed=seed, **own_track)
         if config.uncertainty == "robust" and not isinstance(source, IntervalStateSource):
@@ -105,17 +104,16 @@ def apply_filter(
     return wrapped
 
 
-def ours(state_source: str) -> bool:
-    """Whether ``state_source`` names one of SafeRace's sources (else ``MODULE:FACTORY``)."""
-    return state_source.partition(":")[0] in STATE_SOURCE_FACTORIES
+def image_shape_of(env: gym.Env) -> tuple[int, ...]:
+    """The shape of ``env``'s camera frames."""
+    observation_space = env.observation_space
+    assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
+    return tuple(observation_space["image"].shape or ())
 
 
 def users_state_source(spec: str, env: gym.Env, seed: int | None) -> PerceptionStateSource:
     """The perception method ``MODULE:FACTORY`` makes (from the current folder too), handed
     the :class:`~saferace.safety.uncertainty.perception.PerceptionSetup` of ``env``'s task."""
     base = cast("RacingEnv", env.unwrapped)  # a SafeRace task
-    observation_space = env.observation_space
-    assert isinstance(observation_space, spaces.Dict), "SafeRace observations are a Dict"
-    image_shape = tuple(observation_space["image"].shape or ())
-    setup = PerceptionSetup(image_shape, float(base.control_dt_s), base.track, seed)
+    setup = PerceptionSetup(image_shape_of(env), float(base.control_dt_s), base.track, seed)
     return PerceptionStateSource(load_entry_point(spec)(setup), base.track)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, FilterConfig
+from saferace.eval.filter_config import FilterConfig, users_perception
 from saferace.eval.metrics import longest_standstill
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.names import DEFAULT_FILTER_MODELS, DEFAULT_GAINS, NOISY_SAMPLES
@@ -105,7 +105,7 @@ def state_source_words(config: FilterConfig) -> str:
         assert config.state_noise is not None  # neither learned nor the truth: noisy
         e_y, e_psi = config.state_noise
         details.append(f"sd {e_y:g} m, {e_psi:g} rad")
-    elif config.state_source.partition(":")[0] not in STATE_SOURCE_FACTORIES:
+    elif users_perception(config.state_source):
         return f"perceived by {config.state_source}"
     else:
         kind, _, argument = config.state_source.partition(":")
