@@ -128,8 +128,8 @@ def test_the_safety_package_shows_its_four_concerns_at_a_glance():
     assert packages == ["cbf", "predictive", "traffic", "uncertainty"]
     shared = sorted(p.stem for p in safety.glob("*.py") if p.name != "__init__.py")
     assert shared == [
-        "decision", "frenet_stages", "ltv_mpc", "matrix_exponential", "model_code", "models",
-        "stage_qp", "vehicle_params",
+        "decision", "filter_protocol", "frenet_stages", "ltv_mpc", "matrix_exponential",
+        "model_code", "models", "stage_qp", "vehicle_params",
     ]  # fmt: skip
     docstring = ast.get_docstring(ast.parse((safety / "__init__.py").read_text())) or ""
     assert all(f"saferace.safety.{name}" in docstring for name in packages)

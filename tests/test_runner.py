@@ -103,6 +103,7 @@ def test_a_standstill_counts_only_while_the_driver_asks_to_move():
                 "covered": True,
                 "solve_time_s": 1e-4,
                 "filter_time_s": 2e-4,
+                "clipped": False,
             }
         )
         for asked, given in zip(nominal, applied, strict=True)

@@ -39,6 +39,13 @@ STATE_SOURCE_FACTORIES = {
 OPTIONAL_ARGUMENT_SOURCES = ("generic",)
 
 
+def users_filter(kind: str) -> bool:
+    """Whether ``kind`` names a user's safety filter, ``MODULE:FACTORY``
+    (:mod:`saferace.safety.filter_protocol`), not one of ours."""
+    module, _, factory = kind.partition(":")
+    return bool(module and factory)
+
+
 def users_perception(state_source: str) -> bool:
     """Whether ``state_source`` names a user's perception method, ``MODULE:FACTORY``
     (:mod:`saferace.safety.uncertainty.perception`), not one of :data:`STATE_SOURCE_FACTORIES`."""
@@ -69,7 +76,10 @@ class FilterConfig:
     """
 
     kind: str = setting(
-        "none", "wrap the agent in a safety filter", flag="--filter", choices=FILTER_KINDS
+        "none",
+        "wrap the agent in a safety filter: none, ours (cbf, mpsf) or one of your own",
+        flag="--filter",
+        metavar="|".join((*FILTER_KINDS, "MODULE:FACTORY")),
     )
     model: str = setting(
         AUTO,
@@ -180,10 +190,14 @@ class FilterConfig:
         if self.gains == AUTO:
             robust = self.uncertainty == "robust"
             object.__setattr__(self, "gains", ROBUST_GAINS if robust else DEFAULT_GAINS)
-        if self.kind not in FILTER_KINDS:
+        if self.kind not in FILTER_KINDS and not users_filter(self.kind):
             raise ConfigError(
-                "kind", f"must be one of {', '.join(FILTER_KINDS)}, got {self.kind!r}"
+                "kind",
+                f"must be one of {', '.join(FILTER_KINDS)} or MODULE:FACTORY (a filter of your "
+                f"own), got {self.kind!r}",
             )
+        if users_filter(self.kind):
+            self._check_own_filter()
         if self.gains not in GAIN_NAMES:
             raise ConfigError(
                 "gains", f"must be one of {', '.join(GAIN_NAMES)}, got {self.gains!r}"
@@ -260,6 +274,20 @@ class FilterConfig:
                 "spread_scale", f"must be 3 factors (e_y, e_psi, kappa), got {self.spread_scale}"
             )
 
+    def _check_own_filter(self) -> None:
+        """A filter of the user's is handed the state source's estimate and interval
+        (:mod:`saferace.safety.filter_protocol`): our filters' own settings are not its."""
+        ours = {
+            "slack": self.slack != SQUARED_SLACK,
+            "opponent_noise_m": self.opponent_noise_m != 0.0,
+            "map_curvature": self.map_curvature,
+        }
+        for name, asked in ours.items():
+            if asked:
+                raise ConfigError(
+                    name, f"is a setting of our filters, not of your own ({self.kind})"
+                )
+
     @property
     def uncertain_state(self) -> bool:
         """Whether the filter sees an estimate (noisy or learned) rather than the truth."""
@@ -289,11 +317,13 @@ class FilterConfig:
         """Short name for tables: ``none``, ``oracle``, ``noisy-prob``, ``noisy-det``,
         ``learned-prob`` or ``learned-det`` (``noisy-fused-prob`` and so on when fused;
         ``-robust`` in place of ``-prob`` in the robust mode; ``-l1`` after any of them with
-        the L1 slack; ``mpsf-`` before them for the predictive filter)."""
+        the L1 slack; ``mpsf-`` before them for the predictive filter, ``MODULE:FACTORY-``
+        for a filter of the user's)."""
         if self.kind == "none":
             return "none"
         slack = "" if self.slack == SQUARED_SLACK else f"-{self.slack}"
         family = "mpsf-" if self.kind == "mpsf" else ""
+        family = f"{self.kind}-" if users_filter(self.kind) else family
         if not self.uncertain_state:
             return f"{family}oracle{slack}"
         source = "noisy" if self.state_source is None else self.state_source.split(":", 1)[0]

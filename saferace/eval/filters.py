@@ -13,9 +13,11 @@ from saferace.eval.filter_config import (
     OPTIONAL_ARGUMENT_SOURCES,
     STATE_SOURCE_FACTORIES,
     FilterConfig,
+    users_filter,
     users_perception,
 )
 from saferace.safety.cbf.filter import GAIN_PRESETS, SafetyFilter
+from saferace.safety.filter_protocol import ProtocolSafetyFilter
 from saferace.safety.predictive.filter import PredictiveSafetyFilter
 from saferace.safety.uncertainty.adaptive import AdaptiveConformalStateSource
 from saferace.safety.uncertainty.intervals import ConformalStateSource, IntervalStateSource
@@ -31,13 +33,14 @@ from saferace.safety.uncertainty.state_sources import (
 if TYPE_CHECKING:  # for typing only: importing saferace.envs sets up MuJoCo's OpenGL
     from saferace.envs.racing_env import RacingEnv
 
-__all__ = ["STATE_SOURCE_FACTORIES", "FilterConfig", "apply_filter"]
+__all__ = ["STATE_SOURCE_FACTORIES", "FilterConfig", "apply_filter", "has_safety_filter"]
 
 
 def apply_filter(
     env: gym.Env, config: FilterConfig, seed: int | None = None, timed: bool = False
 ) -> gym.Env:
-    """``env`` wrapped as ``config`` says (unchanged for ``kind="none"``); ``timed``: its
+    """``env`` wrapped as ``config`` says (unchanged for ``kind="none"``; a filter of the
+    user's, ``MODULE:FACTORY``, behind :class:`ProtocolSafetyFilter`); ``timed``: its
     decisions record their wall-clock times (``SafetyFilter.record_timings``)."""
     if config.kind == "none":
         return env
@@ -55,7 +58,8 @@ def apply_filter(
         image_shape = image_shape_of(env)
         own_track = {"track": base.track} if config.own_track_calibration else {}
         source = factory(argument, image_shape, n_samples=config.samples, seed=seed, **own_track)
-        if config.uncertainty == "robust" and not isinstance(source, IntervalStateSource):
+        ours = not users_filter(config.kind)  # a filter of the protocol takes mean +- z std
+        if ours and config.uncertainty == "robust" and not isinstance(source, IntervalStateSource):
             raise ConfigError(
                 "uncertainty",
                 f"robust holds the car over the state network's calibrated interval, and "
@@ -82,6 +86,18 @@ def apply_filter(
         )
     if config.fuse_odometry:
         source = OdometryFusedStateSource(source, base.track, base.control_dt_s)
+    if users_filter(config.kind):
+        factory = load_entry_point(config.kind)
+        protocol = ProtocolSafetyFilter(env, factory, source, config.kind, seed)
+        protocol.record_timings = timed
+        return protocol
+    wrapped = our_filter(env, config, source)
+    wrapped.record_timings = timed
+    return wrapped
+
+
+def our_filter(env: gym.Env, config: FilterConfig, source: StateSource) -> SafetyFilter:
+    """``env`` behind our filter family ``config.kind`` (cbf or mpsf), fed by ``source``."""
     shared: dict[str, Any] = {
         "state_source": source,
         "model": config.model,
@@ -91,17 +107,23 @@ def apply_filter(
         "uncertainty": config.uncertainty,
     }
     if config.kind == "mpsf":
-        wrapped: SafetyFilter = PredictiveSafetyFilter(env, **shared)
-    else:
-        wrapped = SafetyFilter(
-            env,
-            **shared,
-            slack_penalty=config.slack,
-            opponent_noise_m=config.opponent_noise_m,
-            **GAIN_PRESETS[config.gains],
-        )
-    wrapped.record_timings = timed
-    return wrapped
+        return PredictiveSafetyFilter(env, **shared)
+    return SafetyFilter(
+        env,
+        **shared,
+        slack_penalty=config.slack,
+        opponent_noise_m=config.opponent_noise_m,
+        **GAIN_PRESETS[config.gains],
+    )
+
+
+def has_safety_filter(env: gym.Env) -> bool:
+    """Whether ``env`` is behind a safety filter, ours or one of the protocol's."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, (SafetyFilter, ProtocolSafetyFilter)):
+            return True
+        env = env.env
+    return False
 
 
 def image_shape_of(env: gym.Env) -> tuple[int, ...]:

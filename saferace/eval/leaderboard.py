@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from saferace.eval.filter_config import FilterConfig, users_perception
+from saferace.eval.filter_config import FilterConfig, users_filter, users_perception
 from saferace.eval.metrics import longest_standstill
 from saferace.eval.tables import markdown_table, write_csv
 from saferace.names import DEFAULT_FILTER_MODELS, DEFAULT_GAINS, NOISY_SAMPLES
@@ -62,6 +62,9 @@ def filter_words(config: FilterConfig) -> str:
     the robust mode; then any setting off its default."""
     if config.kind == "none":
         return "none"
+    if users_filter(config.kind):
+        noisy = "noisy state" if config.state_noise is not None else "the true state"
+        return f"{config.kind} on {config.state_source or noisy}"
     parts = [config.kind]
     if config.uncertainty == "robust":
         parts.append("robust over the interval")

@@ -44,6 +44,7 @@ SAFETY_FIELDS = (
     "covered",
     "solve_time_s",
     "filter_time_s",
+    "clipped",
 )
 
 
@@ -62,8 +63,9 @@ class LapMetrics:
     fields are None for episodes driven without one: how many steps it changed the
     action, by how much on average (over all steps), its largest slack and failed solves,
     the share of steps it fell back on (:mod:`saferace.safety.uncertainty.fallback`), the share its
-    out-of-distribution monitor raised on, and ``coverage``: the share of steps whose true
-    state lay inside the interval the filter used.
+    out-of-distribution monitor raised on, ``coverage``: the share of steps whose true
+    state lay inside the interval the filter used, and ``clipped_steps``: the steps whose
+    filtered action was clipped to the actuators' limits (a filter of the protocol's).
     """
 
     lap: int
@@ -86,6 +88,7 @@ class LapMetrics:
     fallback_rate: float | None = None
     alarm_rate: float | None = None
     coverage: float | None = None
+    clipped_steps: int | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -197,6 +200,7 @@ def _safety_metrics(steps: dict[str, np.ndarray], mask: np.ndarray) -> dict:
         "fallback_rate": float(np.mean(steps["fallback"][mask])),
         "alarm_rate": float(np.mean(steps["alarm"][mask])),
         "coverage": float(np.mean(steps["covered"][mask])),
+        "clipped_steps": int(np.sum(steps["clipped"][mask])),
     }
 
 
@@ -208,13 +212,14 @@ def safety_step_record(safety: dict) -> dict:
         "nominal_accel_mps2": nominal[1],
         "steer_correction_rad": abs(filtered[0] - nominal[0]),
         "accel_correction_mps2": abs(filtered[1] - nominal[1]),
-        "max_slack": max(safety["slacks"].values()),
+        "max_slack": max(safety["slacks"].values(), default=0.0),
         "failed_solve": safety["fallback"] == "solver",
         "fallback": bool(safety["fallback"]),
         "alarm": safety["alarm"],
         "covered": safety["covered"],
         "solve_time_s": safety["solve_time_s"],
         "filter_time_s": safety["filter_time_s"],
+        "clipped": safety["clipped"],
     }
 
 
@@ -277,6 +282,7 @@ def _summarize_safety(laps: list[LapMetrics]) -> dict:
         "fallback_rate": weighted("fallback_rate"),
         "alarm_rate": weighted("alarm_rate"),
         "coverage": weighted("coverage"),
+        "clipped_steps": sum(_filter_metric(lap.clipped_steps) for lap in filtered),
     }
 
 

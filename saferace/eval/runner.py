@@ -21,7 +21,7 @@ from saferace.envs.racing_env import DEFAULT_CONTROL_HZ
 from saferace.envs.unwrap import racing_env
 from saferace.errors import SafeRaceError
 from saferace.eval.agents import act, make_agent
-from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.eval.filters import FilterConfig, apply_filter, has_safety_filter
 from saferace.eval.metrics import (
     SAFETY_FIELDS,
     STEP_FIELDS,
@@ -38,7 +38,6 @@ from saferace.eval.metrics import (
 from saferace.names import TASK_IDS as LANE_TASK_IDS
 from saferace.names import TRAFFIC_TASK_IDS
 from saferace.progress import Progress
-from saferace.safety.cbf.filter import SafetyFilter
 from saferace.safety.decision import nominal_parts
 from saferace.track import Track, builtin_track_names
 from saferace.version import __version__
@@ -61,6 +60,8 @@ class EpisodeResult:
     source_description: dict | None = None
     #: How it ended, in words (:func:`episode_ending`).
     ending: str = ""
+    #: What a filter of the protocol raised, where that ended it.
+    filter_error: str | None = None
 
     @property
     def summary(self) -> dict:
@@ -97,7 +98,8 @@ def run_episode(
 
     Also recorded: the true lane barrier ``lane_barrier_m``; in traffic the
     :data:`TRAFFIC_FIELDS`; and, if ``env`` is wrapped in a
-    :class:`~saferace.safety.cbf.filter.SafetyFilter`, the :data:`SAFETY_FIELDS`. An agent may
+    :class:`~saferace.safety.cbf.filter.SafetyFilter` or a filter of the protocol
+    (:mod:`saferace.safety.filter_protocol`), the :data:`SAFETY_FIELDS`. An agent may
     return a :class:`~saferace.safety.decision.NominalAction`; without a filter its mean is
     applied. ``on_step(observation, info, action)`` is called after each step with the
     action applied (videos, recordings).
@@ -137,7 +139,7 @@ class EpisodeRecorder:
 
     def __init__(self, env: gym.Env) -> None:
         base = racing_env(env)
-        self.filtered = _has_safety_filter(env)
+        self.filtered = has_safety_filter(env)
         self.in_traffic = base.traffic is not None
         self.half_width_m = base.car_half_width_m
         self.control_dt_s = base.control_dt_s
@@ -172,7 +174,10 @@ class EpisodeRecorder:
         laps = lap_metrics(steps, last_info["lap_times_s"], self.control_dt_s)
         traffic = traffic_summary(steps) if self.in_traffic else None
         ending = episode_ending(last_info, terminated, self.max_laps, self.filtered)
-        return EpisodeResult(steps, laps, terminated, truncated, traffic, ending=ending)
+        return EpisodeResult(
+            steps, laps, terminated, truncated, traffic, ending=ending,
+            filter_error=last_info.get("filter_error"),
+        )  # fmt: skip
 
 
 #: Below this speed (m/s) a car at the end of a run behind a filter stands.
@@ -182,10 +187,12 @@ STANDING_MPS = 0.1
 def episode_ending(
     last_info: dict[str, Any], terminated: bool, max_laps: int, filtered: bool
 ) -> str:
-    """How a run ended, from its last step: its laps done, the car out of its lane, flipped
-    or in a collision (terminated), or the time limit (and, behind a filter, the car
-    standing there: what a filter that stopped it looks like)."""
+    """How a run ended, from its last step: its filter raised, its laps done, the car out of
+    its lane, flipped or in a collision (terminated), or the time limit (and, behind a
+    filter, the car standing there: what a filter that stopped it looks like)."""
     laps = int(last_info["lap"])
+    if "filter_error" in last_info:
+        return f"ended: {last_info['filter_error']}"
     if terminated:
         if last_info.get("fully_outside_lane"):
             return f"ended: the car left its lane at {last_info['time_s']:.2f} s"
@@ -218,14 +225,6 @@ def standstill_words(seconds: float | None) -> str:
     """The longest standstill while the driver asked to move, in words (``-`` where it was
     not recorded): what keeps a car that never left the lane by standing still visible."""
     return "longest standstill " + ("-" if seconds is None else f"{seconds:.2f} s")
-
-
-def _has_safety_filter(env: gym.Env) -> bool:
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, SafetyFilter):
-            return True
-        env = env.env
-    return False
 
 
 def evaluate(

@@ -69,7 +69,9 @@ class SafetyDecision:
     :data:`FALLBACK_REASONS`, ``""``: it did not), ``mode`` what acted (one of
     :data:`MODES`). The actions are the wheels' angles: the command sent was the filtered
     one less ``steering_offset_rad``, the offset the filter judged the steering's centre to
-    be off by (:mod:`~saferace.safety.uncertainty.steering_trim`).
+    be off by (:mod:`~saferace.safety.uncertainty.steering_trim`). ``clipped``: the filter
+    answered an action outside the actuators' limits, and it was clipped to them (a filter
+    of the protocol, :mod:`saferace.safety.filter_protocol`; ours stay within them).
     """
 
     nominal_action: list[float]
@@ -96,6 +98,7 @@ class SafetyDecision:
     n_samples: int
     mode: str
     steering_offset_rad: float = 0.0
+    clipped: bool = False
 
     def as_dict(self, timed: bool = True) -> dict[str, Any]:
         """The decision's fields; ``timed=False``: its wall-clock times 0, so that the same

@@ -1,0 +1,209 @@
+"""A safety filter of one's own (``saferace.safety.filter_protocol``): loaded as
+``MODULE:FACTORY`` from the current folder, handed the perception's estimate, the car's
+sensors and the map but never the simulator's state; its answers clipped and counted; a
+filter that raises ends its run with a report; the minimal example keeps reckless drivers
+inside on the true state."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import saferace  # noqa: F401  (registers the tasks)
+from saferace.errors import ConfigError, SafeRaceError
+from saferace.eval.agents import make_agent
+from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.eval.leaderboard import filter_words
+from saferace.eval.runner import make_task_env, max_steps_for, run_episode
+from saferace.safety.filter_protocol import (
+    FilterSetup,
+    FilterView,
+    ProtocolSafetyFilter,
+)
+from saferace.safety.uncertainty.state_sources import NoisyOracleStateSource
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+EXAMPLE = "brake_near_edge_filter:make"
+#: All a filter may read: the perception's estimate, the car's sensors, the map's position.
+VIEW_FIELDS = {
+    "mean", "lower", "upper", "in_doubt", "velocity", "steer_angle_rad", "s_m", "opponents",
+    "time_s",
+}  # fmt: skip
+SETUP_FIELDS = {
+    "track", "params", "action_low", "action_high", "control_dt_s", "car_half_width_m", "seed",
+}  # fmt: skip
+
+
+class Spy:
+    """Passes the driver's action on, keeping what it is handed; ``answer`` replaces the
+    action, ``fail_at`` raises on that step."""
+
+    def __init__(
+        self, setup: FilterSetup, answer: np.ndarray | None = None, fail_at: int | None = None
+    ) -> None:
+        self.setup, self.answer, self.fail_at = setup, answer, fail_at
+        self.views: list[FilterView] = []
+
+    def reset(self, seed: int | None = None) -> None:
+        self.views.clear()
+
+    def certify(self, action: np.ndarray, view: FilterView) -> np.ndarray:
+        self.views.append(view)
+        if self.fail_at is not None and len(self.views) == self.fail_at:
+            raise ValueError("a bug in the filter")
+        return action if self.answer is None else self.answer
+
+
+def spied(env: gym.Env, **spy_arguments) -> tuple[ProtocolSafetyFilter, list[Spy]]:
+    made: list[Spy] = []
+
+    def factory(setup: FilterSetup) -> Spy:
+        made.append(Spy(setup, **spy_arguments))
+        return made[0]
+
+    return ProtocolSafetyFilter(env, factory, name="spy", seed=0), made
+
+
+def lab(seconds: float = 5.0) -> gym.Env:
+    return gym.make(
+        "saferace/CenterLine-v0", track="lab", image_size=(16, 16),
+        max_episode_steps=max_steps_for(seconds),
+    )  # fmt: skip
+
+
+@pytest.fixture
+def in_examples(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The current folder is the examples', as a user's own folder (found without help)."""
+    monkeypatch.chdir(EXAMPLES)
+    monkeypatch.setattr(sys, "path", [entry for entry in sys.path if entry not in ("", ".")])
+    monkeypatch.delitem(sys.modules, EXAMPLE.partition(":")[0], raising=False)
+
+
+@pytest.mark.parametrize("driver", ["drift", "weave", "speeding"])
+def test_the_minimal_example_keeps_reckless_drivers_inside_on_the_true_state(in_examples, driver):
+    safety = FilterConfig(kind=EXAMPLE)
+    env = make_task_env("CenterLine", "lab", 1, safety, 0, max_steps=max_steps_for(20.0))
+    assert isinstance(env, ProtocolSafetyFilter)
+    result = run_episode(env, make_agent(driver, env, seed=0), seed=0)
+    env.close()
+    assert result.summary["time_outside_lane_s"] == 0.0
+    assert result.summary["intervention_rate"] > 0.05  # it was needed
+    assert result.summary["clipped_steps"] == 0  # it answers within the limits
+    assert filter_words(safety) == f"{EXAMPLE} on the true state"
+
+
+def test_without_the_example_the_same_drivers_leave():
+    for driver in ("drift", "weave", "speeding"):
+        env = make_task_env("CenterLine", "lab", 1, FilterConfig(), 0, max_steps=max_steps_for(20))
+        result = run_episode(env, make_agent(driver, env, seed=0), seed=0)
+        env.close()
+        assert result.summary["time_outside_lane_s"] > 0.0, driver
+
+
+def test_a_filter_is_handed_the_perception_sensors_and_map_but_no_truth():
+    env = lab()
+    source = NoisyOracleStateSource((0.1, 0.1, 0.0), n_samples=8, seed=0)
+    wrapped = ProtocolSafetyFilter(env, lambda setup: Spy(setup), source, "spy", seed=0)
+    method = wrapped.method
+    assert isinstance(method, Spy)
+    assert {field.name for field in dataclasses.fields(FilterSetup)} == SETUP_FIELDS
+    assert {field.name for field in dataclasses.fields(FilterView)} == VIEW_FIELDS
+    wrapped.reset(seed=0)
+    truths, decisions = [], []
+    for _ in range(10):
+        truths.append(wrapped._info["e_y_m"])  # type: ignore[index]
+        *_, info = wrapped.step(np.array([0.0, 1.0]))
+        decisions.append(info["safety"])
+    views = method.views
+    assert len(views) == 10
+    for view, truth, decision in zip(views, truths, decisions, strict=True):
+        assert view.mean[0] != truth  # the noisy estimate, not the simulator's offset
+        assert view.mean[0] == pytest.approx(decision["state_mean"][0])
+        assert view.lower[0] < view.mean[0] < view.upper[0]
+        assert not hasattr(view, "info") and not hasattr(view, "env")
+    assert views[-1].velocity[0] > 0.0 and views[-1].time_s > views[0].time_s
+    env.close()
+
+
+def test_an_answer_outside_the_limits_is_clipped_and_counted():
+    env = lab(2.0)
+    wrapped, _ = spied(env, answer=np.array([5.0, 100.0]))
+    applied: list[np.ndarray] = []
+    result = run_episode(
+        wrapped,
+        lambda observation, info: np.zeros(2),
+        seed=0,
+        on_step=lambda observation, info, action: applied.append(action),
+    )
+    env.close()
+    high = env.action_space.high  # type: ignore[attr-defined]
+    np.testing.assert_allclose(applied, np.tile(high, (len(applied), 1)), rtol=1e-6)
+    assert result.summary["clipped_steps"] == len(applied) > 0
+    assert result.summary["intervention_rate"] == 1.0
+
+
+def test_a_filter_that_raises_ends_its_run_with_a_report():
+    env = lab()
+    wrapped, made = spied(env, fail_at=7)
+    result = run_episode(wrapped, lambda observation, info: np.array([0.0, 1.0]), seed=0)
+    assert result.truncated and not result.terminated
+    assert len(result.steps["steer_rad"]) == 7
+    assert result.filter_error is not None
+    assert "spy raised at 0.30 s: ValueError: a bug in the filter" in result.filter_error
+    assert result.ending == f"ended: {result.filter_error}"
+    wrapped.reset(seed=1)  # the next run starts clean
+    assert wrapped.error is None and made[0].views == []
+    env.close()
+
+
+@pytest.mark.parametrize("answer", [np.array([np.nan, 0.0]), np.zeros(3)])
+def test_an_answer_that_is_no_action_ends_the_run(answer):
+    env = lab()
+    wrapped, _ = spied(env, answer=answer)
+    wrapped.reset(seed=0)
+    *_, truncated, info = wrapped.step(np.zeros(2))
+    assert truncated
+    assert "must return 2 finite numbers" in info["filter_error"]
+    env.close()
+
+
+def test_env_checker_passes_behind_a_filter_of_ones_own(in_examples):
+    """What users check before they train: a valid gymnasium env, its info the same for the
+    same seed and actions."""
+    env = apply_filter(lab(), FilterConfig(kind=EXAMPLE))
+    check_env(env, skip_render_check=True)
+    env.close()
+
+
+def test_a_factory_that_makes_no_filter_is_refused():
+    env = lab()
+    with pytest.raises(SafeRaceError, match="no safety filter"):
+        ProtocolSafetyFilter(env, lambda setup: object(), name="nothing")  # type: ignore[arg-type]
+    env.close()
+
+
+def test_a_filter_of_ones_own_is_loaded_from_the_current_folder(in_examples):
+    env = apply_filter(lab(), FilterConfig(kind=EXAMPLE), seed=0)
+    assert isinstance(env, ProtocolSafetyFilter) and env.name == EXAMPLE
+    assert type(env.method).__name__ == "BrakeNearEdge"
+    env.close()
+
+
+@pytest.mark.parametrize(
+    ("setting", "value"), [("slack", "l1"), ("opponent_noise_m", 0.1), ("map_curvature", True)]
+)
+def test_our_filters_settings_are_refused_for_ones_own(setting, value):
+    with pytest.raises(ConfigError, match=setting):
+        FilterConfig(kind=EXAMPLE, **{setting: value})
+
+
+@pytest.mark.parametrize("kind", ["cbff", "module:", ":factory"])
+def test_a_filter_name_that_is_none_of_ours_nor_module_factory_is_refused(kind):
+    with pytest.raises(ConfigError, match="MODULE:FACTORY"):
+        FilterConfig(kind=kind)
