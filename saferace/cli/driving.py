@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -20,7 +21,15 @@ from saferace.cli.arguments import (
     check_drive_length,
 )
 from saferace.errors import SafeRaceError
-from saferace.names import DEFAULT_EXPERT_MODEL, MC_SAMPLES, VEHICLE_MODELS, VERIFY_RUNS
+from saferace.names import (
+    DEFAULT_EXPERT_MODEL,
+    GAIN_NAMES,
+    GENERIC_SOURCE,
+    MC_SAMPLES,
+    SLACK_PENALTIES,
+    VEHICLE_MODELS,
+    VERIFY_RUNS,
+)
 
 RECORDS_HELP = (
     "folder of this machine's verification records (default: $SAFERACE_VERIFIED, else "
@@ -97,7 +106,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         "benchmark",
     )
     board.add_argument("--csv", type=Path, help="also write the table as CSV")
-    board.add_argument("--plot", type=Path, help="driven trajectories and speeds to a PNG")
+    board.add_argument(
+        "--plot",
+        type=Path,
+        help="driven trajectories and speeds to a PNG; for filter submissions, each entry's "
+        "score and time outside per condition",
+    )
     board.add_argument("--html", type=Path, help="submissions: one self-contained leaderboard page")
     board.add_argument(
         "--verified-only",
@@ -109,14 +123,35 @@ def register(commands: argparse._SubParsersAction) -> None:
 
     bench = commands.add_parser(
         "benchmark",
-        help="the fixed evaluation protocol for one agent: a submission file",
+        help="the fixed evaluation protocol for one agent, or for one safety filter (the "
+        "filter protocol): a submission file",
         epilog=example(
             "saferace benchmark --agent pure-pursuit --out submissions/pure_pursuit.json",
             "saferace benchmark --agent learned:lab_mono.pt --workers 2 --out learned.json",
             "saferace benchmark --agent drift --faults steering:offset=0.04 --out drift_bent.json",
+            "saferace benchmark --filter my_filter:make --workers 2 --out my_filter.json",
+            "saferace benchmark --filter cbf --filter-gains paper --out cbf_paper.json",
+            "saferace benchmark --filter cbf --state-source my_perception:make --out mine.json",
         ),
     )
-    bench.add_argument("--agent", required=True, help=AGENT_HELP)
+    ranked = bench.add_mutually_exclusive_group(required=True)
+    ranked.add_argument("--agent", help=AGENT_HELP)
+    ranked.add_argument(
+        "--filter",
+        help="rank a safety filter instead, on the filter protocol: none, cbf, mpsf or "
+        "MODULE:FACTORY (a filter of your own)",
+    )
+    filter_options = bench.add_argument_group("the filter protocol")
+    filter_options.add_argument(
+        "--state-source",
+        default=GENERIC_SOURCE,
+        help="what feeds the filter in the perceived conditions: generic[:RECIPE], "
+        "learned:CKPT or MODULE:FACTORY (a perception method of your own)",
+    )
+    filter_options.add_argument("--filter-gains", choices=GAIN_NAMES, help="our cbf's gains")
+    filter_options.add_argument(
+        "--filter-slack", choices=SLACK_PENALTIES, help="our cbf's QP slack penalty"
+    )
     bench.add_argument("--out", type=Path, required=True, help="the submission .json to write")
     add_parallel_arguments(bench)
     bench.add_argument(
@@ -272,9 +307,18 @@ def _submission_leaderboard(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table, write_csv
     from saferace.experiments.benchmark import load_suite
     from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
+    from saferace.experiments.filter_submission_checks import is_filter_submission
     from saferace.experiments.submission_checks import read_submission
     from saferace.experiments.verify import verification_record
 
+    filters = [is_filter_submission(_json_of(path)) for path in args.results]
+    if any(filters):
+        if not all(filters):
+            raise SafeRaceError(
+                "give either drivers' submissions or filter submissions: they rank on "
+                "boards of their own"
+            )
+        return _filter_board(args)
     if args.plot:
         raise SafeRaceError("--plot is for eval results; a submissions' page has --html")
     submissions = [
@@ -297,7 +341,53 @@ def _submission_leaderboard(args: argparse.Namespace) -> int:
     return 0
 
 
+def _json_of(path: Path) -> object:
+    """A submission file's JSON (None where it is none: its checks then say why)."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+
+
+def _filter_board(args: argparse.Namespace) -> int:
+    from saferace.eval.tables import markdown_table, write_csv
+    from saferace.experiments.filter_board import (
+        COLUMNS,
+        filter_board_html,
+        filter_board_rows,
+        plot_conditions,
+    )
+    from saferace.experiments.filter_submission_checks import read_filter_submission
+    from saferace.experiments.filter_suite import load_filter_suite
+    from saferace.experiments.verify import verification_record
+
+    submissions = []
+    for path in args.results:
+        checked = read_filter_submission(str(path))
+        submissions.append({**checked, "verification": verification_record(path, args.records)})
+    if args.verified_only:
+        submissions = [entry for entry in submissions if entry["verification"]]
+        if not submissions:
+            raise SafeRaceError("no submission has passed saferace verify in its current form")
+    rows = filter_board_rows(submissions)
+    print(markdown_table(COLUMNS, [["-" if v is None else v for v in row] for row in rows]))
+    suite = load_filter_suite(max(entry["filter_suite_version"] for entry in submissions))
+    if args.csv:
+        write_csv(args.csv, COLUMNS, rows)
+        print(f"table written to {args.csv}")
+    if args.plot:
+        plot_conditions(submissions, suite, args.plot)
+        print(f"plot written to {args.plot}")
+    if args.html:
+        args.html.parent.mkdir(parents=True, exist_ok=True)
+        args.html.write_text(filter_board_html(submissions, suite))
+        print(f"page written to {args.html}")
+    return 0
+
+
 def _benchmark(args: argparse.Namespace) -> int:
+    if args.filter is not None:
+        return _filter_benchmark(args)
     from saferace.experiments.benchmark import run_benchmark
 
     result = run_benchmark(
@@ -313,6 +403,21 @@ def _benchmark(args: argparse.Namespace) -> int:
     print(
         f"{args.agent}: score {score}, with the filter "
         f"{'-' if with_filter is None else f'{with_filter:.1f}'}; submission written to {args.out}"
+    )
+    return 0
+
+
+def _filter_benchmark(args: argparse.Namespace) -> int:
+    from saferace.experiments.filter_benchmark import FilterEntry, run_filter_benchmark
+
+    if args.faults:
+        raise SafeRaceError("--faults: the filter protocol has no fault conditions yet")
+    entry = FilterEntry(args.filter, args.state_source, args.filter_gains, args.filter_slack)
+    result = run_filter_benchmark(entry, args.out, workers=args.workers, ray_address=args.ray)
+    print(
+        f"{entry.label}: score {result['score']:.1f}, {result['runs_outside']} runs outside "
+        f"({result['time_outside_lane_s']:.2f} s), longest standstill "
+        f"{result['longest_standstill_s']:.2f} s; submission written to {args.out}"
     )
     return 0
 

@@ -61,6 +61,7 @@ from saferace.eval.filters import FilterConfig
 from saferace.eval.metrics import thinned_trajectory
 from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
+    EpisodeResult,
     append_jsonl,
     git_revision,
     make_task_env,
@@ -267,13 +268,26 @@ def drive_run(
         )
     finally:
         env.close()
-    summary = result.summary
     completion = min(1.0, max(0.0, progress_m[0]) / (laps * length_m))
-    measurements = {
+    measurements = episode_measurements(result, completion, racing_env(env).control_dt_s)
+    return {
+        "suite_version": suite.version,
+        **asdict(spec),
+        **measurements,
+        **scored(measurements, spec, suite),
+    }
+
+
+def episode_measurements(result: EpisodeResult, completion: float, control_dt_s: float) -> dict:
+    """A protocol run's measurements of its episode ``result`` that covered ``completion``
+    of its laps: laps, times, deviation, time outside, standstill, the filter's
+    interventions and corrections, the traffic counts and the thinned trajectory."""
+    summary = result.summary
+    return {
         "completion": completion,
         "laps_completed": summary["laps_completed"],
         "lap_time_s": summary["mean_lap_time_s"],
-        "driven_s": len(result.steps["time_s"]) * racing_env(env).control_dt_s,
+        "driven_s": len(result.steps["time_s"]) * control_dt_s,
         "mean_abs_deviation_m": summary["mean_abs_deviation_m"],
         "time_outside_lane_s": summary["time_outside_lane_s"],
         "longest_standstill_s": summary["longest_standstill_s"],
@@ -285,12 +299,6 @@ def drive_run(
         "trajectory": thinned_trajectory(
             result.steps, ("x_m", "y_m"), decimals=3, points=TRAJECTORY_POINTS
         ),
-    }
-    return {
-        "suite_version": suite.version,
-        **asdict(spec),
-        **measurements,
-        **scored(measurements, spec, suite),
     }
 
 

@@ -151,7 +151,7 @@ def trajectory_images(submissions: list[dict], suite: Suite) -> dict[str, str]:
     return images
 
 
-_SORT_SCRIPT = """
+SORT_SCRIPT = """
 document.querySelectorAll("th").forEach((header, column) => {
   header.addEventListener("click", () => {
     const body = header.closest("table").tBodies[0];
@@ -179,7 +179,7 @@ def leaderboard_html(submissions: list[dict], suite: Suite) -> str:
     rows = leaderboard_rows(submissions)
     header = "".join(f"<th>{html.escape(name)}</th>" for name in COLUMNS)
     body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(_cell(value))}</td>" for value in row) + "</tr>"
+        "<tr>" + "".join(f"<td>{html.escape(cell(value))}</td>" for value in row) + "</tr>"
         for row in rows
     )
     figures = "".join(
@@ -213,7 +213,7 @@ sort.</p>
 <tbody>{body}</tbody></table></div>
 <h2>Driven paths</h2>
 {figures}
-<script>{_SORT_SCRIPT}</script>
+<script>{SORT_SCRIPT}</script>
 </body></html>
 """
 
@@ -235,7 +235,7 @@ def _penalty_words(suite: Suite) -> str:
     return f" x {traffic.collision_factor:g} per collision the agent caused"
 
 
-def _cell(value: object) -> str:
+def cell(value: object) -> str:
     if value is None:
         return "-"
     return f"{value:.3f}" if isinstance(value, float) else str(value)

@@ -35,9 +35,17 @@ def replay_record(agent: str, mc_samples: int, faults: Iterable[str] = ()) -> di
         **settings,
         "files_sha256": files,
         "agent_sha256": hashlib.sha256(identity.encode()).hexdigest(),
-        "device": _network_device() if files else None,
-        "compiled": _networks_compiled() if files else None,
+        **network_settings(bool(files)),
         "vehicle_params_sha256": vehicle_params_sha256(),
+    }
+
+
+def network_settings(loads_files: bool) -> dict:
+    """Where this process's networks run and whether compiled for the CPU, for a replay
+    that ``loads_files`` (None for one that loads none: it runs no network of a file)."""
+    return {
+        "device": _network_device() if loads_files else None,
+        "compiled": _networks_compiled() if loads_files else None,
     }
 
 

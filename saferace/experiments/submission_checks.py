@@ -118,10 +118,10 @@ def check_submission(data: object, source: str, suite: Suite | None = None) -> d
             raise SafeRaceError(f"{where}: driven by another agent (agent_sha256 differs)")
         _check_measurements(row, spec, suite, where)
         recomputed = scored(row, spec, suite)
-        _check_same(row, recomputed, where)
+        check_same(row, recomputed, where)
         checked.append({**row, **recomputed})
     recomputed_totals = totals(checked, suite)
-    _check_same(data, recomputed_totals, source)
+    check_same(data, recomputed_totals, source)
     return {**data, **recomputed_totals, "rows": checked}
 
 
@@ -162,7 +162,7 @@ def _check_structure(data: object, source: str, suite: Suite) -> None:
         )
     for name in ("score", "score_with_filter", "intervention_rate", "completion"):
         value = data[name]
-        if value is not None and not _finite(value):
+        if value is not None and not finite(value):
             raise SafeRaceError(f"{source}: {name} is {value!r}, not a finite number")
     if not isinstance(data["rows"], list) or not data["rows"]:
         raise SafeRaceError(f"{source}: no rows")
@@ -238,11 +238,24 @@ def _check_coverage(specs: list[RunSpec], source: str, suite: Suite) -> None:
 
 def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:
     """Raise unless the row's measurements are possible and agree with each other."""
+    steps = check_drive(row, suite.max_seconds_of(spec), where)
+    check_lap(row, suite.laps_of(spec), where)
+    _check_traffic(row, spec, suite, steps, where)
+    check_intervention_rate(row, spec.filter != "none", where)
+    check_trajectory(
+        row, steps, where, suite.track_argument(spec.track),
+        suite.start_fraction(spec), suite.laps_of(spec),
+    )  # fmt: skip
+
+
+def check_drive(row: dict, max_seconds: float, where: str) -> int:
+    """The control steps a row's drive took, unless its completion, time driven, time
+    outside or longest standstill is impossible or contradicts another."""
     for name in ("completion", "driven_s", "time_outside_lane_s"):
-        if not _finite(row[name]):
+        if not finite(row[name]):
             raise SafeRaceError(f"{where}: {name} is {row[name]!r}, not a finite number")
     for name in OPTIONAL_NUMBERS:
-        if row.get(name) is not None and not _finite(row[name]):
+        if row.get(name) is not None and not finite(row[name]):
             raise SafeRaceError(f"{where}: {name} is {row[name]!r}, not a finite number")
     if not isinstance(row.get("terminated"), bool):
         raise SafeRaceError(f"{where}: terminated is {row.get('terminated')!r}, not true or false")
@@ -250,7 +263,6 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
     if not 0.0 <= completion <= 1.0:
         raise SafeRaceError(f"{where}: completion {completion} is outside [0, 1]")
     steps = driven_s / CONTROL_DT_S
-    max_seconds = suite.max_seconds_of(spec)
     within = 0.0 < driven_s <= max_seconds + 1e-9
     if not within or not math.isclose(steps, round(steps), abs_tol=1e-6):
         raise SafeRaceError(
@@ -262,19 +274,21 @@ def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> N
             f"{where}: time_outside_lane_s {outside_s} is not within the {driven_s:g} s driven"
         )
     standstill_s = row.get("longest_standstill_s")  # None: a row from before it was recorded
-    if standstill_s is not None and not (_finite(standstill_s) and 0.0 <= standstill_s <= driven_s):
+    if standstill_s is not None and not (finite(standstill_s) and 0.0 <= standstill_s <= driven_s):
         raise SafeRaceError(
             f"{where}: longest_standstill_s {standstill_s!r} is not within the {driven_s:g} s "
             "driven"
         )
-    _check_lap(row, suite.laps_of(spec), where)
-    _check_traffic(row, spec, suite, round(steps), where)
+    return round(steps)
+
+
+def check_intervention_rate(row: dict, filtered: bool, where: str) -> None:
+    """A run behind a filter has a share of interventions, one without none."""
     rate = row["intervention_rate"]
-    if spec.filter == "none" and rate is not None:
+    if not filtered and rate is not None:
         raise SafeRaceError(f"{where}: intervention_rate {rate} on a run without a filter")
-    if spec.filter != "none" and not (_finite(rate) and 0.0 <= rate <= 1.0):
+    if filtered and not (finite(rate) and 0.0 <= rate <= 1.0):
         raise SafeRaceError(f"{where}: intervention_rate {rate!r} is not a share in [0, 1]")
-    _check_trajectory(row, spec, suite, round(steps), where)
 
 
 def _check_traffic(row: dict, spec: RunSpec, suite: Suite, steps: int, where: str) -> None:
@@ -307,7 +321,7 @@ def _check_traffic(row: dict, spec: RunSpec, suite: Suite, steps: int, where: st
         )
 
 
-def _check_lap(row: dict, suite_laps: int, where: str) -> None:
+def check_lap(row: dict, suite_laps: int, where: str) -> None:
     laps, lap_time_s = row["laps_completed"], row["lap_time_s"]
     if not isinstance(laps, int) or not 0 <= laps <= suite_laps:
         raise SafeRaceError(f"{where}: laps_completed {laps!r} is not 0 to {suite_laps}")
@@ -315,7 +329,7 @@ def _check_lap(row: dict, suite_laps: int, where: str) -> None:
         if lap_time_s is not None:
             raise SafeRaceError(f"{where}: lap_time_s {lap_time_s} without a completed lap")
         return
-    if not _finite(lap_time_s):
+    if not finite(lap_time_s):
         raise SafeRaceError(f"{where}: lap_time_s is {lap_time_s!r}, not a finite number")
     if laps == suite_laps and row["completion"] != 1.0:
         raise SafeRaceError(f"{where}: every lap completed but completion is {row['completion']}")
@@ -328,7 +342,12 @@ def _check_lap(row: dict, suite_laps: int, where: str) -> None:
         )
 
 
-def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where: str) -> None:
+def check_trajectory(
+    row: dict, steps: int, where: str, track_argument: str, start_fraction: float, laps: int
+) -> None:
+    """Raise unless the row's trajectory has the points ``steps`` steps give, moves no
+    faster than the car, agrees with the time outside, starts at ``start_fraction`` of the
+    lap of ``track_argument`` and is about as long as the completion of ``laps`` claims."""
     trajectory = row["trajectory"]
     names = ("x_m", "y_m", "outside")
     if not isinstance(trajectory, dict) or any(
@@ -343,7 +362,7 @@ def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where:
             f"{where}: trajectory has {sorted(lengths)} points, {expected} for {steps} steps"
         )
     coordinates = [*trajectory["x_m"], *trajectory["y_m"]]
-    if not all(_finite(value) for value in coordinates) or not all(
+    if not all(finite(value) for value in coordinates) or not all(
         isinstance(flag, bool) for flag in trajectory["outside"]
     ):
         raise SafeRaceError(f"{where}: trajectory points are not finite numbers, or flags not")
@@ -364,13 +383,13 @@ def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where:
             f"{where}: time_outside_lane_s {outside_s} disagrees with the trajectory, outside "
             f"at {flagged} of its points ({flagged * CONTROL_DT_S:g}-{flagged * stride_s:g} s)"
         )
-    track = _load_track(suite.track_argument(spec.track))
-    start_m = suite.start_fraction(spec) * track.length_m
+    track = _load_track(track_argument)
+    start_m = start_fraction * track.length_m
     start = track.centerline.position(np.array([start_m]))[0]
     half_width = max(track.widths(start_m))
     if np.linalg.norm(xy[0] - start) > half_width + START_TOLERANCE_M:
         raise SafeRaceError(f"{where}: the trajectory does not start at the run's start")
-    progress_m = row["completion"] * suite.laps_of(spec) * track.length_m
+    progress_m = row["completion"] * laps * track.length_m
     if progress_m >= MIN_PROGRESS_FOR_PATH_CHECK_M:
         ratio = float(segments.sum()) / progress_m
         if ratio < MIN_PATH_TO_PROGRESS:
@@ -380,20 +399,20 @@ def _check_trajectory(row: dict, spec: RunSpec, suite: Suite, steps: int, where:
             )
 
 
-def _check_same(stored: dict, recomputed: dict, where: str) -> None:
+def check_same(stored: dict, recomputed: dict, where: str) -> None:
     for name, value in recomputed.items():
         carried = stored[name]
         same = (
             carried is None
             if value is None
-            else _finite(carried)
+            else finite(carried)
             and math.isclose(carried, value, rel_tol=RELATIVE_ROUNDING, abs_tol=1e-9)
         )
         if not same:
             raise SafeRaceError(f"{where}: {name} is {carried!r}, recomputed {value!r}")
 
 
-def _finite(value: object) -> bool:
+def finite(value: object) -> bool:
     if not isinstance(value, int | float) or isinstance(value, bool):
         return False
     try:

@@ -17,6 +17,7 @@ import math
 import os
 import random
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,17 @@ from saferace.experiments.benchmark import (
     load_suite,
     run_words,
 )
+from saferace.experiments.filter_benchmark import (
+    FilterEntry,
+    drive_filter_run,
+    filter_replay_record,
+    filter_run_words,
+)
+from saferace.experiments.filter_submission_checks import (
+    is_filter_submission,
+    read_filter_submission,
+)
+from saferace.experiments.filter_suite import FilterRunSpec, load_filter_suite
 from saferace.experiments.replay_record import replay_faults, replay_record, vehicle_params_sha256
 from saferace.experiments.submission_checks import read_submission
 from saferace.learning.device import use_device
@@ -59,6 +71,12 @@ TOLERANCES: dict[str, float | None] = {
 #: Measurements that rows written before they were recorded lack: compared only where the
 #: submitted row has them, so that an older submission still verifies.
 RECORDED_LATER = ("longest_standstill_s",)
+#: A filter submission's runs also compare the filter's clipped steps and error.
+FILTER_TOLERANCES: dict[str, float | None] = {
+    **TOLERANCES,
+    "clipped_steps": None,
+    "filter_error": None,
+}
 
 
 @dataclass(frozen=True)
@@ -109,17 +127,7 @@ def verification_record(submission: str | Path, folder: str | Path | None = None
 
 def check_agent_files(replay: dict, source: str) -> None:
     """Raise unless every file the agent loads has the sha256 recorded at submission."""
-    for path, digest in replay["files_sha256"].items():
-        if not Path(path).is_file():
-            raise SafeRaceError(
-                f"{source}: the agent's file {path} is not here: run verify from the folder "
-                "the benchmark ran in"
-            )
-        if file_sha256(path) != digest:
-            raise SafeRaceError(
-                f"{source}: the agent's file {path} changed since the runs (sha256 "
-                f"{digest[:12]} recorded, {file_sha256(path)[:12]} now)"
-            )
+    _check_files(replay["files_sha256"], source)
     now = replay_record(replay["agent"], replay["mc_samples"], replay_faults(replay))
     if now["agent_sha256"] != replay["agent_sha256"]:
         raise SafeRaceError(
@@ -128,9 +136,26 @@ def check_agent_files(replay: dict, source: str) -> None:
         )
 
 
-def first_difference(stored: dict, replayed: dict) -> str | None:
+def _check_files(files_sha256: dict[str, str], source: str) -> None:
+    """Raise unless every file has its recorded sha256 here."""
+    for path, digest in files_sha256.items():
+        if not Path(path).is_file():
+            raise SafeRaceError(
+                f"{source}: the submission's file {path} is not here: run verify from the "
+                "folder the benchmark ran in"
+            )
+        if file_sha256(path) != digest:
+            raise SafeRaceError(
+                f"{source}: the submission's file {path} changed since the runs (sha256 "
+                f"{digest[:12]} recorded, {file_sha256(path)[:12]} now)"
+            )
+
+
+def first_difference(
+    stored: dict, replayed: dict, tolerances: dict[str, float | None] = TOLERANCES
+) -> str | None:
     """The first measurement in which ``replayed`` differs from ``stored``, described."""
-    for name, tolerance in TOLERANCES.items():
+    for name, tolerance in tolerances.items():
         if name == "trajectory":
             difference = _trajectory_difference(stored[name], replayed[name])
             if difference is None:
@@ -222,16 +247,68 @@ def replay_compiled(replay: dict) -> bool:
     return bool(replay.get("compiled"))
 
 
-def _replay(
-    path: Path, sha256: str, runs: int | None, workers: int, seed: int, progress: bool
-) -> Verification:
+@dataclass(frozen=True)
+class Replayable:
+    """A checked submission as ``verify`` replays it: its rows by run key, each run's job
+    for ``drive``, how a replayed row is said, and what is compared within what."""
+
+    data: dict
+    rows: dict[str, dict]
+    jobs: dict[str, tuple]
+    drive: Callable[..., dict]
+    words: Callable[[dict], str]
+    tolerances: dict[str, float | None]
+
+
+def replayable(path: Path) -> Replayable:
+    """The submission in ``path``, checked, as a driver's or a filter's, its files checked
+    to be those it was driven with."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        data = None  # the drivers' checks say why
+    if is_filter_submission(data):
+        data = read_filter_submission(str(path))
+        check_entry_files(data["replay"], str(path))
+        filter_suite = load_filter_suite(data["filter_suite_version"])
+        entry = FilterEntry(**data["replay"]["entry"])
+        rows = {row["key"]: row for row in data["rows"]}
+        jobs: dict[str, tuple] = {
+            key: (entry, FilterRunSpec.of_row(row), filter_suite) for key, row in rows.items()
+        }
+        return Replayable(data, rows, jobs, drive_filter_run, filter_run_words, FILTER_TOLERANCES)
     data = read_submission(path)
     replay = data["replay"]
     check_agent_files(replay, str(path))
-    use_device(replay_device(replay))
-    os.environ[COMPILE_VARIABLE] = "1" if replay_compiled(replay) else "0"  # and its workers
     suite = load_suite(data["suite_version"])  # checked: a version this SafeRace ships
     rows = {RunSpec.of_row(row).key: row for row in data["rows"]}
+    faults = replay_faults(replay)
+    jobs = {
+        key: (replay["agent"], RunSpec.of_row(row), suite, replay["mc_samples"], faults)
+        for key, row in rows.items()
+    }
+    return Replayable(data, rows, jobs, drive_run, run_words, TOLERANCES)
+
+
+def check_entry_files(replay: dict, source: str) -> None:
+    """Raise unless every file a filter entry loads has the sha256 recorded at submission."""
+    _check_files(replay["files_sha256"], source)
+    now = filter_replay_record(FilterEntry(**replay["entry"]))
+    if now["entry_sha256"] != replay["entry_sha256"]:
+        raise SafeRaceError(
+            f"{source}: the entry's files are not those it was driven with (entry hash "
+            f"{replay['entry_sha256'][:12]} recorded, {now['entry_sha256'][:12]} now)"
+        )
+
+
+def _replay(
+    path: Path, sha256: str, runs: int | None, workers: int, seed: int, progress: bool
+) -> Verification:
+    submission = replayable(path)
+    data, rows = submission.data, submission.rows
+    replay = data["replay"]
+    use_device(replay_device(replay))
+    os.environ[COMPILE_VARIABLE] = "1" if replay_compiled(replay) else "0"  # and its workers
     chosen = choose_runs(list(rows), runs, seed)
     installed = {"saferace": __version__, **package_versions()}
     notes = tuple(
@@ -243,31 +320,27 @@ def _replay(
         notes += ("the car's identified parameters differ from the submission's: the "
                   "expert's and the filter's runs will not replay",)  # fmt: skip
     replayed: dict[str, dict] = {}
-    faults = replay_faults(replay)
-    jobs = [
-        (replay["agent"], RunSpec.of_row(rows[key]), suite, replay["mc_samples"], faults)
-        for key in chosen
-    ]
+    tolerances = submission.tolerances
 
-    def replayed_words(spec: RunSpec) -> str:
-        row = replayed.get(spec.key)
+    def replayed_words(key: str) -> str:
+        row = replayed.get(key)
         if row is None:
             return "failed"
-        difference = first_difference(rows[spec.key], row)
-        return f"{run_words(row)}; {'as submitted' if difference is None else difference}"
+        difference = first_difference(rows[key], row, tolerances)
+        return f"{submission.words(row)}; {'as submitted' if difference is None else difference}"
 
-    with Progress(len(jobs), "verify", "run", enabled=progress) as bar:
+    with Progress(len(chosen), "verify", "run", enabled=progress) as bar:
         run_jobs(
-            drive_run,
-            jobs,
+            submission.drive,
+            [submission.jobs[key] for key in chosen],
             lambda job, row: replayed.__setitem__(job[1].key, row),
             workers=workers,
-            advance=lambda job: bar.done(job[1].key, replayed_words(job[1])),
+            advance=lambda job: bar.done(job[1].key, replayed_words(job[1].key)),
             describe=lambda job: job[1].key,
         )
     mismatches = tuple(
         f"run {key}: {difference}"
         for key in chosen
-        if (difference := first_difference(rows[key], replayed[key])) is not None
+        if (difference := first_difference(rows[key], replayed[key], tolerances)) is not None
     )
     return Verification(sha256, tuple(chosen), len(rows), mismatches, notes)
