@@ -18,9 +18,10 @@ from gymnasium.utils.env_checker import check_env
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.errors import ConfigError, SafeRaceError
 from saferace.eval.agents import make_agent
+from saferace.eval.filter_config import USERS_FILTER_SETTINGS
 from saferace.eval.filters import FilterConfig, apply_filter
-from saferace.eval.leaderboard import filter_words
-from saferace.eval.runner import make_task_env, max_steps_for, run_episode
+from saferace.eval.leaderboard import filter_words, row_filter
+from saferace.eval.runner import evaluate, make_task_env, max_steps_for, run_episode
 from saferace.safety.filter_protocol import (
     FilterSetup,
     FilterView,
@@ -207,3 +208,24 @@ def test_our_filters_settings_are_refused_for_ones_own(setting, value):
 def test_a_filter_name_that_is_none_of_ours_nor_module_factory_is_refused(kind):
     with pytest.raises(ConfigError, match="MODULE:FACTORY"):
         FilterConfig(kind=kind)
+
+
+def test_an_eval_row_says_what_the_filter_raised_and_keeps_only_its_settings(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    (tmp_path / "late_bug.py").write_text(
+        "class LateBug:\n"
+        "    def reset(self, seed=None):\n        pass\n"
+        "    def certify(self, action, view):\n"
+        "        if view.time_s > 0.52:\n            raise KeyError('gone')\n"
+        "        return action\n"
+        "def make(setup):\n    return LateBug()\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delitem(sys.modules, "late_bug", raising=False)
+    safety = FilterConfig(kind="late_bug:make", state_noise=(0.05, 0.05))
+    (row,) = evaluate("drift", "CenterLine", "lab", [0], progress=False, safety=safety)
+    assert row["filter_error"] == "late_bug:make raised at 0.55 s: KeyError: 'gone'"
+    assert row["ending"] == f"ended: {row['filter_error']}"
+    assert set(row["filter"]) == set(USERS_FILTER_SETTINGS)
+    assert row_filter(row) == safety

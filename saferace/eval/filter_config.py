@@ -39,6 +39,10 @@ STATE_SOURCE_FACTORIES = {
 OPTIONAL_ARGUMENT_SOURCES = ("generic",)
 
 
+#: The settings of :class:`FilterConfig` that a filter of the user's has: the state it is fed.
+USERS_FILTER_SETTINGS = ("kind", "state_noise", "samples", "state_source", "own_track_calibration")
+
+
 def users_filter(kind: str) -> bool:
     """Whether ``kind`` names a user's safety filter, ``MODULE:FACTORY``
     (:mod:`saferace.safety.filter_protocol`), not one of ours."""
@@ -333,4 +337,9 @@ class FilterConfig:
         return f"{family}{source}{fused}-{mode}{slack}"
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The settings; for a filter of the user's only those that are its (the state it
+        is fed), not our filters' (gains, model, uncertainty mode, slack...)."""
+        settings = asdict(self)
+        if users_filter(self.kind):
+            return {name: settings[name] for name in USERS_FILTER_SETTINGS}
+        return settings

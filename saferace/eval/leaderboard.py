@@ -48,8 +48,9 @@ def row_filter(row: dict) -> FilterConfig:
     """The :class:`FilterConfig` a result row ran behind; a row without one (written before
     rows recorded it, or by ``saferace collect``) ran without a filter."""
     config = {k: v for k, v in (row.get("filter") or {}).items() if k in _FILTER_FIELDS}
-    config.setdefault("uncertainty", "chance")  # what a row from before the option ran
-    config.setdefault("gains", DEFAULT_GAINS)
+    if not users_filter(str(config.get("kind", "none"))):  # ours: what older rows ran
+        config.setdefault("uncertainty", "chance")
+        config.setdefault("gains", DEFAULT_GAINS)
     for name in ("state_noise", "spread_scale"):
         if config.get(name) is not None:
             config[name] = tuple(config[name])

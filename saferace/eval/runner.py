@@ -318,7 +318,9 @@ def result_row(
 ) -> dict:
     """The JSON row of one evaluated episode behind the filter ``safety`` (None: none).
 
-    The row names its track so that it is found from any folder (:func:`track_reference`):
+    The row says how the episode ended (``ending``) and, where a filter of the protocol
+    raised, what (``filter_error``). It names its track so that it is found from any
+    folder (:func:`track_reference`):
     ``config["track"]`` is a built-in track's name or a track file's absolute path, with
     ``config["track_sha256"]`` the file's content hash; ``config["track_given"]`` is the
     argument as given.
@@ -332,6 +334,8 @@ def result_row(
         "summary": result.summary,
         "laps": [lap.as_dict() for lap in result.laps],
         "terminated": result.terminated,
+        "ending": result.ending,
+        **({} if result.filter_error is None else {"filter_error": result.filter_error}),
         "trajectory": thinned_trajectory(result.steps, ("x_m", "y_m", "s_m", "v_x_mps")),
         **({} if result.traffic is None else {"traffic": traffic_paths(result.steps)}),
         "config": {**track_reference(track_arg), "laps": laps, "model": model},

@@ -55,8 +55,8 @@ class Perception:
             value = np.asarray(getattr(self, name), dtype=float)
             if value.shape != (2,) or np.isnan(value).any():
                 raise SafeRaceError(
-                    f"a perception's {name} must be 2 numbers [e_y_m, e_psi_rad], got "
-                    f"{getattr(self, name)!r}"
+                    f"a perception's {name} must be 2 numbers [e_y_m, e_psi_rad], none of "
+                    f"them NaN, got {getattr(self, name)!r}"
                 )
             object.__setattr__(self, name, value)
         if not np.isfinite(self.mean).all():
