@@ -16,6 +16,7 @@ import pytest
 from cli_helpers import run_cli
 
 from saferace.errors import SafeRaceError
+from saferace.eval.runner import file_sha256
 from saferace.experiments import filter_benchmark
 from saferace.experiments.filter_benchmark import FilterEntry, run_filter_benchmark
 from saferace.experiments.filter_board import filter_board_html, filter_board_rows
@@ -27,6 +28,7 @@ from saferace.experiments.filter_suite import (
     scored_filter_run,
 )
 from saferace.experiments.verify import verify_submission
+from saferace.track.random_track import write_random_track
 
 #: A user's filter: brakes while the interval is within 0.25 m of an edge, and raises
 #: among opponents (a bug of its own).
@@ -126,7 +128,8 @@ def test_the_protocol_is_fixed():
     suite = load_filter_suite()
     assert suite.version == 1
     assert suite.drivers == ("drift", "weave", "speeding", "expert")
-    assert len(suite.tracks) == 6 and set(suite.expert_lap_time_s) == set(suite.tracks)
+    assert len(suite.tracks) == 6 and len(suite.circuits) == 3
+    assert set(suite.expert_lap_time_s) == {*suite.tracks, *suite.circuits}
     assert len(suite.runs()) == len({run.key for run in suite.runs()}) == 216
     perceived = [name for name, c in suite.conditions.items() if c.state == "perceived"]
     assert [suite.conditions[name].look for name in perceived] == [0, 2, 4, 0, 0]
@@ -321,3 +324,30 @@ def test_a_filter_benchmark_of_bad_options_is_refused_in_one_line(
     assert result.returncode != 0
     assert reason in result.stderr.strip().splitlines()[-1], result.stderr
     assert not Path("refused.json.runs.jsonl").exists()
+
+
+def test_circuits_are_driven_only_from_a_folder_holding_the_files_the_protocol_pins(
+    tmp_path: Path,
+):
+    circuit = write_random_track(tmp_path / "circuits" / "Loop_centerline.csv", 7)
+    suite = dataclasses.replace(
+        small_suite(),
+        circuits={"Loop_centerline": file_sha256(circuit)},
+        expert_lap_time_s={**small_suite().expert_lap_time_s, "Loop_centerline": 9.0},
+    )
+    assert len(suite.runs()) == 6  # no circuits without their folder
+    with_circuits = suite.with_circuits(circuit.parent)
+    added = with_circuits.runs()[6:]
+    assert [run.key for run in added] == [
+        f"{driver}/Loop_centerline/{condition}"
+        for condition in suite.circuit_conditions
+        for driver in suite.drivers
+    ]
+    assert with_circuits.track_argument("Loop_centerline") == str(circuit.resolve())
+    with pytest.raises(SafeRaceError, match="no folder of circuits given"):
+        suite.track_argument("Loop_centerline")
+    with pytest.raises(SafeRaceError, match=r"circuit Loop_centerline: no .* \(give the folder"):
+        suite.with_circuits(tmp_path)
+    circuit.write_text(circuit.read_text() + "\n")
+    with pytest.raises(SafeRaceError, match="is not the protocol's"):
+        suite.with_circuits(circuit.parent)

@@ -148,6 +148,12 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="what feeds the filter in the perceived conditions: generic[:RECIPE], "
         "learned:CKPT or MODULE:FACTORY (a perception method of your own)",
     )
+    filter_options.add_argument(
+        "--circuits",
+        type=values.existing,
+        help="also drive the protocol's F1TENTH circuits, their centre lines read from this "
+        "folder (the racetracks' NAME_centerline.csv, as the protocol pins them)",
+    )
     filter_options.add_argument("--filter-gains", choices=GAIN_NAMES, help="our cbf's gains")
     filter_options.add_argument(
         "--filter-slack", choices=SLACK_PENALTIES, help="our cbf's QP slack penalty"
@@ -413,7 +419,9 @@ def _filter_benchmark(args: argparse.Namespace) -> int:
     if args.faults:
         raise SafeRaceError("--faults: the filter protocol has no fault conditions yet")
     entry = FilterEntry(args.filter, args.state_source, args.filter_gains, args.filter_slack)
-    result = run_filter_benchmark(entry, args.out, workers=args.workers, ray_address=args.ray)
+    result = run_filter_benchmark(
+        entry, args.out, workers=args.workers, ray_address=args.ray, circuits=args.circuits
+    )
     print(
         f"{entry.label}: score {result['score']:.1f}, {result['runs_outside']} runs outside "
         f"({result['time_outside_lane_s']:.2f} s), longest standstill "

@@ -391,11 +391,16 @@ def run_benchmark(
     by_key = {row["key"]: row for row in done}
     rows = [by_key[spec.key] for spec in wanted]
     result = submission(agent, rows, suite, replay)
+    write_submission(out, result)
+    return result
+
+
+def write_submission(out: Path, result: dict) -> None:
+    """Write ``result`` to ``out`` at once (through a partial file: never half of it)."""
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(f".{out.name}.partial")
     partial.write_text(json.dumps(result, indent=1) + "\n")
     os.replace(partial, out)
-    return result
 
 
 def _keyed(row: dict, replay: dict, spec: RunSpec) -> dict:
@@ -451,6 +456,13 @@ def submission(agent: str, rows: list[dict], suite: Suite, replay: dict) -> dict
         **totals(rows, suite),
         "rows": rows,
         "replay": replay,
+        **provenance(),
+    }
+
+
+def provenance() -> dict:
+    """Where a submission was measured: the versions, git revision, machine and time."""
+    return {
         "versions": {"saferace": __version__, **package_versions()},
         "git_revision": git_revision(),
         "machine": {

@@ -176,29 +176,14 @@ document.querySelectorAll("th").forEach((header, column) => {
 
 def leaderboard_html(submissions: list[dict], suite: Suite) -> str:
     """The self-contained leaderboard page."""
-    rows = leaderboard_rows(submissions)
-    header = "".join(f"<th>{html.escape(name)}</th>" for name in COLUMNS)
-    body = "".join(
-        "<tr>" + "".join(f"<td>{html.escape(cell(value))}</td>" for value in row) + "</tr>"
-        for row in rows
-    )
     figures = "".join(
         f'<figure><img alt="{html.escape(track)}" src="data:image/png;base64,{data}">'
         f"<figcaption>{html.escape(track)}</figcaption></figure>"
         for track, data in trajectory_images(submissions, suite).items()
     )
-    return f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8">
-<title>SafeRace leaderboard, suite v{suite.version}</title>
-<style>
-body {{ font-family: sans-serif; margin: 2em; }}
-.scroll {{ overflow-x: auto; }}
-table {{ border-collapse: collapse; font-size: 0.9em; }}
-th, td {{ border: 1px solid #999; padding: 4px; text-align: right; }}
-th {{ cursor: pointer; background: #eee; max-width: 7em; vertical-align: bottom; }}
-figure {{ display: inline-block; margin: 0.5em; }}
-</style></head><body>
-<h1>SafeRace leaderboard</h1>
+    return html_page(
+        f"SafeRace leaderboard, suite v{suite.version}",
+        f"""<h1>SafeRace leaderboard</h1>
 <p>Suite v{suite.version}: {len(suite.tracks)} tracks, {len(suite.tasks)} tasks,
 {len(suite.seeds)} starts{_traffic_words(suite)}, without and with the shared safety
 filter. Score: 100 times the mean over the unfiltered runs of completion x speed against
@@ -209,13 +194,42 @@ and with the filter. Overtakes: opponents an agent passed and stayed ahead of. S
 of an older suite rank among their own version only. Verified runs: how many of an entry's
 runs <code>saferace verify</code> drove again and found as submitted. Click a column to
 sort.</p>
-<div class="scroll"><table id="leaderboard"><thead><tr>{header}</tr></thead>
-<tbody>{body}</tbody></table></div>
+{sortable_table("leaderboard", COLUMNS, leaderboard_rows(submissions))}
 <h2>Driven paths</h2>
-{figures}
+{figures}""",
+    )
+
+
+def html_page(title: str, body: str) -> str:
+    """A self-contained page of ``body`` (HTML), its tables sortable by a click."""
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<title>{html.escape(title)}</title>
+<style>
+body {{ font-family: sans-serif; margin: 2em; }}
+.scroll {{ overflow-x: auto; }}
+table {{ border-collapse: collapse; font-size: 0.9em; }}
+th, td {{ border: 1px solid #999; padding: 4px; text-align: right; }}
+th {{ cursor: pointer; background: #eee; max-width: 7em; vertical-align: bottom; }}
+figure {{ display: inline-block; margin: 0.5em; }}
+</style></head><body>
+{body}
 <script>{SORT_SCRIPT}</script>
 </body></html>
 """
+
+
+def sortable_table(table_id: str, columns: tuple[str, ...], rows: list[list]) -> str:
+    """A table of ``rows`` under ``columns``, every cell escaped."""
+    header = "".join(f"<th>{html.escape(name)}</th>" for name in columns)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(cell(value))}</td>" for value in row) + "</tr>"
+        for row in rows
+    )
+    return (
+        f'<div class="scroll"><table id="{table_id}"><thead><tr>{header}</tr></thead>'
+        f"<tbody>{body}</tbody></table></div>"
+    )
 
 
 def _traffic_words(suite: Suite) -> str:

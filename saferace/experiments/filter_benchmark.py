@@ -13,9 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import platform
-import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -29,15 +26,13 @@ from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     append_jsonl,
     file_sha256,
-    git_revision,
     make_task_env,
     max_steps_for,
-    package_versions,
     read_jsonl,
     run_episode,
     standstill_words,
 )
-from saferace.experiments.benchmark import episode_measurements
+from saferace.experiments.benchmark import episode_measurements, provenance, write_submission
 from saferace.experiments.filter_suite import (
     Condition,
     FilterRunSpec,
@@ -50,7 +45,6 @@ from saferace.experiments.replay_record import network_settings, vehicle_params_
 from saferace.names import GENERIC_SOURCE
 from saferace.progress import Progress
 from saferace.track import Track
-from saferace.version import __version__
 
 #: What marks a submission as the filter protocol's (the drivers' have none).
 PROTOCOL = "filters"
@@ -203,11 +197,14 @@ def run_filter_benchmark(
     suite: FilterSuite | None = None,
     runs: Iterable[FilterRunSpec] | None = None,
     ray_address: str | None = None,
+    circuits: str | Path | None = None,
 ) -> dict:
     """Run the protocol's runs missing from ``OUT.runs.jsonl`` (over ``workers``
-    processes, or as Ray tasks with ``ray_address``), then write the submission ``out``;
-    the submission."""
+    processes, or as Ray tasks with ``ray_address``; with the circuits' runs where
+    ``circuits`` is their folder), then write the submission ``out``; the submission."""
     suite = suite or load_filter_suite()
+    if circuits is not None:
+        suite = suite.with_circuits(circuits)
     out = Path(out)
     journal = out.with_name(out.name + ".runs.jsonl")
     done = read_jsonl(journal) if journal.exists() else []
@@ -243,31 +240,22 @@ def run_filter_benchmark(
         )
     by_key = {row["key"]: row for row in done}
     result = filter_submission(entry, [by_key[spec.key] for spec in wanted], suite, replay)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(f".{out.name}.partial")
-    partial.write_text(json.dumps(result, indent=1) + "\n")
-    os.replace(partial, out)
+    write_submission(out, result)
     return result
 
 
 def filter_submission(
     entry: FilterEntry, rows: list[dict], suite: FilterSuite, replay: dict
 ) -> dict:
-    """The submission of ``entry``: its rows, totals, how to replay it and where it was
-    measured."""
+    """The submission of ``entry``: its rows, totals, the folder of the circuits it drove
+    (None: none), how to replay it and where it was measured."""
     return {
         "protocol": PROTOCOL,
         "filter_suite_version": suite.version,
+        "circuits": None if suite.circuits_folder is None else str(suite.circuits_folder),
         "entry": entry.label,
         **filter_totals(rows, suite),
         "rows": rows,
         "replay": replay,
-        "versions": {"saferace": __version__, **package_versions()},
-        "git_revision": git_revision(),
-        "machine": {
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "cpus": os.cpu_count(),
-        },
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        **provenance(),
     }

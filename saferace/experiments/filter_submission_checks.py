@@ -7,7 +7,8 @@ expert references (:func:`~saferace.experiments.filter_suite.scored_filter_run`)
 entry's totals from its runs. A submission is refused, in one line naming the run and the
 field, when it was made on a protocol version this SafeRace does not ship; its replay
 record does not hash to its ``entry_sha256``; its runs are not exactly the protocol's
-(every run once, no other); a run was driven by another entry (its ``entry_sha256``); a
+(every run once, no other; the circuits' too where it names their folder, which must hold
+the files the protocol pins); a run was driven by another entry (its ``entry_sha256``); a
 stored score or total differs from the recomputed one; or a measurement is impossible or
 contradicts another (as for drivers: completion, time driven and outside, standstill,
 laps, the trajectory; and the filter's clipped steps and error).
@@ -19,7 +20,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections import Counter
 from dataclasses import fields
 
 from saferace.errors import SafeRaceError
@@ -32,6 +32,7 @@ from saferace.experiments.filter_suite import (
     scored_filter_run,
 )
 from saferace.experiments.submission_checks import (
+    check_coverage,
     check_drive,
     check_intervention_rate,
     check_lap,
@@ -39,7 +40,7 @@ from saferace.experiments.submission_checks import (
     check_trajectory,
 )
 
-SUBMISSION_FIELDS = ("filter_suite_version", "entry", "rows", "replay", "versions")
+SUBMISSION_FIELDS = ("filter_suite_version", "circuits", "entry", "rows", "replay", "versions")
 ROW_FIELDS = (
     "key", "entry_sha256", "filter_suite_version", "driver", "track", "condition", "opponents",
     "completion", "laps_completed", "lap_time_s", "driven_s", "time_outside_lane_s",
@@ -64,6 +65,14 @@ def check_filter_submission(data: object, source: str, suite: FilterSuite | None
     if missing:
         raise SafeRaceError(f"{source}: missing field(s) {', '.join(missing)}")
     suite = suite or _own_suite(data["filter_suite_version"], source)
+    circuits = data["circuits"]
+    if circuits is not None:
+        if not isinstance(circuits, str):
+            raise SafeRaceError(f"{source}: circuits {circuits!r} is not a folder")
+        try:
+            suite = suite.with_circuits(circuits)
+        except SafeRaceError as error:
+            raise SafeRaceError(f"{source}: {error}") from None
     entry = _checked_entry(data, source)
     rows = data["rows"]
     if not isinstance(rows, list) or not rows or not all(isinstance(row, dict) for row in rows):
@@ -73,7 +82,7 @@ def check_filter_submission(data: object, source: str, suite: FilterSuite | None
         if absent:
             raise SafeRaceError(f"{source}: row {index} lacks {', '.join(absent)}")
     specs = [FilterRunSpec.of_row(row) for row in rows]
-    _check_coverage(specs, source, suite)
+    check_coverage(specs, suite.runs(), source, f"filter protocol v{suite.version}")
     checked = []
     for row, spec in zip(rows, specs, strict=True):
         where = f"{source}: run {spec.key}"
@@ -138,25 +147,6 @@ def _checked_entry(data: dict, source: str) -> FilterEntry:
     if data["entry"] != entry.label:
         raise SafeRaceError(f"{source}: entry {data['entry']!r} but replay entry {entry.label!r}")
     return entry
-
-
-def _check_coverage(specs: list[FilterRunSpec], source: str, suite: FilterSuite) -> None:
-    counts = Counter(specs)
-    wanted = suite.runs()
-    repeated = [spec for spec, count in counts.items() if count > 1]
-    if repeated:
-        raise SafeRaceError(f"{source}: run {repeated[0].key} appears {counts[repeated[0]]} times")
-    extra = [spec for spec in counts if spec not in wanted]
-    if extra:
-        raise SafeRaceError(
-            f"{source}: run {extra[0].key} is not a run of filter protocol v{suite.version}"
-        )
-    absent = [spec for spec in wanted if spec not in counts]
-    if absent:
-        more = f" (and {len(absent) - 1} more)" if len(absent) > 1 else ""
-        raise SafeRaceError(
-            f"{source}: run {absent[0].key} of filter protocol v{suite.version} is missing{more}"
-        )
 
 
 def _check_measurements(

@@ -9,6 +9,10 @@ generic model) at look severities 0, 2 and 4, and at severity 0 with its frames 
 (100 ms) late from 3 s on, or with the camera blacked out for 1 s at 3 s. Then the traffic
 set: the ``Overtake`` task behind a car at 80% of the line's speed that brakes hard every
 few seconds, under the true state and the perception at severity 0. 216 runs per entry.
+With ``--circuits DIR``, a folder of the F1TENTH racetracks' centre lines (not shipped:
+their licence is not ours; the suite pins each file's sha256), 30 s of three circuits as
+given (2.2 m lanes) under the true state and the perception, 24 runs more: such an entry
+ranks among those with circuits.
 
 An **entry** is a filter (``none``, ours with its settings, or ``MODULE:FACTORY``) and a
 perception (``generic[:RECIPE]``, ``learned:CKPT`` or ``MODULE:FACTORY``) that it is fed in
@@ -31,6 +35,7 @@ whose filter raised scores 0. The entry's **score** is 100 times the mean over i
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -38,6 +43,7 @@ from importlib import resources
 from pathlib import Path
 
 from saferace.errors import SafeRaceError
+from saferace.eval.runner import file_sha256
 
 FILTER_SUITE_VERSION = 1
 OUTSIDE_SCALE_S = 1.0  # below the floor, the score falls by 1/e per second outside
@@ -109,27 +115,66 @@ class FilterSuite:
     correction_scales: tuple[float, float]
     expert_lap_time_s: dict[str, float]
     folder: Path
+    circuits: dict[str, str]
+    circuit_conditions: tuple[str, ...]
+    circuits_folder: Path | None = None
+
+    def with_circuits(self, folder: str | Path) -> FilterSuite:
+        """The suite with its circuits' runs, their centre lines read from ``folder`` (the
+        F1TENTH racetracks' ``NAME.csv``, each with the sha256 the suite pins)."""
+        folder = Path(folder).expanduser().resolve()
+        for name, digest in self.circuits.items():
+            path = folder / f"{name}.csv"
+            if not path.is_file():
+                raise SafeRaceError(
+                    f"circuit {name}: no {path} (give the folder of the F1TENTH racetracks' "
+                    "centre lines)"
+                )
+            if file_sha256(path) != digest:
+                raise SafeRaceError(
+                    f"circuit {name}: {path} is not the protocol's (its sha256 is "
+                    f"{file_sha256(path)[:12]}, the protocol's {digest[:12]})"
+                )
+        return dataclasses.replace(self, circuits_folder=folder)
 
     def track_argument(self, track: str) -> str:
-        """A built-in track's name, or the path of one of the suite's own tracks."""
+        """A built-in track's name, or the path of one of the suite's own tracks or of its
+        circuits."""
+        if track in self.circuits:
+            if self.circuits_folder is None:
+                raise SafeRaceError(f"circuit {track}: no folder of circuits given (--circuits)")
+            return str(self.circuits_folder / f"{track}.csv")
         path = self.folder / f"{track}.csv"
         return str(path) if path.exists() else track
 
     def runs(self) -> list[FilterRunSpec]:
-        """Every run of the protocol: the lane set's, then the traffic set's."""
+        """Every run of the protocol: the lane set's, the traffic set's, then, with a
+        folder of circuits, the circuits'."""
         lane = [
             FilterRunSpec(driver, track, condition)
             for track in self.tracks
             for condition in self.conditions
             for driver in self.drivers
         ]
-        return lane + [
+        traffic = [
             FilterRunSpec(driver, track, condition, opponents)
             for track in self.tracks
             for opponents in self.opponents
             for condition in self.traffic_conditions
             for driver in self.drivers
         ]
+        if self.circuits_folder is None:
+            return lane + traffic
+        return (
+            lane
+            + traffic
+            + [
+                FilterRunSpec(driver, circuit, condition)
+                for circuit in self.circuits
+                for condition in self.circuit_conditions
+                for driver in self.drivers
+            ]
+        )
 
     def task_of(self, spec: FilterRunSpec) -> str:
         return self.task if spec.opponents is None else self.traffic_task
@@ -171,6 +216,8 @@ def load_filter_suite(version: int = FILTER_SUITE_VERSION) -> FilterSuite:
         correction_scales=tuple(data["correction_scales"]),
         expert_lap_time_s=data["expert_lap_time_s"],
         folder=folder,
+        circuits=data["circuits"]["sha256"],
+        circuit_conditions=tuple(data["circuits"]["conditions"]),
     )
 
 

@@ -220,20 +220,23 @@ def _run_spec(row: dict, index: int, source: str) -> RunSpec:
 def _check_coverage(specs: list[RunSpec], source: str, suite: Suite) -> None:
     """Every run of the suite once, no other: runs compared field by field (a filter named
     ``none/expert`` spells a traffic run's key, and is still no run of the suite)."""
+    check_coverage(specs, suite.runs(), source, f"suite v{suite.version}")
+
+
+def check_coverage(specs: list, wanted: list, source: str, protocol: str) -> None:
+    """Raise unless ``specs`` (runs with a ``key``) are ``wanted``, each once, no other;
+    ``protocol`` names what they are runs of."""
     counts = Counter(specs)
-    wanted = suite.runs()
     repeated = [spec for spec, count in counts.items() if count > 1]
     if repeated:
         raise SafeRaceError(f"{source}: run {repeated[0].key} appears {counts[repeated[0]]} times")
     extra = [spec for spec in counts if spec not in wanted]
     if extra:
-        raise SafeRaceError(f"{source}: run {extra[0].key} is not a run of suite v{suite.version}")
+        raise SafeRaceError(f"{source}: run {extra[0].key} is not a run of {protocol}")
     absent = [spec for spec in wanted if spec not in counts]
     if absent:
         more = f" (and {len(absent) - 1} more)" if len(absent) > 1 else ""
-        raise SafeRaceError(
-            f"{source}: run {absent[0].key} of suite v{suite.version} is missing{more}"
-        )
+        raise SafeRaceError(f"{source}: run {absent[0].key} of {protocol} is missing{more}")
 
 
 def _check_measurements(row: dict, spec: RunSpec, suite: Suite, where: str) -> None:

@@ -271,6 +271,8 @@ def replayable(path: Path) -> Replayable:
         data = read_filter_submission(str(path))
         check_entry_files(data["replay"], str(path))
         filter_suite = load_filter_suite(data["filter_suite_version"])
+        if data["circuits"] is not None:  # checked: holds the circuits the protocol pins
+            filter_suite = filter_suite.with_circuits(data["circuits"])
         entry = FilterEntry(**data["replay"]["entry"])
         rows = {row["key"]: row for row in data["rows"]}
         jobs: dict[str, tuple] = {
