@@ -54,4 +54,5 @@ class BrakeNearEdge:
 
 
 def make(setup: FilterSetup) -> BrakeNearEdge:
+    """The factory ``--filter brake_near_edge_filter:make`` calls."""
     return BrakeNearEdge(setup)

@@ -156,6 +156,9 @@ def test_safety_dominates_the_score():
     assert fast["score"] == pytest.approx(1.0) and fast["lap_time_ratio"] == 1.0
     raised = scored_filter_run({**base, "filter_error": "x raised"}, lane, suite)
     assert raised["score"] == 0.0
+    faster = scored_filter_run({**base, "driven_s": lap_s / 2, "mean_steer_correction_rad": -1.0,
+                                "mean_accel_correction_mps2": -1.0}, lane, suite)  # fmt: skip
+    assert faster["score"] == pytest.approx(1.0)  # nothing scores above 1
 
 
 @pytest.fixture(scope="module")
@@ -248,6 +251,13 @@ def drop_a_run(submission: dict) -> None:
         (lambda s: s["rows"][0].update(safe=False), "run drift/lab/true: safe is False"),
         (lambda s: s.update(entry="cbf fed generic"), "entry 'cbf fed generic' but replay"),
         (lambda s: s["replay"]["entry"].update(gains="paper"), "does not hash to its entry"),
+        (
+            lambda s: s["rows"][0].update(mean_steer_correction_rad=-3.6),
+            "run drift/lab/true: mean_steer_correction_rad is -3.6",
+        ),
+        (lambda s: s["rows"][0].update(clipped_steps=True), "clipped_steps True is not 0 to"),
+        (lambda s: s["rows"][-1].update(filter_error=None), "no termination and no filter error"),
+        (lambda s: s["rows"][0].update(coverage=None), "run drift/lab/true: coverage is None"),
     ],
 )
 def test_doctored_submissions_are_refused_in_one_line_naming_run_and_field(

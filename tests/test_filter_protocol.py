@@ -27,7 +27,6 @@ from saferace.safety.filter_protocol import (
     FilterView,
     ProtocolSafetyFilter,
 )
-from saferace.safety.uncertainty.state_sources import NoisyOracleStateSource
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 EXAMPLE = "brake_near_edge_filter:make"
@@ -107,28 +106,86 @@ def test_without_the_example_the_same_drivers_leave():
         assert result.summary["time_outside_lane_s"] > 0.0, driver
 
 
+class ScrambledTruth(gym.Wrapper):
+    """The task with the simulator's state of the car in ``info`` replaced by noise."""
+
+    TRUTH = ("e_y_m", "e_psi_rad", "kappa_radpm", "x_m", "y_m", "yaw_rad", "v_y_mps")
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, **kwargs):
+        observation, info = self.env.reset(**kwargs)
+        return observation, self.scrambled(info)
+
+    def step(self, action):
+        *result, info = self.env.step(action)
+        return (*result, self.scrambled(info))
+
+    def scrambled(self, info: dict) -> dict:
+        return {**info, **{name: float(self.rng.normal()) for name in self.TRUTH}}
+
+
+class FixedSource:
+    """A state source that sees the same lane state whatever happens."""
+
+    reads_image = True
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def samples(self, observation: dict, info: dict) -> np.ndarray:
+        return np.array([[0.1, 0.02, 0.0], [0.12, 0.0, 0.0]])
+
+
 def test_a_filter_is_handed_the_perception_sensors_and_map_but_no_truth():
-    env = lab()
-    source = NoisyOracleStateSource((0.1, 0.1, 0.0), n_samples=8, seed=0)
-    wrapped = ProtocolSafetyFilter(env, lambda setup: Spy(setup), source, "spy", seed=0)
-    method = wrapped.method
-    assert isinstance(method, Spy)
+    """The same actions in the same task, once with the car's true state in ``info``
+    scrambled: a filter fed a fixed perception sees the very same views (and a copy of the
+    map, not the env's)."""
     assert {field.name for field in dataclasses.fields(FilterSetup)} == SETUP_FIELDS
     assert {field.name for field in dataclasses.fields(FilterView)} == VIEW_FIELDS
-    wrapped.reset(seed=0)
-    truths, decisions = [], []
-    for _ in range(10):
-        truths.append(wrapped._info["e_y_m"])  # type: ignore[index]
-        *_, info = wrapped.step(np.array([0.0, 1.0]))
-        decisions.append(info["safety"])
-    views = method.views
-    assert len(views) == 10
-    for view, truth, decision in zip(views, truths, decisions, strict=True):
-        assert view.mean[0] != truth  # the noisy estimate, not the simulator's offset
-        assert view.mean[0] == pytest.approx(decision["state_mean"][0])
-        assert view.lower[0] < view.mean[0] < view.upper[0]
-        assert not hasattr(view, "info") and not hasattr(view, "env")
-    assert views[-1].velocity[0] > 0.0 and views[-1].time_s > views[0].time_s
+    seen = []
+    for wrap in (lambda env: env, ScrambledTruth):
+        env = lab()
+        wrapped = ProtocolSafetyFilter(wrap(env), Spy, FixedSource(), "spy", seed=0)
+        method = wrapped.method
+        assert isinstance(method, Spy) and method.setup.track is not env.unwrapped.track
+        wrapped.reset(seed=0)
+        for step in range(15):
+            wrapped.step(np.array([0.2 * np.sin(step), 1.0]))
+        seen.append(method.views)
+        env.close()
+    plain, scrambled = seen
+    assert len(plain) == 15
+    for one, other in zip(plain, scrambled, strict=True):
+        for name in VIEW_FIELDS:
+            np.testing.assert_array_equal(getattr(one, name), getattr(other, name), err_msg=name)
+    assert plain[-1].velocity[0] > 0.0 and plain[-1].s_m > plain[0].s_m
+    assert plain[0].mean[0] == pytest.approx(0.11) and plain[0].lower[0] < 0.11 < plain[0].upper[0]
+
+
+class Unresettable(Spy):
+    """A filter whose reset raises."""
+
+    def reset(self, seed: int | None = None) -> None:
+        raise RuntimeError("no")
+
+
+@pytest.mark.parametrize(
+    ("factory", "words"),
+    [
+        (lambda setup: 1 / 0, "spy raised when made: ZeroDivisionError"),
+        (lambda setup: Unresettable(setup), "spy raised in reset: RuntimeError: no"),
+    ],
+)
+def test_a_filter_that_raises_made_or_reset_ends_each_run_at_its_first_step(factory, words):
+    env = lab()
+    wrapped = ProtocolSafetyFilter(env, factory, name="spy", seed=0)
+    for seed in (0, 1):
+        wrapped.reset(seed=seed)
+        *_, truncated, info = wrapped.step(np.zeros(2))
+        assert truncated and words in info["filter_error"]
     env.close()
 
 

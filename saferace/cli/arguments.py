@@ -9,6 +9,7 @@ from saferace.cli import values
 from saferace.cli.options import add_config_options
 from saferace.errors import SafeRaceError
 from saferace.names import (
+    AUTO,
     DEFAULT_STATE_NOISE,
     DEVICE_HELP,
     DRIVING_TASKS,
@@ -164,6 +165,7 @@ def filter_config(args: argparse.Namespace):
     if learned and noise is not None:
         raise SafeRaceError("--state-noise is for the noisy oracle, not a learned state source")
     check_filter_asked(option, source, noise)
+    check_own_filter_asked(option)
     if option["filter.fuse_odometry"] and not (noise is not None or learned):
         raise SafeRaceError("--fuse-odometry fuses a noisy or learned --state-source")
     samples = args.samples
@@ -205,6 +207,24 @@ def check_filter_asked(option: dict, source: str, noise: object) -> None:
         raise SafeRaceError(
             "--state-source, --state-noise, --deterministic, --map-curvature, --spread-scale, "
             "--fuse-odometry and --opponent-noise need --filter cbf"
+        )
+
+
+def check_own_filter_asked(option: dict) -> None:
+    """Raise where our filters' own settings are given with a filter of the user's."""
+    from saferace.eval.filter_config import FilterConfig, users_filter
+
+    ours = {
+        "--filter-gains": option["filter.gains"] != AUTO,
+        "--filter-model": option["filter.model"] != AUTO,
+        "--filter-uncertainty": option["filter.uncertainty"] != AUTO,
+        "--eta": option["filter.eta"] != FilterConfig.eta,
+        "--deterministic": not option["filter.probabilistic"],
+    }
+    asked = [flag for flag, given in ours.items() if given]
+    if users_filter(option["filter.kind"]) and asked:
+        raise SafeRaceError(
+            f"{', '.join(asked)}: our filters' settings, not of {option['filter.kind']}"
         )
 
 

@@ -19,6 +19,7 @@ from saferace.cli.arguments import (
     add_seeds_argument,
     built_filter_config,
     check_drive_length,
+    ensure_generic_model,
 )
 from saferace.errors import SafeRaceError
 from saferace.names import (
@@ -31,6 +32,10 @@ from saferace.names import (
     VERIFY_RUNS,
 )
 
+CIRCUITS_HELP = (
+    "filter submissions with circuits: read their F1TENTH centre lines from this folder, "
+    "not the one each submission names"
+)
 RECORDS_HELP = (
     "folder of this machine's verification records (default: $SAFERACE_VERIFIED, else "
     "~/.cache/saferace/verified)"
@@ -119,6 +124,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         help="submissions: list only those saferace verify has passed (in their current form)",
     )
     board.add_argument("--records", type=Path, help=RECORDS_HELP)
+    board.add_argument("--circuits", type=values.existing, help=CIRCUITS_HELP)
     board.set_defaults(command=_leaderboard)
 
     bench = commands.add_parser(
@@ -194,6 +200,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         "--workers", type=values.count, default=1, help="runs at once, in processes"
     )
     verify.add_argument("--records", type=Path, help=RECORDS_HELP)
+    verify.add_argument("--circuits", type=values.existing, help=CIRCUITS_HELP)
     add_device_argument(verify)
     verify.set_defaults(command=_verify)
 
@@ -356,6 +363,7 @@ def _json_of(path: Path) -> object:
 
 
 def _filter_board(args: argparse.Namespace) -> int:
+    """The filters' board of the filter submissions given (see :func:`_leaderboard`)."""
     from saferace.eval.tables import markdown_table, write_csv
     from saferace.experiments.filter_board import (
         COLUMNS,
@@ -369,7 +377,7 @@ def _filter_board(args: argparse.Namespace) -> int:
 
     submissions = []
     for path in args.results:
-        checked = read_filter_submission(str(path))
+        checked = read_filter_submission(str(path), circuits=args.circuits and str(args.circuits))
         submissions.append({**checked, "verification": verification_record(path, args.records)})
     if args.verified_only:
         submissions = [entry for entry in submissions if entry["verification"]]
@@ -377,12 +385,14 @@ def _filter_board(args: argparse.Namespace) -> int:
             raise SafeRaceError("no submission has passed saferace verify in its current form")
     rows = filter_board_rows(submissions)
     print(markdown_table(COLUMNS, [["-" if v is None else v for v in row] for row in rows]))
-    suite = load_filter_suite(max(entry["filter_suite_version"] for entry in submissions))
+    newest = max(entry["filter_suite_version"] for entry in submissions)
+    suite = load_filter_suite(newest)
+    pictured = [entry for entry in submissions if entry["filter_suite_version"] == newest]
     if args.csv:
         write_csv(args.csv, COLUMNS, rows)
         print(f"table written to {args.csv}")
     if args.plot:
-        plot_conditions(submissions, suite, args.plot)
+        plot_conditions(pictured, suite, args.plot)
         print(f"plot written to {args.plot}")
     if args.html:
         args.html.parent.mkdir(parents=True, exist_ok=True)
@@ -419,6 +429,8 @@ def _filter_benchmark(args: argparse.Namespace) -> int:
     if args.faults:
         raise SafeRaceError("--faults: the filter protocol has no fault conditions yet")
     entry = FilterEntry(args.filter, args.state_source, args.filter_gains, args.filter_slack)
+    if entry.filter != "none":
+        ensure_generic_model(entry.perception, args.workers)
     result = run_filter_benchmark(
         entry, args.out, workers=args.workers, ray_address=args.ray, circuits=args.circuits
     )
@@ -439,6 +451,7 @@ def _verify(args: argparse.Namespace) -> int:
         workers=args.workers,
         seed=args.seed,
         records=args.records,
+        circuits=args.circuits and str(args.circuits),
     )
     for note in result.version_notes:
         print(f"note: {note}")

@@ -40,7 +40,10 @@ OPTIONAL_ARGUMENT_SOURCES = ("generic",)
 
 
 #: The settings of :class:`FilterConfig` that a filter of the user's has: the state it is fed.
-USERS_FILTER_SETTINGS = ("kind", "state_noise", "samples", "state_source", "own_track_calibration")
+USERS_FILTER_SETTINGS = (
+    "kind", "state_noise", "samples", "state_source", "own_track_calibration", "spread_scale",
+    "adaptive", "fuse_odometry",
+)  # fmt: skip
 
 
 def users_filter(kind: str) -> bool:

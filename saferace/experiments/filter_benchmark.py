@@ -66,8 +66,7 @@ class FilterEntry:
             raise SafeRaceError(
                 f"--filter-gains and --filter-slack are our filters' settings, not of {self.filter}"
             )
-        for condition in (Condition("true"), Condition("noisy", (0.05, 0.05)),
-                          Condition("perceived")):  # fmt: skip
+        for condition in load_filter_suite().conditions.values():
             self.config(condition)  # refuses settings that do not go together, now
 
     @property

@@ -143,8 +143,10 @@ def plot_conditions(submissions: list[dict], suite: FilterSuite, path: Path | No
 
 
 def filter_board_html(submissions: list[dict], suite: FilterSuite) -> str:
-    """The self-contained page of the filters' board."""
-    picture = base64.b64encode(plot_conditions(submissions, suite)).decode("ascii")
+    """The self-contained page of the filters' board (the picture: the entries of
+    ``suite``'s version)."""
+    pictured = [entry for entry in submissions if entry["filter_suite_version"] == suite.version]
+    picture = base64.b64encode(plot_conditions(pictured, suite)).decode("ascii")
     return html_page(
         f"SafeRace safety filters, protocol v{suite.version}",
         f"""<h1>SafeRace safety filters</h1>

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import fields
 
 from saferace.errors import SafeRaceError
@@ -32,12 +33,14 @@ from saferace.experiments.filter_suite import (
     scored_filter_run,
 )
 from saferace.experiments.submission_checks import (
+    CONTROL_DT_S,
     check_coverage,
     check_drive,
     check_intervention_rate,
     check_lap,
     check_same,
     check_trajectory,
+    finite,
 )
 
 SUBMISSION_FIELDS = ("filter_suite_version", "circuits", "entry", "rows", "replay", "versions")
@@ -46,8 +49,15 @@ ROW_FIELDS = (
     "completion", "laps_completed", "lap_time_s", "driven_s", "time_outside_lane_s",
     "longest_standstill_s", "terminated", "intervention_rate", "clipped_steps",
     "filter_error", "at_fault_collisions", "collisions", "trajectory", "expert_lap_time_s",
-    "lap_time_ratio", "liveness", "fidelity", "safe", "score",
+    "lap_time_ratio", "liveness", "fidelity", "safe", "score", "mean_steer_correction_rad",
+    "mean_accel_correction_mps2", "coverage",
 )  # fmt: skip
+#: A filtered run's measurements that are shares or sizes: a number >= 0 (a share <= 1).
+FILTER_MEASUREMENTS = {
+    "mean_steer_correction_rad": None,
+    "mean_accel_correction_mps2": None,
+    "coverage": 1.0,
+}
 
 
 def is_filter_submission(data: object) -> bool:
@@ -55,9 +65,13 @@ def is_filter_submission(data: object) -> bool:
     return isinstance(data, dict) and data.get("protocol") == PROTOCOL
 
 
-def check_filter_submission(data: object, source: str, suite: FilterSuite | None = None) -> dict:
+def check_filter_submission(
+    data: object, source: str, suite: FilterSuite | None = None, circuits: str | None = None
+) -> dict:
     """``data`` with every score recomputed, if it is a consistent filter submission;
-    otherwise a :class:`SafeRaceError` in one line naming the run and the field."""
+    otherwise a :class:`SafeRaceError` in one line naming the run and the field. The
+    circuits of a submission with them are read from ``circuits``, else from the folder it
+    names."""
     if not is_filter_submission(data):
         raise SafeRaceError(f"{source}: not a submission of the filter protocol")
     assert isinstance(data, dict)
@@ -65,12 +79,11 @@ def check_filter_submission(data: object, source: str, suite: FilterSuite | None
     if missing:
         raise SafeRaceError(f"{source}: missing field(s) {', '.join(missing)}")
     suite = suite or _own_suite(data["filter_suite_version"], source)
-    circuits = data["circuits"]
-    if circuits is not None:
-        if not isinstance(circuits, str):
-            raise SafeRaceError(f"{source}: circuits {circuits!r} is not a folder")
+    if data["circuits"] is not None:
+        if not isinstance(data["circuits"], str):
+            raise SafeRaceError(f"{source}: circuits {data['circuits']!r} is not a folder")
         try:
-            suite = suite.with_circuits(circuits)
+            suite = suite.with_circuits(circuits or data["circuits"])
         except SafeRaceError as error:
             raise SafeRaceError(f"{source}: {error}") from None
     entry = _checked_entry(data, source)
@@ -104,17 +117,21 @@ def check_filter_submission(data: object, source: str, suite: FilterSuite | None
     return {**data, **totals, "rows": checked}
 
 
-def read_filter_submission(path: str, suite: FilterSuite | None = None) -> dict:
-    """The checked filter submission in ``path``."""
+def read_filter_submission(
+    path: str, suite: FilterSuite | None = None, circuits: str | None = None
+) -> dict:
+    """The checked filter submission in ``path`` (its circuits read from ``circuits``, if
+    given)."""
     try:
         with open(path) as file:
             data = json.load(file)
     except (OSError, json.JSONDecodeError) as error:
         raise SafeRaceError(f"{path}: cannot be read as JSON ({error})") from error
-    return check_filter_submission(data, path, suite)
+    return check_filter_submission(data, path, suite, circuits)
 
 
 def _own_suite(version: object, source: str) -> FilterSuite:
+    """The shipped filter protocol of the version a submission was made on."""
     if not isinstance(version, int) or isinstance(version, bool):
         raise SafeRaceError(f"{source}: filter_suite_version {version!r} is no version")
     try:
@@ -149,28 +166,58 @@ def _checked_entry(data: dict, source: str) -> FilterEntry:
     return entry
 
 
+def _whole(value: object, most: object) -> bool:
+    """Whether ``value`` is a whole number (no bool) from 0 to ``most``."""
+    return (
+        isinstance(value, int) and not isinstance(value, bool)
+        and isinstance(most, int) and 0 <= value <= most
+    )  # fmt: skip
+
+
+def _check_ending(row: dict, steps: int, suite: FilterSuite, filtered: bool, where: str) -> None:
+    """A run ends for a reason: its laps done, the car out (terminated), the time limit, or
+    its filter raised (then neither of the first two: that run ended at the error)."""
+    error = row["filter_error"]
+    if error is not None and not (filtered and isinstance(error, str) and error):
+        raise SafeRaceError(f"{where}: filter_error {error!r} is no filter's error")
+    done = row["laps_completed"] == suite.laps
+    limit = steps == round(suite.max_seconds / CONTROL_DT_S)
+    if not isinstance(row["terminated"], bool) or not isinstance(row["safe"], bool):
+        raise SafeRaceError(f"{where}: terminated or safe is not true or false")
+    if error is None and not (done or row["terminated"] or limit):
+        raise SafeRaceError(
+            f"{where}: the run ended after {steps} steps with no lap left, no termination and "
+            "no filter error"
+        )
+    if error is not None and (done or row["terminated"]):
+        raise SafeRaceError(f"{where}: filter_error on a run that ended otherwise")
+
+
 def _check_measurements(
     row: dict, spec: FilterRunSpec, suite: FilterSuite, entry: FilterEntry, where: str
 ) -> None:
     """Raise unless the row's measurements are possible and agree with each other."""
     steps = check_drive(row, suite.max_seconds, where)
     check_lap(row, suite.laps, where)
+    if not finite(row["longest_standstill_s"]):
+        raise SafeRaceError(f"{where}: longest_standstill_s is {row['longest_standstill_s']!r}")
     filtered = entry.filter != "none"
     check_intervention_rate(row, filtered, where)
+    for name, most in FILTER_MEASUREMENTS.items():
+        value = row[name]
+        fits = finite(value) and 0.0 <= value <= (most if most is not None else math.inf)
+        if (value is not None or filtered) and not (filtered and fits):
+            unfiltered = "" if filtered else " on a run without a filter"
+            raise SafeRaceError(f"{where}: {name} is {value!r}{unfiltered}")
     clipped = row["clipped_steps"]
-    if filtered != isinstance(clipped, int) or (filtered and not 0 <= clipped <= steps):
+    if (clipped is not None or filtered) and not (filtered and _whole(clipped, steps)):
         raise SafeRaceError(f"{where}: clipped_steps {clipped!r} is not 0 to {steps} steps")
-    error = row["filter_error"]
-    if error is not None and not (filtered and isinstance(error, str)):
-        raise SafeRaceError(f"{where}: filter_error {error!r} is no filter's error")
+    _check_ending(row, steps, suite, filtered, where)
     collisions, at_fault = row["collisions"], row["at_fault_collisions"]
     if spec.opponents is None:
         if collisions is not None or at_fault is not None:
             raise SafeRaceError(f"{where}: collisions counted on a run without opponents")
-    elif not (
-        isinstance(collisions, int) and isinstance(at_fault, int)
-        and 0 <= at_fault <= collisions <= steps
-    ):  # fmt: skip
+    elif not (_whole(collisions, steps) and _whole(at_fault, collisions)):
         raise SafeRaceError(
             f"{where}: at_fault_collisions {at_fault!r} and collisions {collisions!r} are not "
             f"whole numbers with 0 <= at fault <= all <= {steps}"

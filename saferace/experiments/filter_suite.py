@@ -82,11 +82,13 @@ class FilterRunSpec:
 
     @property
     def key(self) -> str:
+        """``DRIVER/TRACK/CONDITION[/OPPONENTS]``: the run's name in rows and messages."""
         key = f"{self.driver}/{self.track}/{self.condition}"
         return key if self.opponents is None else f"{key}/{self.opponents}"
 
     @classmethod
     def of_row(cls, row: dict) -> FilterRunSpec:
+        """The run a row was driven for."""
         opponents = row.get("opponents")
         return cls(
             str(row["driver"]),
@@ -121,10 +123,11 @@ class FilterSuite:
 
     def with_circuits(self, folder: str | Path) -> FilterSuite:
         """The suite with its circuits' runs, their centre lines read from ``folder`` (the
-        F1TENTH racetracks' ``NAME.csv``, each with the sha256 the suite pins)."""
-        folder = Path(folder).expanduser().resolve()
+        F1TENTH racetracks' ``NAME.csv``, there or in the racetracks' own subfolder, each
+        with the sha256 the suite pins)."""
+        suite = dataclasses.replace(self, circuits_folder=Path(folder).expanduser().resolve())
         for name, digest in self.circuits.items():
-            path = folder / f"{name}.csv"
+            path = Path(suite.track_argument(name))
             if not path.is_file():
                 raise SafeRaceError(
                     f"circuit {name}: no {path} (give the folder of the F1TENTH racetracks' "
@@ -135,15 +138,18 @@ class FilterSuite:
                     f"circuit {name}: {path} is not the protocol's (its sha256 is "
                     f"{file_sha256(path)[:12]}, the protocol's {digest[:12]})"
                 )
-        return dataclasses.replace(self, circuits_folder=folder)
+        return suite
 
     def track_argument(self, track: str) -> str:
         """A built-in track's name, or the path of one of the suite's own tracks or of its
-        circuits."""
+        circuits (``NAME.csv`` in the circuits' folder, or in its subfolder named before the
+        first ``_``, as the racetracks' repository keeps them)."""
         if track in self.circuits:
             if self.circuits_folder is None:
                 raise SafeRaceError(f"circuit {track}: no folder of circuits given (--circuits)")
-            return str(self.circuits_folder / f"{track}.csv")
+            flat = self.circuits_folder / f"{track}.csv"
+            nested = self.circuits_folder / track.split("_")[0] / f"{track}.csv"
+            return str(nested if not flat.is_file() and nested.is_file() else flat)
         path = self.folder / f"{track}.csv"
         return str(path) if path.exists() else track
 
@@ -177,10 +183,12 @@ class FilterSuite:
         )
 
     def task_of(self, spec: FilterRunSpec) -> str:
+        """The task a run drives: the lane's, or among opponents the traffic set's."""
         return self.task if spec.opponents is None else self.traffic_task
 
 
 def filter_suite_folder(version: int = FILTER_SUITE_VERSION) -> Path:
+    """Where the filter protocol of ``version`` ships (its suite.json and tracks)."""
     return Path(str(resources.files("saferace.assets").joinpath(f"benchmark/filters/v{version}")))
 
 
@@ -232,7 +240,7 @@ def scored_filter_run(measurements: dict, spec: FilterRunSpec, suite: FilterSuit
     steer_scale, accel_scale = suite.correction_scales
     steer = measurements["mean_steer_correction_rad"] or 0.0
     accel = measurements["mean_accel_correction_mps2"] or 0.0
-    fidelity = max(0.0, 1.0 - 0.5 * (steer / steer_scale + accel / accel_scale))
+    fidelity = min(1.0, max(0.0, 1.0 - 0.5 * (steer / steer_scale + accel / accel_scale)))
     outside_s = measurements["time_outside_lane_s"]
     collisions = measurements.get("at_fault_collisions") or 0
     safe = outside_s == 0.0 and collisions == 0

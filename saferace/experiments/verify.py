@@ -71,11 +71,12 @@ TOLERANCES: dict[str, float | None] = {
 #: Measurements that rows written before they were recorded lack: compared only where the
 #: submitted row has them, so that an older submission still verifies.
 RECORDED_LATER = ("longest_standstill_s",)
-#: A filter submission's runs also compare the filter's clipped steps and error.
+#: A filter submission's runs also compare the filter's clipped steps, error and coverage.
 FILTER_TOLERANCES: dict[str, float | None] = {
     **TOLERANCES,
     "clipped_steps": None,
     "filter_error": None,
+    "coverage": 1e-9,
 }
 
 
@@ -203,15 +204,17 @@ def verify_submission(
     seed: int = 0,
     progress: bool = True,
     records: str | Path | None = None,
+    circuits: str | None = None,
 ) -> Verification:
     """Replay ``runs`` of the submission in ``path`` (None: all) and compare. A pass writes
-    its record into ``records`` (see :func:`records_folder`); a refusal, a mismatch or a
+    its record into ``records`` (see :func:`records_folder`; a filter submission's circuits
+    are read from ``circuits``, if given); a refusal, a mismatch or a
     failure removes an earlier one."""
     path = Path(path)
     sha256 = file_sha256(path)  # of the bytes checked: a file changed meanwhile gets no mark
     record = record_path(sha256, records)
     try:
-        result = _replay(path, sha256, runs, workers, seed, progress)
+        result = _replay(path, sha256, runs, workers, seed, progress, circuits)
     except Exception:
         record.unlink(missing_ok=True)
         raise
@@ -260,19 +263,20 @@ class Replayable:
     tolerances: dict[str, float | None]
 
 
-def replayable(path: Path) -> Replayable:
+def replayable(path: Path, circuits: str | None = None) -> Replayable:
     """The submission in ``path``, checked, as a driver's or a filter's, its files checked
-    to be those it was driven with."""
+    to be those it was driven with (a filter submission's circuits read from ``circuits``,
+    if given)."""
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         data = None  # the drivers' checks say why
     if is_filter_submission(data):
-        data = read_filter_submission(str(path))
+        data = read_filter_submission(str(path), circuits=circuits)
         check_entry_files(data["replay"], str(path))
         filter_suite = load_filter_suite(data["filter_suite_version"])
         if data["circuits"] is not None:  # checked: holds the circuits the protocol pins
-            filter_suite = filter_suite.with_circuits(data["circuits"])
+            filter_suite = filter_suite.with_circuits(circuits or data["circuits"])
         entry = FilterEntry(**data["replay"]["entry"])
         rows = {row["key"]: row for row in data["rows"]}
         jobs: dict[str, tuple] = {
@@ -304,9 +308,15 @@ def check_entry_files(replay: dict, source: str) -> None:
 
 
 def _replay(
-    path: Path, sha256: str, runs: int | None, workers: int, seed: int, progress: bool
+    path: Path,
+    sha256: str,
+    runs: int | None,
+    workers: int,
+    seed: int,
+    progress: bool,
+    circuits: str | None,
 ) -> Verification:
-    submission = replayable(path)
+    submission = replayable(path, circuits)
     data, rows = submission.data, submission.rows
     replay = data["replay"]
     use_device(replay_device(replay))

@@ -10,6 +10,7 @@
 
 Shared by them and by the expert MPC: the vehicle models (:mod:`~saferace.safety.models`,
 :mod:`~saferace.safety.vehicle_params`, :mod:`~saferace.safety.matrix_exponential`), the
-linear time-varying MPC (:mod:`~saferace.safety.ltv_mpc`) and what passes through a filter
-(:mod:`~saferace.safety.decision`).
+linear time-varying MPC (:mod:`~saferace.safety.ltv_mpc`), what passes through a filter
+(:mod:`~saferace.safety.decision`) and the protocol a filter of one's own follows
+(:mod:`~saferace.safety.filter_protocol`).
 """

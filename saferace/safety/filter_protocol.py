@@ -7,21 +7,23 @@ model, the actuators' limits, the control period. Each step its ``certify(action
 gets the driver's action ``[steer_rad, accel_mps2]`` and a :class:`FilterView`: the lane
 state as the task's perception gives it (an estimate, the interval it claims holds the
 truth and whether it is in doubt), the odometry, the wheels' measured angle, where the car
-is along the map and the opponents a range sensor sees. It never sees the simulator's
-state: the view is built from the perception, the car's own sensors and the map, and
+is along the map and where the opponents are. It never sees the simulator's state of its
+own car: the view is built from the perception, the car's own sensors and the map, and
 neither the env nor ``info`` reaches it. It answers with the action to send.
 
 :class:`ProtocolSafetyFilter` wraps a task with such a filter. What the filter answers is
 checked (two finite numbers) and clipped to the actuators' limits, the clipped steps
-counted (``clipped`` in ``info["safety"]``). A filter that raises, or answers no action,
-ends the run there: the car brakes, the episode is truncated and ``info["filter_error"]``
-says what happened, so that a benchmark reports that run and goes on with the rest.
+counted (``clipped`` in ``info["safety"]``). A filter that raises (made, reset or
+certifying), or answers no action, ends the run there: the car brakes, the episode is
+truncated and ``info["filter_error"]`` says what happened, so that a benchmark reports that
+run and goes on with the rest. The filter's map is a copy: it cannot move the env's edges.
 Filters load as ``MODULE:FACTORY`` from the current folder (``saferace eval --filter
 my_filter:make``), as agents and perception methods do.
 """
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -74,9 +76,10 @@ class FilterView:
     truth and whether it is ``in_doubt``; the odometry's ``velocity`` ``[v_x, v_y, r]``
     (m/s, m/s, rad/s) and the wheels' measured ``steer_angle_rad``; ``s_m``, where the car
     is along the map's centre line (a localisation on the map: the lane offset and heading
-    are what perception must give); ``opponents``, one row per car a range sensor sees,
-    :data:`OPPONENT_COLUMNS` (arc length, offset and heading on the map, speed); the
-    episode's ``time_s``."""
+    are what perception must give); ``opponents``, one row per opponent on the track,
+    :data:`OPPONENT_COLUMNS` (arc length, offset and heading on the map, speed: exact, as
+    our filters get them; the suite models no sensor for other cars); the episode's
+    ``time_s``."""
 
     mean: np.ndarray
     lower: np.ndarray
@@ -110,7 +113,8 @@ class FilterAnswerError(SafeRaceError):
 class ProtocolSafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A task behind a :class:`SafetyFilterMethod` that ``factory(setup)`` makes, fed by
     ``state_source`` (default: the oracle) and never by the simulator's state; ``name`` is
-    how reports call it. ``info["safety"]`` holds a
+    how reports call it. A factory that makes no filter is refused at once; one that raises
+    ends every run at its first step, reported. ``info["safety"]`` holds a
     :class:`~saferace.safety.decision.SafetyDecision` every step; ``clips`` counts the
     steps whose answer was clipped to the limits; ``error`` is what ended the run where the
     filter raised."""
@@ -137,16 +141,22 @@ class ProtocolSafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         self.state_source = state_source if state_source is not None else OracleStateSource()
         self.z = confidence_quantile(INTERVAL_CONFIDENCE)
         setup = FilterSetup(
-            base.track, load_params(), self.lower.copy(), self.upper.copy(),
+            copy.deepcopy(base.track), load_params(), self.lower.copy(), self.upper.copy(),
             float(base.control_dt_s), float(base.car_half_width_m), seed,
         )  # fmt: skip
-        method = factory(setup)
-        if not isinstance(method, SafetyFilterMethod):
-            raise SafeRaceError(
-                f"{name} made {method!r}, no safety filter: it needs reset(seed) and "
-                "certify(action, view) -> action (saferace.safety.filter_protocol)"
-            )
-        self.method = method
+        self.method: SafetyFilterMethod | None = None
+        self.made_error: str | None = None  # what the factory raised: every run ends at once
+        try:
+            method = factory(setup)
+        except Exception as exc:  # a fault of the filter, reported per run
+            self.made_error = f"{name} raised when made: {type(exc).__name__}: {exc}"
+        else:
+            if not isinstance(method, SafetyFilterMethod):
+                raise SafeRaceError(
+                    f"{name} made {method!r}, no safety filter: it needs reset(seed) and "
+                    "certify(action, view) -> action (saferace.safety.filter_protocol)"
+                )
+            self.method = method
         self.clips = self.interventions = self.steps = 0
         self.error: str | None = None
         self._observation: dict[str, np.ndarray] | None = None
@@ -155,9 +165,13 @@ class ProtocolSafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         observation, info = self.env.reset(seed=seed, options=options)
         self.state_source.reset(seed)
-        self.method.reset(seed)
         self.clips = self.interventions = self.steps = 0
-        self.error = None
+        self.error = self.made_error
+        if self.method is not None:
+            try:
+                self.method.reset(seed)
+            except Exception as exc:  # a fault of the filter: this run ends at its first step
+                self.error = f"{self.name} raised in reset: {type(exc).__name__}: {exc}"
         self._observation, self._info = observation, info
         prefetch(self.state_source, observation)
         return observation, info
@@ -175,12 +189,15 @@ class ProtocolSafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         )  # fmt: skip
         view = self._view(estimate.mean, estimate.lower, estimate.upper, estimate.alarm)
         solve_started = time.perf_counter()
-        try:
-            answer = self._answer(nominal, view)
-            clipped = bool(np.any(answer < self.lower) or np.any(answer > self.upper))
-        except Exception as exc:  # any fault of the filter ends its run, reported
-            self.error = f"{self.name} raised at {view.time_s:.2f} s: {type(exc).__name__}: {exc}"
-            answer, clipped = np.array([0.0, self.lower[1]]), False  # brake, straight
+        answer, clipped = np.array([0.0, self.lower[1]]), False  # where it failed: brake
+        if self.error is None and self.method is not None:
+            try:
+                answer = self._answer(self.method, nominal, view)
+                clipped = bool(np.any(answer < self.lower) or np.any(answer > self.upper))
+            except Exception as exc:  # any fault of the filter ends its run, reported
+                self.error = (
+                    f"{self.name} raised at {view.time_s:.2f} s: {type(exc).__name__}: {exc}"
+                )
         solve_time_s = time.perf_counter() - solve_started
         filtered = np.clip(answer, self.lower, self.upper)
         intervened = bool(np.any(np.abs(filtered - nominal) > INTERVENTION_TOLERANCE))
@@ -209,12 +226,17 @@ class ProtocolSafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         prefetch(self.state_source, observation)
         return observation, reward, terminated, truncated, info
 
-    def _answer(self, nominal: np.ndarray, view: FilterView) -> np.ndarray:
+    @staticmethod
+    def _answer(method: SafetyFilterMethod, nominal: np.ndarray, view: FilterView) -> np.ndarray:
         """The filter's answer to ``nominal`` in ``view``, checked to be an action."""
-        answer = self.method.certify(nominal.copy(), view)
-        checked = np.asarray(answer, dtype=float).ravel()
+        answer = method.certify(nominal.copy(), view)
+        try:
+            checked = np.asarray(answer, dtype=float).ravel()
+        except (TypeError, ValueError):
+            checked = np.full(0, np.nan)
         if checked.shape != (2,) or not np.all(np.isfinite(checked)):
-            raise FilterAnswerError(f"certify() must return 2 finite numbers, got {answer!r}")
+            got = checked.tolist() if checked.size else type(answer).__name__
+            raise FilterAnswerError(f"certify() must return 2 finite numbers, got {got}")
         return checked
 
     def _view(
