@@ -17,6 +17,7 @@ from saferace.safety.decision import nominal_parts
 from saferace.safety.uncertainty.steering_trim import (
     DEADBAND_RAD,
     MAX_LATERAL_ACCEL_MPS2,
+    MAX_OFFSET_RAD,
     MAX_WHEELS_TURN_RAD,
     SteeringTrim,
 )
@@ -180,3 +181,19 @@ def test_tyres_sliding_short_of_the_wheels_restart_nothing():
         judge.update(command, np.array([7.0, 0.0, 7.0 * np.tan(0.06) / judge.wheelbase_m]))
     assert judge.servo.surprises == 0
     assert judge.estimate_rad == settled
+
+
+def test_a_spinning_car_gives_no_offset():
+    """The speeding driver on Monza, behind the paper's gain and the generic model, spun:
+    its yaw rate said the wheels held a radian more than they did, twice, and the estimate
+    restarted at 1.06 rad, beyond the steering's range. No offset explains a spin."""
+    judge = trim()
+    for _ in range(40):
+        judge.update(0.0, np.array([6.0, 0.0, 0.0]))
+    for yaw_rate in (12.0, 14.0, 15.0):  # sliding, and turning far more than the wheels
+        judge.update(0.0, np.array([6.0, 1.5, yaw_rate]))
+    assert judge.estimate_rad == 0.0 and judge.servo.surprises == 0
+    offset = MAX_OFFSET_RAD - 0.01  # the most an offset may be is still found
+    for _ in range(60):
+        judge.update(0.0, np.array([3.0, 0.0, 3.0 * np.tan(offset) / judge.wheelbase_m]))
+    assert judge.estimate_rad == pytest.approx(offset, abs=1e-3)

@@ -53,6 +53,12 @@ DEADBAND_RAD = 0.01
 #: in which a 0.07 rad offset at 7 m/s took the expert out of a 0.7 m lane. Seven times the
 #: spread of the yaw rate about the modelled wheels on a fault-free car.
 RESTART_RAD = 0.015
+#: The largest offset the estimate takes (rad): a servo further off centre is a broken
+#: car, not one to trim, and a step whose yaw rate is further off the wheels says no offset
+#: at all. A spinning car (its rear sliding out, the yaw past what the wheels set) read
+#: 1.06 rad on Monza, and the filter's steering box behind that offset was empty. Twice the
+#: largest offset of the steering fault (0.07 at severity 3).
+MAX_OFFSET_RAD = 0.15
 #: The memory (s) over which delays are compared.
 DELAY_TIME_CONSTANT_S = 0.5
 #: Another delay is taken where the spread of its differences is below this share of the
@@ -98,9 +104,12 @@ class ServoModel:
         not slide (``sliding``): a mean of the steps, then a memory of ``rate`` per step;
         restarted where the offset changed. A step that turned the wheels or slid still
         tells a change where neither explains it (:meth:`surprising`): a restart there takes
-        its difference for a start, which the next clean step replaces."""
-        clean = not sliding and abs(self.turn_rad) <= MAX_WHEELS_TURN_RAD
+        its difference for a start, which the next clean step replaces. A step more than
+        :data:`MAX_OFFSET_RAD` off the wheels tells nothing."""
         difference = steered_rad - self.wheels_rad
+        if abs(difference) > MAX_OFFSET_RAD:  # a spin, or the wheels blocked: no offset
+            return
+        clean = not sliding and abs(self.turn_rad) <= MAX_WHEELS_TURN_RAD
         if self.surprising(difference, steered_rad, sliding):
             self.surprises += 1
             if self.surprises == 2:  # the offset changed: the steps from this one on
@@ -117,7 +126,8 @@ class ServoModel:
         """Whether a step's ``difference_rad`` (the yaw rate's angle ``steered_rad`` less the
         modelled wheels) is more than :data:`RESTART_RAD` off the estimate beyond what the
         step explains: the yaw follows a turn of the wheels late, by up to the turn, and
-        sliding tyres turn the car less than the wheels say, never more."""
+        sliding front tyres turn the car less than the wheels say (a car turning more, its
+        rear sliding out, is spinning: :meth:`learn` leaves out what no offset explains)."""
         surprise = difference_rad - self.estimate_rad
         if sliding and surprise * steered_rad <= 0.0:
             return False
