@@ -54,5 +54,4 @@ class BrakeNearEdge:
 
 
 def make(setup: FilterSetup) -> BrakeNearEdge:
-    """The factory ``--filter brake_near_edge_filter:make`` calls."""
     return BrakeNearEdge(setup)
