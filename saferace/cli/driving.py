@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -320,11 +319,11 @@ def _submission_leaderboard(args: argparse.Namespace) -> int:
     from saferace.eval.tables import markdown_table, write_csv
     from saferace.experiments.benchmark import load_suite
     from saferace.experiments.benchmark_page import COLUMNS, leaderboard_html, leaderboard_rows
-    from saferace.experiments.filter_submission_checks import is_filter_submission
+    from saferace.experiments.filter_submission_checks import is_filter_submission_file
     from saferace.experiments.submission_checks import read_submission
     from saferace.experiments.verify import verification_record
 
-    filters = [is_filter_submission(_json_of(path)) for path in args.results]
+    filters = [is_filter_submission_file(path) for path in args.results]
     if any(filters):
         if not all(filters):
             raise SafeRaceError(
@@ -352,14 +351,6 @@ def _submission_leaderboard(args: argparse.Namespace) -> int:
         args.html.write_text(leaderboard_html(submissions, load_suite()))
         print(f"page written to {args.html}")
     return 0
-
-
-def _json_of(path: Path) -> object:
-    """A submission file's JSON (None where it is none: its checks then say why)."""
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
 
 
 def _filter_board(args: argparse.Namespace) -> int:

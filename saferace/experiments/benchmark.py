@@ -47,10 +47,11 @@ import math
 import os
 import platform
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -366,33 +367,62 @@ def run_benchmark(
                 f"{journal} holds runs of {agent!r} with other files or settings (agent hash "
                 f"{row.get('agent_sha256')}, now {replay['agent_sha256']}): use another --out"
             )
-    wanted = list(runs) if runs is not None else suite.runs()
-    finished = {row["key"] for row in done}
-    missing = [spec for spec in wanted if spec.key not in finished]
-
-    def keep(row: dict) -> None:
-        append_jsonl(journal, row)
-        done.append(row)
-
-    def finished_words(spec: RunSpec) -> str:
-        row = next((row for row in reversed(done) if row["key"] == spec.key), None)
-        return "failed" if row is None else run_words(row)
-
-    with Progress(len(missing), f"benchmark {agent}", "run", enabled=progress) as bar:
-        run_jobs(
-            drive_run,
-            [(agent, spec, suite, mc_samples, replay_faults(replay)) for spec in missing],
-            lambda job, row: keep(_keyed(row, replay, job[1])),
-            workers=workers,
-            ray_address=ray_address,
-            advance=lambda job: bar.done(job[1].key, finished_words(job[1])),
-            describe=lambda job: job[1].key,
-        )
-    by_key = {row["key"]: row for row in done}
-    rows = [by_key[spec.key] for spec in wanted]
+    rows = journaled_runs(
+        journal,
+        done,
+        list(runs) if runs is not None else suite.runs(),
+        drive_run,
+        lambda spec: (agent, spec, suite, mc_samples, replay_faults(replay)),
+        lambda row, spec: _keyed(row, replay, spec),
+        run_words,
+        f"benchmark {agent}",
+        (workers, ray_address, progress),
+    )
     result = submission(agent, rows, suite, replay)
     write_submission(out, result)
     return result
+
+
+def journaled_runs(
+    journal: Path,
+    done: list[dict],
+    wanted: list,
+    drive: Callable[..., dict],
+    job_of: Callable[[Any], tuple],
+    keyed: Callable[[dict, Any], dict],
+    words: Callable[[dict], str],
+    title: str,
+    how: tuple[int, str | None, bool],
+) -> list[dict]:
+    """The rows of the runs ``wanted`` (specs with a ``key``), in their order: those the
+    journal's rows ``done`` lack driven as ``drive(*job_of(spec))`` (the spec its job's
+    second item), each row ``keyed(row, spec)`` appended to ``journal`` as it arrives; ``how``:
+    the workers, the Ray address and whether a progress line shows."""
+    workers, ray_address, progress = how
+    finished = {row["key"] for row in done}
+    missing = [spec for spec in wanted if spec.key not in finished]
+
+    def keep(job: tuple, row: dict) -> None:
+        row = keyed(row, job[1])
+        append_jsonl(journal, row)
+        done.append(row)
+
+    def finished_words(key: str) -> str:
+        row = next((row for row in reversed(done) if row["key"] == key), None)
+        return "failed" if row is None else words(row)
+
+    with Progress(len(missing), title, "run", enabled=progress) as bar:
+        run_jobs(
+            drive,
+            [job_of(spec) for spec in missing],
+            keep,
+            workers=workers,
+            ray_address=ray_address,
+            advance=lambda job: bar.done(job[1].key, finished_words(job[1].key)),
+            describe=lambda job: job[1].key,
+        )
+    by_key = {row["key"]: row for row in done}
+    return [by_key[spec.key] for spec in wanted]
 
 
 def write_submission(out: Path, result: dict) -> None:

@@ -22,9 +22,7 @@ from saferace.errors import SafeRaceError
 from saferace.eval.agents import agent_files, make_agent
 from saferace.eval.filter_config import STATE_SOURCE_FACTORIES, users_filter, users_perception
 from saferace.eval.filters import FilterConfig
-from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
-    append_jsonl,
     file_sha256,
     make_task_env,
     max_steps_for,
@@ -32,7 +30,12 @@ from saferace.eval.runner import (
     run_episode,
     standstill_words,
 )
-from saferace.experiments.benchmark import episode_measurements, provenance, write_submission
+from saferace.experiments.benchmark import (
+    episode_measurements,
+    journaled_runs,
+    provenance,
+    write_submission,
+)
 from saferace.experiments.filter_suite import (
     Condition,
     FilterRunSpec,
@@ -43,7 +46,6 @@ from saferace.experiments.filter_suite import (
 )
 from saferace.experiments.replay_record import network_settings, vehicle_params_sha256
 from saferace.names import GENERIC_SOURCE
-from saferace.progress import Progress
 from saferace.track import Track
 
 #: What marks a submission as the filter protocol's (the drivers' have none).
@@ -214,31 +216,18 @@ def run_filter_benchmark(
                 f"{journal} holds runs of another entry, or of other files (entry hash "
                 f"{row.get('entry_sha256')}, now {replay['entry_sha256']}): use another --out"
             )
-    wanted = list(runs) if runs is not None else suite.runs()
-    finished = {row["key"] for row in done}
-    missing = [spec for spec in wanted if spec.key not in finished]
-
-    def keep(job: tuple, row: dict) -> None:
-        row = {"key": job[1].key, "entry_sha256": replay["entry_sha256"], **row}
-        append_jsonl(journal, row)
-        done.append(row)
-
-    def finished_words(spec: FilterRunSpec) -> str:
-        row = next((row for row in reversed(done) if row["key"] == spec.key), None)
-        return "failed" if row is None else filter_run_words(row)
-
-    with Progress(len(missing), f"filter benchmark {entry.label}", "run", enabled=progress) as bar:
-        run_jobs(
-            drive_filter_run,
-            [(entry, spec, suite) for spec in missing],
-            keep,
-            workers=workers,
-            ray_address=ray_address,
-            advance=lambda job: bar.done(job[1].key, finished_words(job[1])),
-            describe=lambda job: job[1].key,
-        )
-    by_key = {row["key"]: row for row in done}
-    result = filter_submission(entry, [by_key[spec.key] for spec in wanted], suite, replay)
+    rows = journaled_runs(
+        journal,
+        done,
+        list(runs) if runs is not None else suite.runs(),
+        drive_filter_run,
+        lambda spec: (entry, spec, suite),
+        lambda row, spec: {"key": spec.key, "entry_sha256": replay["entry_sha256"], **row},
+        filter_run_words,
+        f"filter benchmark {entry.label}",
+        (workers, ray_address, progress),
+    )
+    result = filter_submission(entry, rows, suite, replay)
     write_submission(out, result)
     return result
 

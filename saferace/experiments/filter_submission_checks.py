@@ -22,6 +22,7 @@ import hashlib
 import json
 import math
 from dataclasses import fields
+from pathlib import Path
 
 from saferace.errors import SafeRaceError
 from saferace.experiments.filter_benchmark import PROTOCOL, FilterEntry
@@ -63,6 +64,16 @@ FILTER_MEASUREMENTS = {
 def is_filter_submission(data: object) -> bool:
     """Whether ``data`` says it is a submission of the filter protocol."""
     return isinstance(data, dict) and data.get("protocol") == PROTOCOL
+
+
+def is_filter_submission_file(path: str | Path) -> bool:
+    """Whether the file ``path`` holds a submission of the filter protocol (False for one
+    that cannot be read: the drivers' checks then say why)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return is_filter_submission(data)
 
 
 def check_filter_submission(

@@ -37,7 +37,7 @@ from saferace.experiments.filter_benchmark import (
     filter_run_words,
 )
 from saferace.experiments.filter_submission_checks import (
-    is_filter_submission,
+    is_filter_submission_file,
     read_filter_submission,
 )
 from saferace.experiments.filter_suite import FilterRunSpec, load_filter_suite
@@ -267,11 +267,7 @@ def replayable(path: Path, circuits: str | None = None) -> Replayable:
     """The submission in ``path``, checked, as a driver's or a filter's, its files checked
     to be those it was driven with (a filter submission's circuits read from ``circuits``,
     if given)."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        data = None  # the drivers' checks say why
-    if is_filter_submission(data):
+    if is_filter_submission_file(path):
         data = read_filter_submission(str(path), circuits=circuits)
         check_entry_files(data["replay"], str(path))
         filter_suite = load_filter_suite(data["filter_suite_version"])
