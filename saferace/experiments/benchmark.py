@@ -47,11 +47,10 @@ import math
 import os
 import platform
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -60,10 +59,8 @@ from saferace.errors import SafeRaceError
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.metrics import thinned_trajectory
-from saferace.eval.parallel import run_jobs
 from saferace.eval.runner import (
     EpisodeResult,
-    append_jsonl,
     git_revision,
     make_task_env,
     max_steps_for,
@@ -72,8 +69,8 @@ from saferace.eval.runner import (
     run_episode,
     standstill_words,
 )
+from saferace.experiments.journal import journaled_runs
 from saferace.experiments.replay_record import replay_faults, replay_record
-from saferace.progress import Progress
 from saferace.track import Track
 from saferace.version import __version__
 
@@ -381,48 +378,6 @@ def run_benchmark(
     result = submission(agent, rows, suite, replay)
     write_submission(out, result)
     return result
-
-
-def journaled_runs(
-    journal: Path,
-    done: list[dict],
-    wanted: list,
-    drive: Callable[..., dict],
-    job_of: Callable[[Any], tuple],
-    keyed: Callable[[dict, Any], dict],
-    words: Callable[[dict], str],
-    title: str,
-    how: tuple[int, str | None, bool],
-) -> list[dict]:
-    """The rows of the runs ``wanted`` (specs with a ``key``), in their order: those the
-    journal's rows ``done`` lack driven as ``drive(*job_of(spec))`` (the spec its job's
-    second item), each row ``keyed(row, spec)`` appended to ``journal`` as it arrives; ``how``:
-    the workers, the Ray address and whether a progress line shows."""
-    workers, ray_address, progress = how
-    finished = {row["key"] for row in done}
-    missing = [spec for spec in wanted if spec.key not in finished]
-
-    def keep(job: tuple, row: dict) -> None:
-        row = keyed(row, job[1])
-        append_jsonl(journal, row)
-        done.append(row)
-
-    def finished_words(key: str) -> str:
-        row = next((row for row in reversed(done) if row["key"] == key), None)
-        return "failed" if row is None else words(row)
-
-    with Progress(len(missing), title, "run", enabled=progress) as bar:
-        run_jobs(
-            drive,
-            [job_of(spec) for spec in missing],
-            keep,
-            workers=workers,
-            ray_address=ray_address,
-            advance=lambda job: bar.done(job[1].key, finished_words(job[1].key)),
-            describe=lambda job: job[1].key,
-        )
-    by_key = {row["key"]: row for row in done}
-    return [by_key[spec.key] for spec in wanted]
 
 
 def write_submission(out: Path, result: dict) -> None:

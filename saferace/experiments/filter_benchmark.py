@@ -30,12 +30,7 @@ from saferace.eval.runner import (
     run_episode,
     standstill_words,
 )
-from saferace.experiments.benchmark import (
-    episode_measurements,
-    journaled_runs,
-    provenance,
-    write_submission,
-)
+from saferace.experiments.benchmark import episode_measurements, provenance, write_submission
 from saferace.experiments.filter_suite import (
     Condition,
     FilterRunSpec,
@@ -44,6 +39,7 @@ from saferace.experiments.filter_suite import (
     load_filter_suite,
     scored_filter_run,
 )
+from saferace.experiments.journal import journaled_runs
 from saferace.experiments.replay_record import network_settings, vehicle_params_sha256
 from saferace.names import GENERIC_SOURCE
 from saferace.track import Track
