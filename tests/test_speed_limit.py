@@ -204,10 +204,13 @@ def test_lane_limit_settings_are_checked(cut_turn_limit):
 
 def test_the_filter_brakes_a_car_riding_the_centre_of_a_cut_turn(tmp_path: Path):
     """The speed barrier reads the car's offset: at the racing line's speed, the same car is
-    left alone on the line and braked at the centre, where the turn is tighter."""
+    left alone on the line and braked at the centre, where the turn is tighter. (The backup
+    plan is off: it brakes both, for an action that does not steer in a turn.)"""
     track_csv = tmp_path / "rounded_square.csv"
     rounded_square().to_csv(track_csv)
-    env = SafetyFilter(gym.make("saferace/RacingLine-v0", track=str(track_csv), max_laps=1))
+    env = SafetyFilter(
+        gym.make("saferace/RacingLine-v0", track=str(track_csv), max_laps=1), backup_plan=False
+    )
     reference = env.unwrapped.reference
     s = np.asarray(reference.center_s_m)
     kappa = np.abs(env.unwrapped.track.centerline.curvature(s))

@@ -9,9 +9,9 @@ import numpy as np
 from gymnasium.utils import RecordConstructorArgs
 
 #: Why the filter stopped trusting its state source in a step (``SafetyDecision.fallback``):
-#: the out-of-distribution monitor raised, no control satisfied the robust constraints, or
-#: the solver failed.
-FALLBACK_REASONS = ("", "alarm", "infeasible", "solver")
+#: the out-of-distribution monitor raised, no control satisfied the robust constraints, the
+#: solver failed, or braking back onto the line after the action would leave the lane.
+FALLBACK_REASONS = ("", "alarm", "infeasible", "solver", "backup")
 #: What acted in a step (``SafetyDecision.mode``): the constraints held on this frame's state
 #: (``certified``); they held on the last trusted state carried forward by odometry, this
 #: frame being in doubt (``propagated``; the predictive filter: its last certified plan's

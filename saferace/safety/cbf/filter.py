@@ -13,21 +13,20 @@ from gymnasium import spaces
 
 from saferace.names import SQUARED_SLACK
 from saferace.safety.cbf.arguments import check_filter_arguments
+from saferace.safety.cbf.backup import BackupPlan, PlanState
 from saferace.safety.cbf.barriers import (
     BARRIER_NAMES,
     BarrierContext,
     class_k_gains,
-    linearised_constraints,
 )
 from saferace.safety.cbf.chance import (
     ConstraintStatistics,
     confidence_quantile,
-    constraint_statistics,
     constraint_std,
-    spread_at_accel,
 )
 from saferace.safety.cbf.exact_penalty import solve_filter_qp_l1
 from saferace.safety.cbf.filter_map import SPEED_LIMIT_LATERAL_MPS2, FilterMap
+from saferace.safety.cbf.problem import lane_problem
 from saferace.safety.cbf.qp import FilterProblem, FilterSolution, solve_filter_qp
 from saferace.safety.decision import SafetyDecision, decision_mode, nominal_parts, record_args
 from saferace.safety.models import lane_model_states, param_values, symbolic_model
@@ -125,7 +124,11 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
     - ``width_preview_s`` takes the narrowest half width reached within that time, since a
       second-order barrier cannot see a narrowing coming; ``map_curvature`` takes the
       curvature from the map (a state network judges it worst, and a wrong curvature turns
-      the barriers' steering the wrong way).
+      the barriers' steering the wrong way);
+    - ``backup_plan`` sends an action only if braking back onto the reference line after it
+      keeps the car inside (:mod:`~saferace.safety.cbf.backup`), else the backup's own: the
+      barriers see the lane where the car is, and at a chicane's 7 m/s pushed it off the line
+      to where the tyres could not follow the bend (fallback ``"backup"``).
 
     Arguments: ``state_source`` (default: the oracle); ``model``: ``"kinematic"``, ``"dynamic"``
     or ``"dynamic-paper"``; ``lam``: the class-K gain (1/s) of every HOCBF order, or one per
@@ -175,6 +178,7 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
         slack_penalty: str = SQUARED_SLACK,
         opponent_noise_m: float = 0.0,
         estimate_steering_offset: bool = True,
+        backup_plan: bool = True,
     ) -> None:
         record_args(self, locals())
         check_filter_arguments(locals())
@@ -211,6 +215,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             self.track, base.reference, width_preview_s, speed_limit_factor, self.speed_gain
         )
         self.opponent_noise_m = opponent_noise_m
+        self.backup = BackupPlan(
+            self.track, base.reference, self.wheelbase_m, params.steer_time_constant_s,
+            float(self.upper[0]), self.half_width_m, self.control_dt_s,
+        ) if backup_plan else None  # fmt: skip
         self.opponents = tuple(base.traffic.names) if base.traffic is not None else ()
         self._noise_rng = np.random.default_rng()
         speed_names = ("speed",) if self.map.speed_limit else ()
@@ -338,6 +346,13 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             filtered = np.clip(self._solve(
                 states, lane[:, 2], u0, context, speed, [], nominal, spread, chance, lower, upper
             )[3].u, lower, upper)  # fmt: skip
+        if not fallback and trusted and self.backup is not None:  # in doubt: the set stops it
+            wheels = float(info.get("steer_angle_rad", u0[0]))
+            e_y, e_psi = map(float, lane.mean(axis=0)[:2])
+            at = PlanState(s_m, e_y, e_psi, v_x, wheels)
+            backup = self.backup.instead(at, filtered, float(state_upper[0] - state_lower[0]) / 2)
+            if backup is not None:
+                fallback, filtered = "backup", np.clip(backup, *self._action_box(v_x, -math.inf))
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         count = len(self.constraint_names)
         spread_at_u = np.zeros(count)
@@ -391,9 +406,10 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             tuple[FilterProblem, ConstraintStatistics | None, np.ndarray, FilterSolution] | None
         ) = None
         for _ in range(self.linearisation_passes):
-            problem, statistics, h = self._problem(
-                states, kappa, linearised_at, context, speed, nominal, spread, lower, upper, chance
-            )
+            problem, statistics, h = lane_problem(
+                self.model_name, self.param_values, states, kappa, linearised_at, context,
+                speed, nominal, spread, (lower, upper), self.k_err, self.z if chance else None,
+            )  # fmt: skip
             if cars:
                 rows = car_barriers.car_rows(
                     self.model_name, self.param_values, states.mean(axis=0),
@@ -412,45 +428,6 @@ class SafetyFilter(gym.Wrapper, gym.utils.RecordConstructorArgs):
             linearised_at = solution.u
         assert accepted is not None  # linearisation_passes >= 1, and the first pass is kept
         return (*accepted, solve_time)
-
-    def _problem(
-        self,
-        states: np.ndarray,
-        kappa: np.ndarray,
-        linearised_at: np.ndarray,
-        context: BarrierContext,
-        speed: tuple[np.ndarray, float, float] | None,
-        nominal: np.ndarray,
-        spread: np.ndarray,
-        lower: np.ndarray,
-        upper: np.ndarray,
-        chance: bool,
-    ) -> tuple[FilterProblem, ConstraintStatistics | None, np.ndarray]:
-        """The QP with the constraints linearised in the steering at ``linearised_at``, the
-        samples' statistics (``None`` if deterministic) and the barrier values. Robust: a
-        row per constraint and state point, all of which must hold."""
-        a, b, h = linearised_constraints(
-            self.model_name, self.param_values, states, kappa, linearised_at, context
-        )
-        if chance:
-            a, b = spread_at_accel(a, b, float(np.clip(nominal[1], lower[1], upper[1])))
-        statistics = constraint_statistics(a, b) if chance else None
-        if statistics is not None:
-            a_mean, b_mean, covariance = statistics.a_mean, statistics.b_mean, statistics.covariance
-        else:
-            a_mean, b_mean, covariance = a.reshape(-1, 2), b.ravel(), None
-        if speed is not None:
-            speed_row, speed_bound, speed_h = speed
-            a_mean = np.vstack([a_mean, speed_row])
-            b_mean = np.append(b_mean, speed_bound)
-            h = np.column_stack([h, np.full(len(h), speed_h)])
-            if covariance is not None:  # measured speed, the samples' lowest limit: no spread
-                covariance = np.concatenate([covariance, np.zeros((1, 3, 3))])
-        problem = FilterProblem(
-            u_mean=nominal, u_std=spread, a=a_mean, b=b_mean, lower=lower, upper=upper,
-            k_err=self.k_err, covariance=covariance, z=self.z if chance else 0.0,
-        )  # fmt: skip
-        return problem, statistics, h
 
     def _fallback_box(
         self,
