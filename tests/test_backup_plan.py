@@ -106,3 +106,14 @@ def test_the_expert_leaves_a_chicane_behind_the_barriers_alone_and_not_with_the_
         assert outside_s == 0.0 and result.summary["laps_completed"] == 1
     else:
         assert outside_s > 0.0
+
+
+def test_the_plan_turns_no_tighter_than_the_grip_whatever_the_wheels_ask(plan):
+    """At 6 m/s a hard lock and the steering at 7 m/s^2 of grip turn the car alike in the
+    plan: the kinematic bicycle would turn tighter, the tyres slide instead."""
+    at_grip = math.atan(7.0 * WHEELBASE_M / 6.0**2)
+    room = [
+        plan.clearance(PlanState(1.0, 0.0, 0.5, 6.0, -steer), (-steer, 0.0), 0.0)
+        for steer in (0.35, at_grip)
+    ]
+    assert room[0] == pytest.approx(room[1], abs=0.05)
