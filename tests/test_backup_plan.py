@@ -12,6 +12,7 @@ import pytest
 from saferace.eval.agents import make_agent
 from saferace.eval.filters import FilterConfig
 from saferace.eval.runner import make_task_env, run_episode
+from saferace.safety.cbf import backup
 from saferace.safety.cbf.backup import BACKUP_BRAKE_MPS2, BackupPlan, PlanState
 from saferace.safety.cbf.filter import SafetyFilter
 from saferace.track import Track
@@ -117,3 +118,19 @@ def test_the_plan_turns_no_tighter_than_the_grip_whatever_the_wheels_ask(plan):
         for steer in (0.35, at_grip)
     ]
     assert room[0] == pytest.approx(room[1], abs=0.05)
+
+
+def test_two_plan_steps_a_period_follow_a_chicane_as_forty_do(tmp_path, monkeypatch):
+    """At 6.5 m/s a plan step covers 16 cm, and the chicane's curvature swings across 3 m:
+    read where the step starts, the lane turns late in the plan, which then claims room the
+    car does not have (13 cm at the jog). Read mid-step, the plan keeps within 6 cm of a
+    fine one."""
+    track = Track.load(str(write_chicane(tmp_path / "chicane.csv")))
+
+    def room(substeps: int, s_m: float) -> float:
+        monkeypatch.setattr(backup, "SUBSTEPS", substeps)
+        plan = BackupPlan(track, center_line(track), WHEELBASE_M, 0.05, 0.35, HALF_WIDTH_M, 0.05)
+        return plan.clearance(PlanState(s_m, 0.0, 0.0, 6.5, 0.0), (0.0, 0.0), 0.0)
+
+    errors_m = [abs(room(2, s_m) - room(40, s_m)) for s_m in (24.0, 25.0, 26.0, 27.0, 28.0)]
+    assert max(errors_m) < 0.06

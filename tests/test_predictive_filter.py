@@ -12,6 +12,8 @@ import pytest
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.errors import ConfigError
 from saferace.eval.filters import FilterConfig, apply_filter
+from saferace.experiments.filter_benchmark import FilterEntry, drive_filter_run
+from saferace.experiments.filter_suite import FilterRunSpec, load_filter_suite
 from saferace.safety.predictive import filter as predictive
 from saferace.safety.predictive.filter import PredictiveSafetyFilter
 from saferace.safety.uncertainty.state_sources import true_lane_state
@@ -571,3 +573,14 @@ def test_a_braking_plan_tightens_the_lane_for_the_heading_at_its_first_speed(
     stage_s = planner.settings.dt_s * np.arange(1, len(ahead_m) + 1)
     expected = np.sin(0.3) * np.minimum(ahead_m, 0.2 * speed) + 0.05 * stage_s
     np.testing.assert_allclose(planner.tightening_m, expected, atol=1e-9)
+
+
+@pytest.mark.parametrize("driver", ["speeding", "expert"])
+def test_the_predictive_filter_keeps_its_distance_to_a_braking_car_ahead(driver: str):
+    """Its plan has no cars: the following barrier's bound on the acceleration keeps the
+    driver off the filter protocol's braking car on lab (the speeding driver ran into it
+    without the bound)."""
+    spec = FilterRunSpec(driver, "lab", "true", "braking")
+    row = drive_filter_run(FilterEntry("mpsf"), spec, load_filter_suite())
+    assert row["at_fault_collisions"] == 0 and row["time_outside_lane_s"] == 0.0
+    assert row["completion"] == 1.0

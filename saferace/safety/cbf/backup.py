@@ -138,7 +138,7 @@ class BackupPlan:
             else:
                 command, accel = self._steer(s, e_y, e_psi, v), -self.brake_mps2(v, wheels)
             wheels += (command - wheels) * follow
-            kappa = curvatures[i]
+            kappa = curvatures[self._at(s + 0.5 * v * dt)]  # mid-step: chicanes turn in 0.3 m
             s_dot = v * math.cos(e_psi) / max(1.0 - kappa * e_y, 0.05)
             s += s_dot * dt
             e_y += v * math.sin(e_psi) * dt

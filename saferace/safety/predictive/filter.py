@@ -21,6 +21,7 @@ from saferace.safety.cbf.filter import INTERVENTION_TOLERANCE, SafetyFilter
 from saferace.safety.cbf.filter_map import SPEED_LIMIT_LATERAL_MPS2
 from saferace.safety.decision import SafetyDecision, record_args
 from saferace.safety.predictive.plan import PREDICTIVE_HORIZON, PredictivePlanner
+from saferace.safety.traffic import car_barriers
 from saferace.safety.uncertainty.estimate import checked_action, estimate_state
 from saferace.safety.uncertainty.fallback import FALLBACK_BRAKE_MPS2, fallback_steer_rad
 from saferace.safety.uncertainty.state_sources import StateSource
@@ -56,7 +57,9 @@ class PredictiveSafetyFilter(SafetyFilter):
     (the MPSC fallback) while it lasts and the car is where that plan expects it
     (``TAIL_TOLERANCE``), or else the least-violating plan's first input, and after a failed
     solve it brakes steering the lane's curvature. Each such step counts in
-    ``fallbacks``.
+    ``fallbacks``. Its plan has no cars: behind an opponent in its line the acceleration is
+    held to the CBF filter's following barrier
+    (:func:`~saferace.safety.traffic.car_barriers.follow_bound_mps2`).
 
     Uncertainty: the state's interval (``mean +- z std`` of the samples at confidence
     ``eta``, or a calibrated source's own) tightens the lane by its offset half-width and
@@ -202,7 +205,15 @@ class PredictiveSafetyFilter(SafetyFilter):
             feedforward = math.atan(self.wheelbase_m * curvature)
             steer = fallback_steer_rad(feedforward, believed[:2])
             filtered = np.array([steer, -FALLBACK_BRAKE_MPS2])
-        filtered = np.clip(filtered, *self._action_box(v_x, -math.inf))
+        box = self._action_box(v_x, -math.inf)
+        filtered = np.clip(filtered, *box)
+        cars = car_barriers.opponent_predictions(
+            info.get("opponents", ()), self.track, s_m, self.opponent_noise_m, self._noise_rng
+        )
+        if cars:  # the plan has no cars: keep the following distance to one ahead
+            along_mps = car_barriers.along_track_mps(v_x, believed[1], curvature, believed[0])
+            follow = car_barriers.follow_bound_mps2(cars, float(believed[0]), along_mps)
+            filtered[1] = max(min(filtered[1], follow), box[0][1])
         u0 = np.clip(nominal, self.lower, self.upper)
         intervened = bool(np.any(np.abs(filtered - u0) > INTERVENTION_TOLERANCE))
         self.steps += 1

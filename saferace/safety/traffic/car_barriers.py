@@ -200,6 +200,16 @@ def _follow_row(ds: float, dy: float, v_o: float, along_mps: float) -> tuple[flo
     return min(bound, UNBOUNDED_ACCEL_MPS2), h
 
 
+def follow_bound_mps2(
+    predictions: Sequence[tuple[float, float, float]], e_y_m: float, along_mps: float
+) -> float:
+    """The tightest bound the opponents' following barriers put on the acceleration of an
+    ego at offset ``e_y_m`` going ``along_mps`` along the track (the predictive filter's
+    car rule: its plan has no cars)."""
+    bounds = (_follow_row(ds, e_y_m - e_y_o, v_o, along_mps)[0] for ds, e_y_o, v_o in predictions)
+    return min(bounds, default=UNBOUNDED_ACCEL_MPS2)
+
+
 def car_conflict(
     problem: FilterProblem, solution, car_rows: int, lane_rows: int, infeasible_slack: float
 ) -> bool:
