@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,9 +16,10 @@ import pytest
 import saferace  # noqa: F401  (registers the tasks)
 from saferace.cache import CACHE_VARIABLE
 from saferace.errors import SafeRaceError
-from saferace.eval.agents import RECKLESS_AGENT_NAMES
+from saferace.eval.agents import RECKLESS_AGENT_NAMES, make_agent
 from saferace.eval.filter_config import FilterConfig
 from saferace.eval.filters import apply_filter
+from saferace.eval.runner import make_task_env, run_episode
 from saferace.experiments.safety_table import RECKLESS_TASKS, filter_label, run_table
 from saferace.learning import perception
 from saferace.learning.agent import (
@@ -47,6 +49,7 @@ from saferace.learning.rounds import load_rounds
 from saferace.learning.training_data import network_data
 from saferace.learning.validation import predict_frames
 from saferace.names import TASKS
+from saferace.safety.cbf.filter import SafetyFilter
 from saferace.safety.uncertainty.conformal import (
     ConformalCalibration,
     conformal_quantile,
@@ -441,3 +444,65 @@ def test_the_monitor_raises_on_a_look_the_model_trained_on_but_was_not_calibrate
     other = next(look for look in TINY.looks if look != calibrated)
     assert alarms[frame_looks == other].mean() > 0.5
     assert alarms[frame_looks == calibrated].mean() < 0.1
+
+
+#: What a step's ``info`` knows that a car does not: where it is in the lane and in the
+#: world, and whether it is out. The map at its arc length and its odometry it may read.
+TRUTH_FIELDS = ("e_y_m", "e_psi_rad", "deviation_m", "reward_deviation", "cost")
+
+
+def blinded(info: dict) -> dict:
+    """``info`` with its truth unreadable: the lane state NaN, the exits unset, the pose
+    moved 100 m (the odometry's steps between poses, all the carried set reads of them,
+    are the same)."""
+    return (
+        info
+        | dict.fromkeys(TRUTH_FIELDS, math.nan)
+        | {
+            "outside_lane": None,
+            "fully_outside_lane": None,
+            "x_m": info["x_m"] + 100.0,
+            "y_m": info["y_m"] - 100.0,
+        }
+    )
+
+
+@pytest.mark.parametrize("kind", ["cbf", "mpsf"])
+def test_our_filters_fed_the_generic_model_decide_alike_with_the_truth_blinded(
+    quick_perception: Path, kind: str
+):
+    """Nothing of ours reads the truth in a perceived run (the filter protocol hands a
+    filter of one's own none): with every field of the truth unreadable in what our filter
+    is handed, it sends the same actions (to rounding), the perception's in-doubt carried set
+    included."""
+
+    def filtered_actions(blind: bool) -> list[list[float]]:
+        config = FilterConfig(kind=kind, state_source="generic:quick")
+        env = make_task_env("RacingLine", "lab", 1, config, 0, max_steps=80)
+        wrapper = env
+        while not isinstance(wrapper, SafetyFilter):
+            wrapper = wrapper.env
+        if blind:  # what certify and the carried set's start are handed
+            certify, start = wrapper.certify, wrapper.last_trusted.reset
+            wrapper.certify = lambda observation, info, *rest: certify(  # type: ignore[method-assign]
+                observation, blinded(info), *rest
+            )
+            wrapper.last_trusted.reset = lambda info=None: start(  # type: ignore[method-assign]
+                None if info is None else blinded(info)
+            )
+        actions: list[list[float]] = []
+        try:
+            run_episode(
+                env,
+                make_agent("weave", env, seed=0),
+                seed=0,
+                on_step=lambda obs, info, action: actions.append(info["safety"]["filtered_action"]),
+            )
+        finally:
+            env.close()
+        return actions
+
+    seen = filtered_actions(blind=False)
+    assert len(seen) == 80
+    # the moved pose rounds its last bits: the steps between poses differ by about 1e-14
+    np.testing.assert_allclose(filtered_actions(blind=True), seen, rtol=0.0, atol=1e-9)
