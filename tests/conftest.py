@@ -105,15 +105,25 @@ def uncalibrated_checkpoint(tiny_checkpoint, tmp_path: Path) -> Path:
 @pytest.fixture(scope="session")
 def honest_submission(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Pure pursuit's submission of the whole benchmark suite, as ``saferace benchmark``
-    writes it (about 30 s over two worker processes; its rows are the serial ones)."""
+    writes it (about 30 s over two worker processes; its rows are the serial ones). Made
+    once per test run: under ``pytest -n`` the workers share it (a worker's session fixture
+    is its own, and two workers made it twice, 75-120 s each, in ``make test``)."""
+    from filelock import FileLock
+
     from saferace.experiments.benchmark import run_benchmark
 
-    path = tmp_path_factory.mktemp("benchmark") / "pure_pursuit.json"
-    prebuilt = os.environ.get(PREBUILT_SUBMISSION_VARIABLE)
-    if prebuilt:
-        shutil.copyfile(prebuilt, path)
-    else:
-        run_benchmark("pure-pursuit", path, workers=2, progress=False)
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent  # this run's, one folder above each worker's own
+    path = shared / "honest_benchmark" / "pure_pursuit.json"
+    path.parent.mkdir(exist_ok=True)
+    with FileLock(str(path.parent / "lock")):
+        if not path.is_file():
+            prebuilt = os.environ.get(PREBUILT_SUBMISSION_VARIABLE)
+            if prebuilt:
+                shutil.copyfile(prebuilt, path)
+            else:
+                run_benchmark("pure-pursuit", path, workers=2, progress=False)
     return path
 
 
